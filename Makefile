@@ -1,0 +1,31 @@
+# Two entry points (see README): `make demo` and `make test`.
+# Both create .venv with Python >= 3.12 (pyenv picks 3.12.1 from .python-version) and install ambfit.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test install data clean
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 12) else "ambfit needs Python >= 3.12; found " + sys.version.split()[0] + " (install 3.12 or set PYTHON=python3.12)")'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	@mkdir -p reports/demo
+	$(BIN)/ambfit identify data/paper_table2.csv --method closed-form --by experiment --json reports/demo/identify.json
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+# Regenerates the bundled default data (the command is also recorded in data/README.md).
+data: $(STAMP)
+	$(BIN)/ambfit origin-search --iterations 10 --seed 2 --experiment table2 --out data/paper_table2.csv --json data/paper_table2.search.json --truth data/paper_table2.truth.json
+
+clean:
+	rm -rf $(VENV) .pytest_cache reports/demo

@@ -1,0 +1,232 @@
+"""The ``ambfit`` command line: simulate, identify, origin-search.
+
+Thin by design: it parses options (units in their names and help), calls the
+public API and writes files.  Errors in the data or the fit end in a one-line
+message and a non-zero exit code, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tomllib
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+app = typer.Typer(
+    help="Identify active magnetic bearing parameters (effective gap, origin, force constant) from "
+    "current-position perturbation data, and simulate a virtual test rig.",
+    no_args_is_help=True, add_completion=False,
+)
+# Wide enough for the identification tables when output is piped (CI logs, files).
+console = Console(width=None if sys.stdout.isatty() else 140)
+err = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
+
+
+def _fail(msg: str, code: int = 2):
+    err.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def _parse_effect(text: str):
+    """``NAME`` or ``NAME:param=value,param=value`` (SI units) -> Effect."""
+    from ambfit.effects import effect_by_name
+
+    name, _, rest = text.partition(":")
+    params = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, val = item.partition("=")
+        if not sep:
+            raise ValueError(f"effect option {text!r}: expected param=value, got {item!r}")
+        params[key.strip()] = float(val)
+    return effect_by_name(name.strip(), **params)
+
+
+def _pair(text: str | None, scale: float):
+    if text is None:
+        return None
+    parts = [float(p) * scale for p in text.split(",")]
+    if len(parts) == 1:
+        parts = parts * 2
+    if len(parts) != 2:
+        raise ValueError(f"expected one value or 'v,w', got {text!r}")
+    return tuple(parts)
+
+
+class Preset(str, Enum):
+    table2 = "table2"
+    rich = "rich"
+    perturbation = "perturbation"
+
+
+@app.command()
+def simulate(
+    out: Annotated[Path, typer.Option("--out", "-o", help="CSV file to write (contract format).")],
+    preset: Annotated[Preset, typer.Option(help="Protocol: 'table2' (paper's Table 2: 1.4/1.6 A, ±20 µm, "
+                                           "10 iterations), 'rich' (biases 1.0-1.6 A up and down, "
+                                           "±40 µm, four known loads), or 'perturbation' (built from "
+                                           "--biases-a/--offsets-um/--center-um/--iterations).")] = Preset.table2,
+    protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset); "
+                                                   "see ambfit.protocol.from_dict.")] = None,
+    biases_a: Annotated[str, typer.Option("--biases-a", help="Bias currents [A], comma separated.")] = "1.4,1.6",
+    offsets_um: Annotated[str, typer.Option(help="Symmetric position offsets [µm], comma separated.")] = "20",
+    center_um: Annotated[str, typer.Option(help="Centre of the position pairs 'v,w' [µm].")] = "0,0",
+    iterations: Annotated[int, typer.Option(help="Repetitions of the perturbation.")] = 10,
+    effect: Annotated[list[str] | None, typer.Option(
+        help="Unmodelled effect the rig applies, 'NAME' or 'NAME:param=value,...' in SI units "
+             "(repeatable). Names: saturation, iron_reluctance, fringing, leakage, current_offset, "
+             "current_gain, position_gain, cross_coupling, hysteresis, thermal_drift.")] = None,
+    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Std of each recorded "
+                                                    "current [mA].")] = 0.6,
+    position_noise_um: Annotated[float, typer.Option(help="Std of each recorded position [µm].")] = 0.1,
+    gap_um: Annotated[str | None, typer.Option(help="True effective gaps 'v,w' [µm] (default: 775,763).")] = None,
+    origin_um: Annotated[str | None, typer.Option(help="True origins 'v,w' [µm] (default: 33.3,-11.3).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
+    truth: Annotated[Path | None, typer.Option(help="Also write the truth (parameters, effects, noise) "
+                                               "as JSON here.")] = None,
+):
+    """Simulate a perturbation experiment on the virtual rig and write contract CSV."""
+    from ambfit import data as data_mod
+    from ambfit import protocol as proto_mod
+    from ambfit import rig
+
+    try:
+        effects = [_parse_effect(e) for e in (effect or [])]
+        spec = rig.PAPER_RIG.with_truth(g0=_pair(gap_um, 1e-6), x0=_pair(origin_um, 1e-6))
+        if protocol is not None:
+            with open(protocol, "rb") as f:
+                proto = proto_mod.from_dict(tomllib.load(f))
+        elif preset is Preset.table2:
+            proto = proto_mod.paper_table2(iterations)
+        elif preset is Preset.rich:
+            proto = proto_mod.rich()
+        else:
+            proto = proto_mod.perturbation(
+                [float(b) for b in biases_a.split(",")], [float(o) * 1e-6 for o in offsets_um.split(",")],
+                center=_pair(center_um, 1e-6), iterations=iterations)
+        sim = rig.simulate(spec, proto, effects, rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6),
+                           seed=seed)
+    except (ValueError, OSError, tomllib.TOMLDecodeError, rig.RigError) as exc:
+        _fail(str(exc))
+    data_mod.write_csv(sim.data, out)
+    if truth is not None:
+        rig.write_truth(sim.truth, truth)
+    console.print(f"wrote {len(sim.data)} rows to {out}")
+
+
+class Method(str, Enum):
+    closed_form = "closed-form"
+
+
+class By(str, Enum):
+    none = "none"
+    experiment = "experiment"
+
+
+def _closed_form_table(result, title: str) -> Table:
+    t = Table(title=title)
+    for col in ("experiment", "axis", "iterations", "gap [µm]", "origin [µm]", "k [N·m²/A²]", "rejected"):
+        t.add_column(col, justify="right" if col not in ("experiment", "axis") else "left")
+    def pm(v, s, fmt):
+        return f"{v:{fmt}} ± {s:{fmt}}" if s == s else f"{v:{fmt}}"
+    for (exp, ax), e in result.estimates.items():
+        k = pm(e.k, e.k_sem, ".3e") if e.k == e.k else "–"
+        t.add_row(exp, ax, str(e.n), pm(e.g0 * 1e6, e.g0_sem * 1e6, ".2f"), pm(e.x0 * 1e6, e.x0_sem * 1e6, ".2f"),
+                  k, str(len(e.rejected)))
+    return t
+
+
+@app.command()
+def identify(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    method: Annotated[Method, typer.Option(help="Estimator: 'closed-form' (the paper's Eq. 5-7 per "
+                                           "iteration, averaged).")] = Method.closed_form,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON here.")] = None,
+    by: Annotated[By, typer.Option(help="'experiment': one estimate per experiment (like the paper's "
+                                   "tables); 'none': pool all iterations.")] = By.none,
+    max_position_um: Annotated[float, typer.Option(help="Reject positions at least this large [µm] "
+                                                   "(unit check).")] = 762.0,
+):
+    """Identify effective gap, origin (and k when loads are known) for each axis.
+
+    Values are the mean over iterations ± the standard error of that mean.
+    """
+    from ambfit import closed_form
+    from ambfit.data import DataError, read_csv
+
+    try:
+        ds = read_csv(data, max_position_um=max_position_um)
+        result = closed_form.identify(ds, by_experiment=by is By.experiment)
+    except (DataError, closed_form.ClosedFormError) as exc:
+        _fail(str(exc))
+    console.print(_closed_form_table(result, f"closed form (Eq. 5-7), {data.name}, {result.n_rows} rows"))
+    for (exp, ax), e in result.estimates.items():
+        for it, why in e.rejected.items():
+            err.print(f"[yellow]rejected[/] {exp}/{ax} iteration {it}: {why}", highlight=False)
+    if json_out is not None:
+        with open(json_out, "w") as f:
+            json.dump(result.to_json(), f, indent=2)
+        console.print(f"wrote {json_out}")
+
+
+@app.command("origin-search")
+def origin_search(
+    biases_a: Annotated[str, typer.Option("--biases-a", help="The two bias currents [A].")] = "1.4,1.6",
+    offset_um: Annotated[float, typer.Option(help="Half-distance of the symmetric position pair [µm].")] = 20.0,
+    start_um: Annotated[str, typer.Option(help="Initial set-point centre 'v,w' [µm].")] = "0,0",
+    tolerance_um: Annotated[float, typer.Option(help="Converged when both effective offsets are below "
+                                                "this [µm].")] = 1.0,
+    iterations: Annotated[int, typer.Option(help="Largest number of iterations.")] = 10,
+    stop_at_tolerance: Annotated[bool, typer.Option(help="Stop once converged instead of running all "
+                                                    "iterations.")] = False,
+    effect: Annotated[list[str] | None, typer.Option(help="Unmodelled effect on the rig (see simulate).")] = None,
+    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Current noise std [mA].")] = 0.6,
+    position_noise_um: Annotated[float, typer.Option(help="Position noise std [µm].")] = 0.1,
+    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    experiment: Annotated[str, typer.Option(help="Experiment label written to the data.")] = "origin_search",
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Write all readings as contract CSV.")] = None,
+    truth: Annotated[Path | None, typer.Option(help="Write the rig's truth as JSON here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the trajectory as JSON.")] = None,
+):
+    """Run the paper's effective-origin search on the virtual rig and print its trajectory."""
+    from ambfit import data as data_mod
+    from ambfit import origin, rig
+
+    try:
+        res = origin.search(
+            rig.PAPER_RIG, biases=tuple(float(b) for b in biases_a.split(",")), offset=offset_um * 1e-6,
+            start=_pair(start_um, 1e-6), tolerance=tolerance_um * 1e-6, iterations=iterations,
+            run_all=not stop_at_tolerance, effects=[_parse_effect(e) for e in (effect or [])],
+            noise=rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6), seed=seed, experiment=experiment)
+    except (ValueError, rig.RigError) as exc:
+        _fail(str(exc))
+    t = Table(title=f"effective-origin search ({'converged at iteration ' + str(res.converged_at) if res.converged else 'not converged'})")
+    for col in ("it", "v centre", "v offset", "g_v0", "w centre", "w offset", "g_w0"):
+        t.add_column(col + (" [µm]" if col != "it" else ""), justify="right")
+    for j in range(res.n_iterations):
+        t.add_row(str(j + 1), *(f"{a * 1e6:.2f}" for a in (res.centers[j, 0], res.offsets[j, 0], res.g0[j, 0],
+                                                           res.centers[j, 1], res.offsets[j, 1], res.g0[j, 1])))
+    console.print(t)
+    if out is not None:
+        data_mod.write_csv(res.data, out)
+        console.print(f"wrote {len(res.data)} rows to {out}")
+    if json_out is not None:
+        with open(json_out, "w") as f:
+            json.dump(res.to_json(), f, indent=2)
+    if truth is not None:
+        rig.write_truth(res.truth, truth)
+    if not res.converged:
+        raise typer.Exit(1)
+
+
+def main():  # pragma: no cover - entry point
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

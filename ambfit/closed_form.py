@@ -1,0 +1,341 @@
+"""The paper's closed form (Eq. 5-7): gap and origin from current-position perturbations.
+
+At one rotor position ``x`` the same (unknown) load is carried at two bias
+settings 1 and 2, so the gaps cancel out of Eq. 4's difference (Eq. 5) and::
+
+    P = (g0 - (x0 + x) c) / (g0 + (x0 + x) c) = sqrt((i_t1^2 - i_t2^2) / (i_b1^2 - i_b2^2))   (Eq. 6)
+
+with ``c = cos(alpha)``.  Each position gives one equation linear in
+``X = (g0, x0 c)``::
+
+    (1 - P) g0 - (1 + P) x0 c = (1 + P) x c                                                  (Eq. 7)
+
+Two positions (the paper's symmetric pair ``±x1``) give the 2x2 system ``A X = C``
+(the paper prints ``C`` with ``cos(theta)`` where ``x cos(alpha)`` is meant); more
+positions are solved in the least-squares sense.  Neither the load nor ``k`` is
+needed; with known loads ``k`` follows from Eq. 4 at the solution (the paper's
+lamination-coefficient calibration).
+
+:func:`solve` is the single-iteration solver; :func:`identify` groups a data set by
+experiment, iteration and axis, solves each iteration and reports the mean and its
+standard error as the paper's tables do.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pandas as pd
+
+from ambfit.data import Dataset
+from ambfit.model import ALPHA_DEFAULT, AXES
+
+POSITION_TOLERANCE = 2e-6
+"""Readings whose own-axis positions differ by less than this [m] count as one position."""
+
+MAX_CONDITION = 1e10
+"""Systems with a larger condition number are reported as singular."""
+
+
+class ClosedFormError(ValueError):
+    """Eq. 5-7 cannot be solved for these readings; the message says why."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """The closed-form solution of one iteration on one axis (SI units).
+
+    Attributes
+    ----------
+    g0, x0 : float
+        Effective gap and origin [m].
+    k : float
+        Force constant [N m^2/A^2] from the known loads, NaN when none is known.
+    positions : array[p]
+        Own-axis positions [m] (mean of the readings at each position).
+    biases : tuple[float, float]
+        The two bias settings [A].
+    ratios : array[p]
+        Eq. 6's ``P`` at each position.
+    condition : float
+        2-norm condition number of Eq. 7's matrix ``A``.
+    """
+
+    g0: float
+    x0: float
+    k: float
+    positions: np.ndarray
+    biases: tuple[float, float]
+    ratios: np.ndarray
+    condition: float
+
+
+def ratio(i_top_1, i_bottom_1, i_top_2, i_bottom_2) -> float:
+    """Eq. 6's ratio ``P = sqrt((i_t1^2 - i_t2^2) / (i_b1^2 - i_b2^2))`` at one position.
+
+    Raises :class:`ClosedFormError` when the radicand is not positive and finite.
+    """
+    num = i_top_1**2 - i_top_2**2
+    den = i_bottom_1**2 - i_bottom_2**2
+    if den == 0.0 or num == 0.0:
+        raise ClosedFormError(
+            f"the two bias settings give equal {'bottom' if den == 0.0 else 'top'} currents "
+            f"(i_top {i_top_1:.6g}/{i_top_2:.6g} A, i_bottom {i_bottom_1:.6g}/{i_bottom_2:.6g} A): "
+            "Eq. 6 needs two different biases")
+    rad = num / den
+    if not (math.isfinite(rad) and rad > 0.0):
+        raise ClosedFormError(
+            f"Eq. 6 radicand (i_t1^2 - i_t2^2)/(i_b1^2 - i_b2^2) = {num:.6g}/{den:.6g} = {rad:.6g} is not positive: "
+            "top and bottom currents did not move the same way between the two biases (noise larger than the "
+            "bias step, a changed load, or a clipped coil)")
+    return math.sqrt(rad)
+
+
+def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None, alpha: float = ALPHA_DEFAULT) -> Solution:
+    """Eq. 6-7 for one iteration of one axis.
+
+    Parameters
+    ----------
+    positions : array[p]
+        Own-axis rotor positions [m], ``p >= 2`` distinct values.
+    i_top, i_bottom : array[p, 2]
+        Coil currents [A] at each position for bias settings 1 and 2.
+    biases : tuple[float, float]
+        The two bias settings [A] (recorded only).
+    loads : array[p, 2], optional
+        Known loads [N] of the readings (NaN where unknown) to calibrate ``k``.
+    alpha : float
+        Pole angle [rad].
+
+    """
+    x = np.asarray(positions, dtype=float)
+    it = np.asarray(i_top, dtype=float).reshape(len(x), 2)
+    ib = np.asarray(i_bottom, dtype=float).reshape(len(x), 2)
+    if len(x) < 2:
+        raise ClosedFormError(f"Eq. 7 needs two positions, got {len(x)}")
+    sep = float(np.min(np.diff(np.sort(x))))
+    if sep < POSITION_TOLERANCE:
+        raise ClosedFormError(
+            f"two positions coincide ({sep * 1e6:.3g} µm apart): Eq. 7 becomes singular; use distinct set-points")
+    c = math.cos(alpha)
+    p = np.array([ratio(it[j, 0], ib[j, 0], it[j, 1], ib[j, 1]) for j in range(len(x))])
+    a = np.stack([1.0 - p, -(1.0 + p)], axis=1)
+    rhs = (1.0 + p) * x * c
+    sv = np.linalg.svd(a, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    if not cond < MAX_CONDITION:
+        raise ClosedFormError(f"Eq. 7's matrix is singular (condition number {cond:.3g}); the ratios P "
+                              f"{p.tolist()} do not separate gap and origin")
+    sol = np.linalg.solve(a, rhs) if len(x) == 2 else np.linalg.lstsq(a, rhs, rcond=None)[0]
+    g0, x0 = float(sol[0]), float(sol[1] / c)
+    u = (x0 + x) * c
+    if not (g0 > 0 and np.all(np.abs(u) < g0)):
+        raise ClosedFormError(f"non-physical solution g0 = {g0 * 1e6:.4g} µm, x0 = {x0 * 1e6:.4g} µm: "
+                              "a pole gap would be closed at the measured positions")
+    k = math.nan
+    if loads is not None:
+        f = np.asarray(loads, dtype=float).reshape(len(x), 2)
+        unit = it**2 / (g0 - u[:, None]) ** 2 - ib**2 / (g0 + u[:, None]) ** 2
+        ok = np.isfinite(f) & (np.abs(unit) > 0)
+        if ok.any():
+            # Least squares through the origin: F = k * unit.
+            k = float(np.sum(f[ok] * unit[ok]) / np.sum(unit[ok] ** 2))
+    return Solution(g0=g0, x0=x0, k=k, positions=x, biases=tuple(float(b) for b in biases), ratios=p, condition=cond)
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisEstimate:
+    """Mean over iterations of one axis' closed-form solutions (SI units).
+
+    ``*_sem`` is the standard error of the mean (std / sqrt(n), NaN for n < 2);
+    ``*_std`` the iteration-to-iteration scatter.  ``iterations`` holds the
+    per-iteration :class:`Solution` records (for plots), ``rejected`` the
+    iterations that could not be solved and why.
+    """
+
+    axis: str
+    experiment: str
+    g0: float
+    g0_sem: float
+    g0_std: float
+    x0: float
+    x0_sem: float
+    x0_std: float
+    k: float
+    k_sem: float
+    iterations: dict
+    rejected: dict
+
+    @property
+    def n(self) -> int:
+        return len(self.iterations)
+
+
+def _mean_sem(values):
+    v = np.asarray([a for a in values if np.isfinite(a)], dtype=float)
+    if v.size == 0:
+        return math.nan, math.nan, math.nan
+    std = float(np.std(v, ddof=1)) if v.size > 1 else math.nan
+    return float(np.mean(v)), std / math.sqrt(v.size) if v.size > 1 else math.nan, std
+
+
+def _cluster_positions(x: np.ndarray, tol: float) -> np.ndarray:
+    order = np.argsort(x)
+    labels = np.empty(len(x), dtype=int)
+    lab, last = 0, None
+    for j in order:
+        if last is not None and x[j] - last > tol:
+            lab += 1
+        labels[j] = lab
+        last = x[j]
+    return labels
+
+
+def solve_rows(df: pd.DataFrame, *, alpha: float = ALPHA_DEFAULT) -> Solution:
+    """Solve one iteration of one axis from its contract rows (see :func:`solve`).
+
+    Positions are grouped by the own-axis set-point column when present, else by
+    clustering the measured positions within ``POSITION_TOLERANCE``; replicated
+    readings at one position and bias are averaged.
+    """
+    axis = df["axis"].iloc[0]
+    own = f"{axis}_um"
+    set_col = f"{axis}_set_um"
+    if set_col in df.columns and df[set_col].notna().all():
+        labels = _cluster_positions(df[set_col].to_numpy(float) * 1e-6, 1e-9)
+    else:
+        labels = _cluster_positions(df[own].to_numpy(float) * 1e-6, POSITION_TOLERANCE)
+    biases = np.unique(df["bias_A"].to_numpy(float))
+    if len(biases) != 2:
+        raise ClosedFormError(f"Eq. 6 needs exactly two bias settings per iteration, found {biases.tolist()} A")
+    xs, it, ib, loads = [], [], [], []
+    for lab in np.unique(labels):
+        sub = df[labels == lab]
+        row_t, row_b, row_l = [], [], []
+        for b in biases:
+            s = sub[sub["bias_A"] == b]
+            if s.empty:
+                raise ClosedFormError(
+                    f"position {sub[own].mean():.4g} µm has no reading at bias {b:g} A: each position needs both biases")
+            row_t.append(s["i_top_A"].mean())
+            row_b.append(s["i_bottom_A"].mean())
+            row_l.append(s["load_N"].mean() if "load_N" in s.columns else math.nan)
+        if "load_id" in sub.columns and sub["load_id"].nunique() > 1:
+            raise ClosedFormError(f"position {sub[own].mean():.4g} µm: the two biases carry different loads "
+                                  f"{sorted(sub['load_id'].unique().tolist())}; Eq. 5 needs the same load")
+        xs.append(sub[own].mean() * 1e-6)
+        it.append(row_t)
+        ib.append(row_b)
+        loads.append(row_l)
+    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), alpha=alpha)
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosedFormResult:
+    """Closed-form identification of a data set: one :class:`AxisEstimate` per (experiment, axis)."""
+
+    estimates: dict  # {(experiment, axis): AxisEstimate}
+    n_rows: int
+    by_experiment: bool
+
+    def params(self, experiment: str = "all") -> dict:
+        """Contract parameter block (µm, N m^2/A^2) for one experiment key."""
+        out = {}
+        names = {"v": ("g_v0_um", "v0_um", "k_v_Nm2_per_A2"), "w": ("g_w0_um", "w0_um", "k_w_Nm2_per_A2")}
+        for ax in AXES:
+            est = self.estimates.get((experiment, ax))
+            if est is None or est.n == 0:
+                continue
+            gn, xn, kn = names[ax]
+            out[gn] = {"value": est.g0 * 1e6, "std": _none(est.g0_sem * 1e6)}
+            out[xn] = {"value": est.x0 * 1e6, "std": _none(est.x0_sem * 1e6)}
+            if np.isfinite(est.k):
+                out[kn] = {"value": est.k, "std": _none(est.k_sem)}
+        return out
+
+    def to_json(self) -> dict:
+        """The contract section 2 record (plus per-axis detail)."""
+        keys = sorted({e for e, _ in self.estimates})
+        main = "all" if "all" in keys else keys[0]
+        detail = {}
+        for (exp, ax), est in self.estimates.items():
+            detail.setdefault(exp, {})[ax] = {
+                "n_iterations": est.n,
+                "g0_scatter_um": _none(est.g0_std * 1e6),
+                "x0_scatter_um": _none(est.x0_std * 1e6),
+                "iterations": {str(i): {"g0_um": s.g0 * 1e6, "x0_um": s.x0 * 1e6, "condition": s.condition,
+                                         "ratios": s.ratios.tolist()} for i, s in est.iterations.items()},
+                "rejected": {str(i): r for i, r in est.rejected.items()},
+            }
+        out = {
+            "method": "closed_form",
+            "params": self.params(main),
+            "converged": all(e.n > 0 for e in self.estimates.values()),
+            "n_rows": self.n_rows,
+            "std_meaning": "standard error of the mean over iterations (null with one iteration)",
+            "detail": detail,
+        }
+        if self.by_experiment:
+            out["experiments"] = {k: self.params(k) for k in keys}
+        return out
+
+
+def _none(x):
+    return None if not np.isfinite(x) else float(x)
+
+
+def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False, alpha: float = ALPHA_DEFAULT) -> ClosedFormResult:
+    """Closed-form identification of every iteration, averaged as in the paper's tables.
+
+    Iterations are the (``experiment``, ``iteration``) groups of each axis (a file
+    without these columns is one iteration).  With ``by_experiment`` each experiment
+    gets its own estimate; otherwise all iterations are pooled under ``"all"``.
+    An iteration that cannot be solved is listed in ``rejected`` with the reason.
+
+    Raises
+    ------
+    ClosedFormError
+        When no iteration of an axis can be solved (the reasons are listed).
+
+    Examples
+    --------
+    >>> from ambfit import rig, protocol
+    >>> sim = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(iterations=1), noise=rig.NOISE_FREE)
+    >>> est = identify(sim.data).estimates[("all", "v")]
+    >>> round(est.g0 * 1e6, 6), round(est.x0 * 1e6, 6)
+    (775.0, 33.3)
+    """
+    df = (data.frame if isinstance(data, Dataset) else data).copy()
+    if "experiment" not in df.columns:
+        df["experiment"] = "all"
+    if "iteration" not in df.columns:
+        df["iteration"] = 1
+    df["experiment"] = df["experiment"].astype(str)
+    df["_it"] = pd.to_numeric(df["iteration"], errors="coerce").fillna(1).astype(int)
+    estimates = {}
+    exp_keys = list(dict.fromkeys(df["experiment"])) if by_experiment else ["all"]
+    for exp in exp_keys:
+        sub_e = df if exp == "all" and not by_experiment else df[df["experiment"] == exp]
+        for ax in AXES:
+            sub = sub_e[sub_e["axis"] == ax]
+            if sub.empty:
+                continue
+            sols, rejected = {}, {}
+            for (e, i), grp in sub.groupby(["experiment", "_it"], sort=False):
+                key = f"{e}:{i}" if not by_experiment else i
+                try:
+                    sols[key] = solve_rows(grp, alpha=alpha)
+                except ClosedFormError as exc:
+                    rejected[key] = str(exc)
+            if not sols:
+                reasons = "; ".join(f"iteration {k}: {r}" for k, r in list(rejected.items())[:3])
+                raise ClosedFormError(f"axis {ax}, experiment {exp}: no iteration could be solved ({reasons})")
+            g = _mean_sem([s.g0 for s in sols.values()])
+            x = _mean_sem([s.x0 for s in sols.values()])
+            k = _mean_sem([s.k for s in sols.values()])
+            estimates[(exp, ax)] = AxisEstimate(
+                axis=ax, experiment=exp, g0=g[0], g0_sem=g[1], g0_std=g[2], x0=x[0], x0_sem=x[1], x0_std=x[2],
+                k=k[0], k_sem=k[1], iterations=sols, rejected=rejected)
+    return ClosedFormResult(estimates=estimates, n_rows=len(df), by_experiment=by_experiment)

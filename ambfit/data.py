@@ -1,0 +1,249 @@
+"""Reading, checking and writing perturbation data in the contract's CSV format.
+
+``DATA-CONTRACT.md`` section 1 defines the columns.  :func:`read_csv` checks every
+row where the data enter and raises :class:`DataError` naming the file, row,
+column and offending value; it keeps extra columns untouched so that
+:func:`write_csv` writes back everything it read.  :func:`readings` turns a
+checked table into SI arrays for the model.
+
+Rows are numbered from 1 for the first data row; the CSV line is one more
+(the header is line 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+REQUIRED = ("axis", "bias_A", "i_top_A", "i_bottom_A", "v_um", "w_um")
+"""Columns every data file must have."""
+
+NUMERIC_OPTIONAL = (
+    "load_N", "v_set_um", "w_set_um", "time_s", "temperature_C",
+    "i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um",
+)
+"""Optional numeric columns; an empty cell means 'not known'."""
+
+LABELS = ("load_id", "experiment")
+CURRENTS = ("bias_A", "i_top_A", "i_bottom_A")
+STD_COLUMNS = ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")
+
+DEFAULT_MAX_POSITION_UM = 762.0
+"""Positions at least this large [µm] are rejected as 'as large as the gap' (the paper's nominal gap)."""
+
+
+class DataError(ValueError):
+    """Bad input data: names the file, the row, the column and the value.
+
+    Attributes
+    ----------
+    file, row, column, value :
+        Where the problem is (``row`` counts data rows from 1; None when the
+        problem is not tied to one row).
+    """
+
+    def __init__(self, reason: str, *, file=None, row: int | None = None, column: str | None = None, value=None):
+        self.file, self.row, self.column, self.value, self.reason = file, row, column, value, reason
+        where = [str(file) if file is not None else "<data>"]
+        if row is not None:
+            where.append(f"row {row} (line {row + 1})")
+        if column is not None:
+            where.append(f"column {column!r}")
+        if value is not None:
+            where.append(f"value {value!r}")
+        super().__init__(", ".join(where) + ": " + reason)
+
+
+@dataclasses.dataclass(frozen=True)
+class Dataset:
+    """A checked data table and where it came from.
+
+    ``frame`` holds the contract's numeric columns as floats (NaN where a cell was
+    empty) and every other column exactly as read (strings).
+    """
+
+    frame: pd.DataFrame
+    source: str = "<memory>"
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+def _fail(reason, source, row=None, column=None, value=None):
+    raise DataError(reason, file=source, row=None if row is None else int(row) + 1, column=column, value=value)
+
+
+def read_csv(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_POSITION_UM) -> Dataset:
+    """Read and check a contract CSV file.
+
+    Parameters
+    ----------
+    path : path-like
+    max_position_um : float
+        Positions of at least this magnitude [µm] are rejected (likely a unit error).
+
+    Raises
+    ------
+    DataError
+        On any of the contract's error cases, naming file, row, column and value.
+    """
+    source = str(path)
+    p = Path(path)
+    if not p.is_file():
+        raise DataError("no such file", file=source)
+    try:
+        with open(p, newline="") as f:
+            header = next(csv.reader(f), None)
+    except UnicodeDecodeError as exc:
+        raise DataError(f"not a UTF-8 text file ({exc.reason})", file=source) from None
+    if not header:
+        raise DataError("the file is empty (no header line)", file=source)
+    dupes = sorted({c for c in header if header.count(c) > 1})
+    if dupes:
+        raise DataError(f"duplicate column name(s) {dupes} in the header", file=source, row=None)
+    try:
+        raw = pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True)
+    except (pd.errors.ParserError, ValueError) as exc:
+        raise DataError(f"not a valid CSV table: {exc}", file=source) from None
+    return check(raw, source=source, max_position_um=max_position_um)
+
+
+def check(raw: pd.DataFrame, *, source: str = "<memory>", max_position_um: float = DEFAULT_MAX_POSITION_UM) -> Dataset:
+    """Check a table (cells as strings or numbers) against the contract; see :func:`read_csv`."""
+    missing = [c for c in REQUIRED if c not in raw.columns]
+    if missing:
+        raise DataError(f"missing required column(s) {missing}; the file has {list(raw.columns)}", file=source)
+    if len(raw) == 0:
+        raise DataError("the file has a header but no data rows", file=source)
+    df = raw.copy()
+    df["axis"] = df["axis"].astype(str).str.strip()
+    bad = ~df["axis"].isin(("v", "w"))
+    if bad.any():
+        r = int(np.argmax(bad.to_numpy()))
+        _fail("unknown axis; valid axes are 'v' and 'w'", source, r, "axis", df["axis"].iloc[r])
+
+    for col in REQUIRED[1:] + tuple(c for c in NUMERIC_OPTIONAL if c in df.columns):
+        text = df[col].astype(str).str.strip()
+        empty = text.eq("") | text.str.lower().isin(("nan", "na", "none"))
+        if col in REQUIRED and empty.any():
+            r = int(np.argmax(empty.to_numpy()))
+            _fail("empty cell in a required column", source, r, col, df[col].iloc[r])
+        num = pd.to_numeric(text.where(~empty, None), errors="coerce").astype(float)
+        bad = (~empty) & ~np.isfinite(num)
+        if bad.any():
+            r = int(np.argmax(bad.to_numpy()))
+            _fail("not a finite number", source, r, col, df[col].iloc[r])
+        df[col] = num
+
+    for col in CURRENTS:
+        neg = df[col] < 0
+        if neg.any():
+            r = int(np.argmax(neg.to_numpy()))
+            _fail("negative current; coil currents and biases cannot be negative", source, r, col, df[col].iloc[r])
+    for col in STD_COLUMNS:
+        if col in df.columns:
+            neg = df[col] <= 0
+            if neg.any():
+                r = int(np.argmax(neg.to_numpy()))
+                _fail("a standard error must be positive (leave the cell empty when it is not known)",
+                      source, r, col, df[col].iloc[r])
+    for col in ("v_um", "w_um", "v_set_um", "w_set_um"):
+        if col in df.columns:
+            big = df[col].abs() >= max_position_um
+            if big.any():
+                r = int(np.argmax(big.to_numpy()))
+                _fail(f"position as large as the air gap (>= {max_position_um:g} µm); positions must be in "
+                      "micrometres from the sensor zero: was another unit used?", source, r, col, df[col].iloc[r])
+
+    if "iteration" in df.columns:
+        text = df["iteration"].astype(str).str.strip()
+        num = pd.to_numeric(text.where(text != "", None), errors="coerce")
+        bad = (text != "") & ~(np.isfinite(num) & (num == np.round(num)))
+        if bad.any():
+            r = int(np.argmax(bad.to_numpy()))
+            _fail("iteration must be an integer", source, r, "iteration", df["iteration"].iloc[r])
+
+    if "time_s" in df.columns:
+        exp = df["experiment"] if "experiment" in df.columns else pd.Series("", index=df.index)
+        for _, idx in df.groupby(exp, sort=False).groups.items():
+            t = df.loc[idx, "time_s"].to_numpy()
+            ok = ~np.isnan(t)
+            tt = t[ok]
+            dec = np.nonzero(np.diff(tt) < 0)[0]
+            if dec.size:
+                r = int(np.asarray(idx)[ok][dec[0] + 1])
+                _fail("time goes backwards within an experiment (time_s must be monotone)",
+                      source, r, "time_s", df["time_s"].iloc[r])
+
+    if "load_N" in df.columns:
+        keys = load_groups(df)
+        for key, idx in df.groupby(keys, sort=False).groups.items():
+            loads = df.loc[idx, "load_N"].to_numpy()
+            known = loads[~np.isnan(loads)]
+            if known.size and not np.allclose(known, known[0], rtol=1e-9, atol=1e-12):
+                pos = np.asarray(idx)[~np.isnan(loads)]
+                r = int(pos[np.argmax(~np.isclose(known, known[0], rtol=1e-9, atol=1e-12))])
+                _fail(f"known load differs from {known[0]!r} N given on row {int(pos[0]) + 1} for the same "
+                      f"load group {key!r} (load_id, axis); rows sharing a load_id must share its load",
+                      source, r, "load_N", df["load_N"].iloc[r])
+    return Dataset(frame=df, source=source)
+
+
+def load_groups(df: pd.DataFrame) -> pd.Series:
+    """The static-load group of each row: ``load_id`` and axis, or experiment and axis when no ``load_id``."""
+    if "load_id" in df.columns:
+        base = df["load_id"].astype(str)
+    elif "experiment" in df.columns:
+        base = "experiment:" + df["experiment"].astype(str)
+    else:
+        base = pd.Series("all", index=df.index)
+    return base + "|" + df["axis"].astype(str)
+
+
+def write_csv(data: Dataset | pd.DataFrame, path: str | os.PathLike) -> None:
+    """Write a table in the contract format (floats at full precision, NaN as empty)."""
+    frame = data.frame if isinstance(data, Dataset) else data
+    frame.to_csv(path, index=False, na_rep="", float_format=None)
+
+
+def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -> np.ndarray:
+    """Direction (+1 rising, -1 falling) from which each reading's coil current was reached.
+
+    Derived from the order of rows: within each experiment and axis, the sign of the
+    change from the previous reading; a change below ``threshold`` [A] keeps the
+    previous direction; the first reading counts as rising (from zero current).
+    """
+    out = np.zeros(len(df))
+    exp = df["experiment"].astype(str) if "experiment" in df.columns else pd.Series("", index=df.index)
+    for _, idx in df.groupby([exp, df["axis"]], sort=False).groups.items():
+        pos = df.index.get_indexer(idx)
+        i = df[column].to_numpy()[pos]
+        d, prev = np.empty(len(i)), 1.0
+        for j in range(len(i)):
+            if j > 0 and abs(i[j] - i[j - 1]) >= threshold:
+                prev = float(np.sign(i[j] - i[j - 1]))
+            d[j] = prev
+        out[pos] = d
+    return out
+
+
+def readings(data: Dataset | pd.DataFrame):
+    """The rows as :class:`ambfit.model.Readings` in SI units."""
+    from ambfit.model import Readings
+
+    df = data.frame if isinstance(data, Dataset) else data
+    ax = (df["axis"] == "w").to_numpy().astype(int)
+    v = df["v_um"].to_numpy(float) * 1e-6
+    w = df["w_um"].to_numpy(float) * 1e-6
+    return Readings.build(
+        axis=ax, i_top=df["i_top_A"].to_numpy(float), i_bottom=df["i_bottom_A"].to_numpy(float),
+        x=np.where(ax == 0, v, w), y=np.where(ax == 0, w, v), bias=df["bias_A"].to_numpy(float),
+        time=df["time_s"].to_numpy(float) if "time_s" in df.columns else None,
+        temperature=df["temperature_C"].to_numpy(float) if "temperature_C" in df.columns else None,
+        dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
+    )

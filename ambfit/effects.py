@@ -1,0 +1,390 @@
+"""Unmodelled physics as small composable objects (STYLE.md section 3).
+
+Each effect is an immutable :class:`equinox.Module` whose fields are its physical
+parameters (SI units; a field of shape ``(2,)`` holds the ``(v, w)`` values, a
+scalar is shared by both axes).  It modifies one or more stages of the force
+evaluation in :func:`ambfit.model.evaluate`:
+
+``physical``  sensor readings -> physical currents and positions (``unsense``)
+``geometry``  effective gap ``g0`` and origin ``x0``
+``gap``       magnetic gaps ``g_top``, ``g_bottom``
+``coil``      magnetising currents ``m_*`` and coil force constants ``k_*``
+``force``     the axis force
+
+The virtual rig applies the same objects as truth (it also calls ``sense`` to turn
+physical quantities into sensor readings), and the fit can use them as model
+extensions.  ``RANGES`` gives each parameter's realistic magnitude range with the
+source it comes from; :meth:`Effect.random` draws from it.
+
+General reference for the magnetics: Schweitzer & Maslen (eds.), *Magnetic
+Bearings: Theory, Design, and Application to Rotating Machinery*, Springer 2009,
+ch. 3-4 (pp. 69-109).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ambfit.model import Context, _set
+
+__all__ = [
+    "Effect", "Saturation", "IronReluctance", "Fringing", "Leakage", "CurrentOffset",
+    "CurrentGain", "PositionGain", "CrossCoupling", "Hysteresis", "ThermalDrift",
+    "EFFECTS", "effect_by_name",
+]
+
+
+def _ax(p, axis):
+    """Per-row value of a parameter given as a scalar or a ``(v, w)`` pair."""
+    return jnp.broadcast_to(jnp.asarray(p, dtype=float), (2,))[axis]
+
+
+class Effect(eqx.Module):
+    """Base class: every stage is the identity.  Subclasses override what they change."""
+
+    name: ClassVar[str] = ""
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {}
+    SIGNED: ClassVar[tuple[str, ...]] = ()
+    UNITS: ClassVar[dict[str, str]] = {}
+    stateful: ClassVar[bool] = False
+
+    def sense(self, axis, i_top, i_bottom, x, y):
+        """Physical currents [A] and positions [m] -> what the sensors report."""
+        return i_top, i_bottom, x, y
+
+    def unsense(self, axis, i_top, i_bottom, x, y):
+        """Inverse of :meth:`sense`: sensor readings -> physical quantities."""
+        return i_top, i_bottom, x, y
+
+    def physical(self, ctx: Context) -> Context:
+        it, ib, x, y = self.unsense(ctx.axis, ctx.i_top, ctx.i_bottom, ctx.x, ctx.y)
+        return _set(ctx, i_top=it, i_bottom=ib, x=x, y=y)
+
+    def geometry(self, ctx: Context) -> Context:
+        return ctx
+
+    def gap(self, ctx: Context) -> Context:
+        return ctx
+
+    def coil(self, ctx: Context) -> Context:
+        return ctx
+
+    def force(self, ctx: Context, force):
+        return force
+
+    def temperature(self, time_s, ambient_C):
+        """Bearing temperature [°C] this effect implies at ``time_s`` (rig side only)."""
+        return ambient_C + 0.0 * time_s
+
+    @classmethod
+    def random(cls, rng: np.random.Generator) -> Effect:
+        """An instance with every parameter drawn uniformly from ``RANGES`` (per axis).
+
+        Parameters in ``SIGNED`` get a random sign.
+        """
+        kw = {}
+        for name, (lo, hi) in cls.RANGES.items():
+            val = rng.uniform(lo, hi, size=2)
+            if name in cls.SIGNED:
+                val = val * rng.choice([-1.0, 1.0], size=2)
+            kw[name] = jnp.asarray(val)
+        return cls(**kw)
+
+    def describe(self) -> dict[str, list[float] | float]:
+        """Parameter values as plain lists, for JSON and reports (SI units)."""
+        out = {}
+        for f in self.__dataclass_fields__:
+            v = np.asarray(getattr(self, f))
+            out[f] = v.tolist()
+        return out
+
+
+class Saturation(Effect):
+    """Iron saturation: the gap flux density lags the linear law ``B = MU_0 N i / (2 g)``.
+
+    ``B_eff = B / (1 + (B / b_sat)**sharpness)**(1 / sharpness)``, so the pole force
+    (proportional to ``B_eff**2``) falls below the square law at high flux density.
+    A Froehlich-type knee; silicon-iron laminations saturate at 1.2-1.6 T
+    (Schweitzer & Maslen 2009, sec. 3.2, pp. 73-76).  The paper's rig reaches
+    about 1.2 T at its 3.0 A saturation current.
+    """
+
+    b_sat: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.3))
+    sharpness: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(5.0))
+    name: ClassVar[str] = "saturation"
+    RANGES: ClassVar = {"b_sat": (1.0, 1.3), "sharpness": (3.0, 6.0)}
+    UNITS: ClassVar = {"b_sat": "T", "sharpness": "-"}
+
+    def factor(self, b, axis):
+        bs, p = _ax(self.b_sat, axis), _ax(self.sharpness, axis)
+        return (1.0 + (jnp.abs(b) / bs) ** p) ** (-2.0 / p)
+
+    def coil(self, ctx):
+        return _set(ctx, k_top=ctx.k_top * self.factor(ctx.b_top(), ctx.axis),
+                    k_bottom=ctx.k_bottom * self.factor(ctx.b_bottom(), ctx.axis))
+
+
+class IronReluctance(Effect):
+    """Finite iron permeability: the magnetic gap is ``g + l_fe / (2 mu_r(B))``.
+
+    ``l_fe`` is the equivalent iron path length of stator and rotor (the paper's
+    ``b_th``), ``mu_r(B) = mu_r / (1 + (B / b_knee)**4)`` falls near saturation, so
+    the extra gap grows with current.  With ``l_fe`` = 60-120 mm and ``mu_r`` =
+    1500-5000 (unsaturated silicon iron) the constant part is 6-40 µm (Schweitzer & Maslen 2009, sec. 4.2,
+    eq. 4.8, p. 83: ``B = MU_0 N i / (2 g + l_fe / mu_r)``).
+    """
+
+    l_fe: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.08))
+    mu_r: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(3000.0))
+    b_knee: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.4))
+    name: ClassVar[str] = "iron_reluctance"
+    RANGES: ClassVar = {"l_fe": (0.06, 0.12), "mu_r": (1500.0, 5000.0), "b_knee": (1.0, 1.3)}
+    UNITS: ClassVar = {"l_fe": "m", "mu_r": "-", "b_knee": "T"}
+
+    def extra_gap(self, i, g, ctx):
+        b = 4e-7 * np.pi * ctx.turns * i / (2.0 * g)
+        mu = _ax(self.mu_r, ctx.axis) / (1.0 + (b / _ax(self.b_knee, ctx.axis)) ** 4)
+        return _ax(self.l_fe, ctx.axis) / (2.0 * mu)
+
+    def gap(self, ctx):
+        return _set(ctx, g_top=ctx.g_top + self.extra_gap(ctx.i_top, ctx.g_top, ctx),
+                    g_bottom=ctx.g_bottom + self.extra_gap(ctx.i_bottom, ctx.g_bottom, ctx))
+
+
+class Fringing(Effect):
+    """Fringing: the effective pole area grows with the gap.
+
+    ``A_eff = (w + 2 c g) (l + 2 c g)``, so each coil's force constant is scaled by
+    ``(1 + 2 c g / w) (1 + 2 c g / l)`` with ``w`` and ``l`` the pole width and axial
+    length.  ``c`` = 0.3-1.0 covers the usual fringe-width estimates (Roters,
+    *Electromagnetic Devices*, Wiley 1941, ch. 5; Schweitzer & Maslen 2009, p. 84).
+    """
+
+    coefficient: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.5))
+    pole_width: float = 5.0e-3
+    pole_length: float = 10.0e-3
+    name: ClassVar[str] = "fringing"
+    RANGES: ClassVar = {"coefficient": (0.3, 1.0)}
+    UNITS: ClassVar = {"coefficient": "-", "pole_width": "m", "pole_length": "m"}
+
+    def area_factor(self, g, axis):
+        c = _ax(self.coefficient, axis)
+        return (1.0 + 2.0 * c * g / self.pole_width) * (1.0 + 2.0 * c * g / self.pole_length)
+
+    def coil(self, ctx):
+        return _set(ctx, k_top=ctx.k_top * self.area_factor(ctx.g_top, ctx.axis),
+                    k_bottom=ctx.k_bottom * self.area_factor(ctx.g_bottom, ctx.axis))
+
+
+class Leakage(Effect):
+    """Flux leakage between poles: part of the coil flux never crosses the gap.
+
+    The gap flux is ``(1 - sigma)`` times the ideal, with
+    ``sigma = sigma0 + sigma1 tanh((B / 1 T)^2)`` rising as the iron nears saturation
+    (bounded, so the force stays monotone in the current); the force scales with
+    ``(1 - sigma)^2``.
+    Leakage of 5-20 % is typical of radial heteropolar bearings (Schweitzer & Maslen
+    2009, sec. 4.2.3, p. 87; Meeker, Maslen & Noh, IEEE Trans. Magn. 32(4), 1996).
+    """
+
+    sigma0: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.1))
+    sigma1: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.03))
+    name: ClassVar[str] = "leakage"
+    RANGES: ClassVar = {"sigma0": (0.05, 0.2), "sigma1": (0.02, 0.08)}
+    UNITS: ClassVar = {"sigma0": "-", "sigma1": "-"}
+
+    def factor(self, b, axis):
+        return (1.0 - _ax(self.sigma0, axis) - _ax(self.sigma1, axis) * jnp.tanh(b**2)) ** 2
+
+    def coil(self, ctx):
+        return _set(ctx, k_top=ctx.k_top * self.factor(ctx.b_top(), ctx.axis),
+                    k_bottom=ctx.k_bottom * self.factor(ctx.b_bottom(), ctx.axis))
+
+
+class CurrentOffset(Effect):
+    """Additive offset of the current channels: reading = physical + offset [A].
+
+    ``top`` and ``bottom`` are ``(v, w)`` offsets.  The paper calibrates its DAQ to
+    0.1 % of 3 A, i.e. offsets of a few mA; 2-15 mA covers an uncalibrated Hall
+    sensor or shunt amplifier.
+    """
+
+    top: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.005))
+    bottom: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(-0.005))
+    name: ClassVar[str] = "current_offset"
+    RANGES: ClassVar = {"top": (0.004, 0.015), "bottom": (0.004, 0.015)}
+    SIGNED: ClassVar = ("top", "bottom")
+    UNITS: ClassVar = {"top": "A", "bottom": "A"}
+
+    def sense(self, axis, i_top, i_bottom, x, y):
+        return i_top + _ax(self.top, axis), i_bottom + _ax(self.bottom, axis), x, y
+
+    def unsense(self, axis, i_top, i_bottom, x, y):
+        return i_top - _ax(self.top, axis), i_bottom - _ax(self.bottom, axis), x, y
+
+
+class CurrentGain(Effect):
+    """Gain mismatch between the top and bottom current channels.
+
+    reading_top = (1 + mismatch/2) i_top, reading_bottom = (1 - mismatch/2) i_bottom.
+    0.2-2 % is the spread of shunt resistors and amplifier gains (paper: DAQ
+    calibrated to 0.1 %).
+    """
+
+    mismatch: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.01))
+    name: ClassVar[str] = "current_gain"
+    RANGES: ClassVar = {"mismatch": (0.003, 0.02)}
+    SIGNED: ClassVar = ("mismatch",)
+    UNITS: ClassVar = {"mismatch": "-"}
+
+    def sense(self, axis, i_top, i_bottom, x, y):
+        e = _ax(self.mismatch, axis) / 2.0
+        return i_top * (1.0 + e), i_bottom * (1.0 - e), x, y
+
+    def unsense(self, axis, i_top, i_bottom, x, y):
+        e = _ax(self.mismatch, axis) / 2.0
+        return i_top / (1.0 + e), i_bottom / (1.0 - e), x, y
+
+
+class PositionGain(Effect):
+    """Gain error of the position sensors: reading = (1 + gain_error) * physical.
+
+    ``gain_error`` is ``(v, w)``.  Eddy-current probes drift 0.5-3 % with target
+    material and temperature; the paper's micrometer calibration is good to 0.25 %.
+    A gain error rescales the identified gap and origin (it is absorbed).
+    """
+
+    gain_error: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.02))
+    name: ClassVar[str] = "position_gain"
+    RANGES: ClassVar = {"gain_error": (0.01, 0.04)}
+    SIGNED: ClassVar = ("gain_error",)
+    UNITS: ClassVar = {"gain_error": "-"}
+
+    def sense(self, axis, i_top, i_bottom, x, y):
+        return i_top, i_bottom, x * (1.0 + _ax(self.gain_error, axis)), y * (1.0 + _ax(self.gain_error, 1 - axis))
+
+    def unsense(self, axis, i_top, i_bottom, x, y):
+        return i_top, i_bottom, x / (1.0 + _ax(self.gain_error, axis)), y / (1.0 + _ax(self.gain_error, 1 - axis))
+
+
+class CrossCoupling(Effect):
+    """The other axis' displacement changes this axis' force.
+
+    Two parts: (1) geometry: the two poles of a horseshoe sit at ``±alpha``, so an
+    other-axis displacement ``y' = y0 + y`` opens one pole's gap by ``y' sin(alpha)``
+    and closes the other's, raising the horseshoe force by the factor
+    ``((1 - a)^-2 + (1 + a)^-2) / 2`` with ``a = geometric * y' sin(alpha) / g``;
+    (2) magnetic coupling through shared back-iron and rotor misalignment, a cross
+    stiffness ``kappa`` [N/m] acting on ``y'``: 1-5 % of the bearing's negative
+    stiffness (about 6e4 N/m for the paper's rig), cf. Schweitzer & Maslen 2009,
+    sec. 4.4, p. 95, and Meeker et al. 1996.
+    """
+
+    kappa: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1500.0))
+    geometric: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.0))
+    sin_alpha: float = float(np.sin(np.deg2rad(22.5)))
+    name: ClassVar[str] = "cross_coupling"
+    RANGES: ClassVar = {"kappa": (1000.0, 3000.0), "geometric": (1.0, 1.0)}
+    SIGNED: ClassVar = ("kappa",)
+    UNITS: ClassVar = {"kappa": "N/m", "geometric": "-"}
+
+    def _pair(self, g, yp, axis):
+        a = _ax(self.geometric, axis) * yp * self.sin_alpha / g
+        return 0.5 * ((1.0 - a) ** -2 + (1.0 + a) ** -2)
+
+    def coil(self, ctx):
+        yp = ctx.y0 + ctx.y
+        return _set(ctx, k_top=ctx.k_top * self._pair(ctx.g_top, yp, ctx.axis),
+                    k_bottom=ctx.k_bottom * self._pair(ctx.g_bottom, yp, ctx.axis))
+
+    def force(self, ctx, force):
+        return force + _ax(self.kappa, ctx.axis) * (ctx.y0 + ctx.y)
+
+
+class Hysteresis(Effect):
+    """Magnetic hysteresis as a play operator on each coil's magnetising current.
+
+    The magnetising current ``m`` follows the coil current with a dead band of
+    half-width ``width`` [A]: ``m = clip(m_prev, i - width, i + width)``, so the
+    force at a given current depends on the direction it was approached from and
+    the order of readings matters.  ``width = H_c l_fe / N``: coercive field 20-80
+    A/m of silicon iron over an 80 mm path and 480 turns gives 3-13 mA
+    (Bozorth, *Ferromagnetism*, 1951, ch. 2; Mayergoyz, *Mathematical Models of
+    Hysteresis*, 1991, ch. 1 for the play operator).  In a fit, where no history
+    state is given, ``m = i - width * direction`` with the approach direction
+    derived from the order of readings.
+    """
+
+    width: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.008))
+    name: ClassVar[str] = "hysteresis"
+    RANGES: ClassVar = {"width": (0.008, 0.02)}
+    UNITS: ClassVar = {"width": "A"}
+    stateful: ClassVar[bool] = True
+
+    def play(self, i, m_prev, axis):
+        h = _ax(self.width, axis)
+        return jnp.clip(m_prev, i - h, i + h)
+
+    def coil(self, ctx):
+        h = _ax(self.width, ctx.axis)
+        def one(i, m_prev, direction):
+            return jnp.where(jnp.isnan(m_prev), i - h * direction, jnp.clip(m_prev, i - h, i + h))
+        return _set(ctx, m_top=one(ctx.m_top, ctx.m_prev_top, ctx.dir_top),
+                    m_bottom=one(ctx.m_bottom, ctx.m_prev_bottom, ctx.dir_bottom))
+
+
+class ThermalDrift(Effect):
+    """Gap and origin drift with bearing temperature.
+
+    ``g0(T) = g0 + dg_dT (T - ref_C)``, ``x0(T) = x0 + dx0_dT (T - ref_C)``.
+    Differential expansion of rotor and stator (Δα ≈ 5e-6 /K over a 17.5 mm radius)
+    gives about 0.1 µm/K on the gap; sensor-mount growth moves the origin 0.3-2
+    µm/K.  On the rig the coils heat the bearing by ``heating_K`` with time constant
+    ``tau_s``: ``T(t) = ambient + heating_K (1 - exp(-t / tau_s))``.  Rows without a
+    temperature are taken at ``ref_C``.
+    """
+
+    dg_dT: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.2e-6))
+    dx0_dT: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.0e-6))
+    heating_K: float = 15.0
+    tau_s: float = 900.0
+    ref_C: float = 22.0
+    name: ClassVar[str] = "thermal_drift"
+    RANGES: ClassVar = {"dg_dT": (0.1e-6, 0.5e-6), "dx0_dT": (0.5e-6, 2.0e-6)}
+    SIGNED: ClassVar = ("dx0_dT",)
+    UNITS: ClassVar = {"dg_dT": "m/K", "dx0_dT": "m/K", "heating_K": "K", "tau_s": "s", "ref_C": "°C"}
+
+    def geometry(self, ctx):
+        dt = jnp.where(jnp.isnan(ctx.temperature), 0.0, ctx.temperature - self.ref_C)
+        return _set(ctx, g0=ctx.g0 + _ax(self.dg_dT, ctx.axis) * dt,
+                    x0=ctx.x0 + _ax(self.dx0_dT, ctx.axis) * dt,
+                    y0=ctx.y0 + _ax(self.dx0_dT, 1 - ctx.axis) * dt)
+
+    def temperature(self, time_s, ambient_C):
+        return ambient_C + self.heating_K * (1.0 - jnp.exp(-jnp.asarray(time_s) / self.tau_s))
+
+
+EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls
+    for cls in (Saturation, IronReluctance, Fringing, Leakage, CurrentOffset, CurrentGain,
+                PositionGain, CrossCoupling, Hysteresis, ThermalDrift)
+}
+"""Every effect class by its contract name."""
+
+
+def effect_by_name(name: str, **params) -> Effect:
+    """An effect from its contract name and parameters (SI units; defaults otherwise)."""
+    try:
+        cls = EFFECTS[name]
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; valid names: {', '.join(EFFECTS)}") from None
+    fields = set(cls.__dataclass_fields__)
+    bad = set(params) - fields
+    if bad:
+        raise ValueError(f"effect {name!r} has no parameter(s) {sorted(bad)}; valid: {sorted(fields)}")
+    conv = {k: (jnp.asarray(v, dtype=float) if k in cls.RANGES else v) for k, v in params.items()}
+    return cls(**conv)

@@ -1,0 +1,292 @@
+"""The paper's magnetic force model (Eq. 3-4) for both bearing axes, in SI units.
+
+Conventions follow ``DATA-CONTRACT.md`` section 1.  For one axis (``v`` or ``w``)
+with effective gap ``g0`` [m], effective origin ``x0`` [m] and force constant
+``k`` [N m^2 / A^2]::
+
+    g_top    = g0 - (x0 + x) * cos(alpha)
+    g_bottom = g0 + (x0 + x) * cos(alpha)
+    F        = k * (i_top**2 / g_top**2 - i_bottom**2 / g_bottom**2)
+
+``k = 0.25 * MU_0 * A * N**2 * cos(alpha) * lamination`` (Eq. 3), with ``A`` the
+area of one pole face [m^2] and ``N`` the turns of one pole.  The flux density in
+a gap of the ideal circuit (two air gaps in series per horseshoe, iron ignored)
+is ``B = MU_0 * N * i / (2 g)`` [T].
+
+Unmodelled physics enters through :mod:`ambfit.effects`: :func:`axis_force`
+threads a :class:`Context` through every effect's stages, so the same effect
+objects serve the virtual rig (as truth) and the fit (as model extensions).
+
+Reference: the seed paper, "Active Magnetic Bearing System Identification using
+Current-Position Perturbation", Eq. 3-4; Schweitzer & Maslen (eds.), *Magnetic
+Bearings*, Springer 2009, ch. 4 (eq. 4.13 for the horseshoe force).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from collections.abc import Sequence
+
+    from ambfit.effects import Effect
+
+MU_0 = 4e-7 * np.pi
+"""Magnetic permeability of vacuum (air) [H/m]."""
+
+ALPHA_DEFAULT = np.deg2rad(22.5)
+"""Angle between a horseshoe's centre line and its pole faces [rad] (the paper's 22.5 deg)."""
+
+AXES = ("v", "w")
+"""Axis names in index order: rows with ``axis == AXES[j]`` use parameter ``j``."""
+
+
+class BearingParams(eqx.Module):
+    """Effective parameters of a two-axis radial bearing (the paper's unknowns).
+
+    Parameters
+    ----------
+    g0 : array[2]
+        Effective radial gaps ``(g_v0, g_w0)`` [m] with the rotor at the effective origin.
+    x0 : array[2]
+        Effective origins ``(v0, w0)`` [m] in sensor coordinates: the pole gaps of an
+        axis are equal where the sensor reads ``x = -x0``.
+    k : array[2]
+        Force constants ``(k_v, k_w)`` [N m^2 / A^2] of Eq. 3 (includes the lamination
+        coefficient).
+
+    Examples
+    --------
+    >>> p = BearingParams.from_values(g0=762e-6, x0=(33e-6, -11e-6), k=3.45e-6)
+    >>> float(p.g0[1]) * 1e6
+    762.0
+    """
+
+    g0: jnp.ndarray
+    x0: jnp.ndarray
+    k: jnp.ndarray
+
+    @classmethod
+    def from_values(cls, g0, x0, k) -> BearingParams:
+        """Build from scalars (same for both axes) or pairs ``(v, w)``, SI units."""
+        return cls(*(jnp.broadcast_to(jnp.asarray(a, dtype=float), (2,)) for a in (g0, x0, k)))
+
+    def as_dict_um(self) -> dict[str, float]:
+        """Parameters with the contract's names and units (µm, N m^2/A^2)."""
+        return {
+            "g_v0_um": float(self.g0[0]) * 1e6,
+            "v0_um": float(self.x0[0]) * 1e6,
+            "g_w0_um": float(self.g0[1]) * 1e6,
+            "w0_um": float(self.x0[1]) * 1e6,
+            "k_v_Nm2_per_A2": float(self.k[0]),
+            "k_w_Nm2_per_A2": float(self.k[1]),
+        }
+
+
+class Readings(eqx.Module):
+    """Static equilibrium readings of one or both axes, SI units, one entry per row.
+
+    Parameters
+    ----------
+    axis : int array[n]
+        0 for the v axis, 1 for the w axis.
+    i_top, i_bottom : array[n]
+        Coil currents [A]; ``i_top`` pulls the rotor towards +axis.
+    x : array[n]
+        Rotor position on the row's own axis [m], sensor coordinates.
+    y : array[n]
+        Rotor position on the other axis [m], sensor coordinates.
+    bias : array[n]
+        Commanded bias current [A].
+    time : array[n]
+        Time of the reading [s] (zeros when unknown).
+    temperature : array[n]
+        Bearing temperature [°C] (NaN when unknown).
+    dir_top, dir_bottom : array[n]
+        Direction from which each coil current was approached: +1 rising, -1 falling,
+        0 unknown (derived from the order of readings, see
+        :func:`ambfit.data.approach_direction`).
+    """
+
+    axis: jnp.ndarray
+    i_top: jnp.ndarray
+    i_bottom: jnp.ndarray
+    x: jnp.ndarray
+    y: jnp.ndarray
+    bias: jnp.ndarray
+    time: jnp.ndarray
+    temperature: jnp.ndarray
+    dir_top: jnp.ndarray
+    dir_bottom: jnp.ndarray
+
+    @classmethod
+    def build(
+        cls, axis, i_top, i_bottom, x, y=None, bias=None, time=None, temperature=None,
+        dir_top=None, dir_bottom=None,
+    ) -> Readings:
+        """Readings from array-likes; optional fields default to 'unknown'."""
+        axis = jnp.asarray(axis, dtype=int)
+        n = axis.shape
+        def arr(a, fill):
+            return jnp.full(n, fill, dtype=float) if a is None else jnp.asarray(a, dtype=float)
+        i_top = arr(i_top, 0.0)
+        return cls(
+            axis=axis, i_top=i_top, i_bottom=arr(i_bottom, 0.0), x=arr(x, 0.0), y=arr(y, 0.0),
+            bias=arr(bias, np.nan), time=arr(time, 0.0), temperature=arr(temperature, np.nan),
+            dir_top=arr(dir_top, 0.0), dir_bottom=arr(dir_bottom, 0.0),
+        )
+
+    def __len__(self) -> int:
+        return int(self.axis.shape[0])
+
+
+class Context(eqx.Module):
+    """Everything one evaluation of the force knows about each reading (SI units).
+
+    Effects receive a context and return a modified copy (``eqx.tree_at``).  The
+    stages, in order, are ``physical`` (sensor readings to physical quantities),
+    ``geometry`` (``g0``, ``x0``), ``gap`` (``g_top``, ``g_bottom``), ``coil``
+    (magnetising currents ``m_*`` and coil force constants ``k_*``) and ``force``.
+    """
+
+    axis: jnp.ndarray
+    i_top: jnp.ndarray
+    i_bottom: jnp.ndarray
+    x: jnp.ndarray
+    y: jnp.ndarray
+    bias: jnp.ndarray
+    time: jnp.ndarray
+    temperature: jnp.ndarray
+    dir_top: jnp.ndarray
+    dir_bottom: jnp.ndarray
+    g0: jnp.ndarray
+    x0: jnp.ndarray
+    y0: jnp.ndarray
+    k: jnp.ndarray
+    g0_other: jnp.ndarray
+    cos_alpha: float
+    turns: float
+    g_top: jnp.ndarray
+    g_bottom: jnp.ndarray
+    m_top: jnp.ndarray
+    m_bottom: jnp.ndarray
+    k_top: jnp.ndarray
+    k_bottom: jnp.ndarray
+    m_prev_top: jnp.ndarray
+    m_prev_bottom: jnp.ndarray
+
+    def b_top(self) -> jnp.ndarray:
+        """Flux density in the top gaps [T], ``MU_0 N m_top / (2 g_top)``."""
+        return MU_0 * self.turns * self.m_top / (2.0 * self.g_top)
+
+    def b_bottom(self) -> jnp.ndarray:
+        """Flux density in the bottom gaps [T]."""
+        return MU_0 * self.turns * self.m_bottom / (2.0 * self.g_bottom)
+
+
+def _set(ctx: Context, **fields) -> Context:
+    names = tuple(fields)
+    return eqx.tree_at(lambda c: tuple(getattr(c, n) for n in names), ctx, tuple(fields.values()))
+
+
+def make_context(
+    params: BearingParams, readings: Readings, *, alpha: float = ALPHA_DEFAULT, turns: float = 480.0,
+    m_prev_top=None, m_prev_bottom=None,
+) -> Context:
+    """Context for ``readings`` under ``params`` before any effect has acted."""
+    ax = readings.axis
+    nan = jnp.full(ax.shape, jnp.nan)
+    return Context(
+        axis=ax, i_top=readings.i_top, i_bottom=readings.i_bottom, x=readings.x, y=readings.y,
+        bias=readings.bias, time=readings.time, temperature=readings.temperature,
+        dir_top=readings.dir_top, dir_bottom=readings.dir_bottom,
+        g0=params.g0[ax], x0=params.x0[ax], y0=params.x0[1 - ax], k=params.k[ax],
+        g0_other=params.g0[1 - ax], cos_alpha=float(np.cos(alpha)), turns=float(turns),
+        g_top=nan, g_bottom=nan, m_top=nan, m_bottom=nan, k_top=nan, k_bottom=nan,
+        m_prev_top=nan if m_prev_top is None else jnp.asarray(m_prev_top, dtype=float),
+        m_prev_bottom=nan if m_prev_bottom is None else jnp.asarray(m_prev_bottom, dtype=float),
+    )
+
+
+def evaluate(
+    params: BearingParams, readings: Readings, effects: Sequence[Effect] = (), *,
+    alpha: float = ALPHA_DEFAULT, turns: float = 480.0, physical: bool = False,
+    m_prev_top=None, m_prev_bottom=None,
+) -> tuple[jnp.ndarray, Context]:
+    """Force on each reading's axis [N] and the final :class:`Context`.
+
+    Parameters
+    ----------
+    params : BearingParams
+    readings : Readings
+        Measured readings (or physical ones with ``physical=True``, as the rig uses).
+    effects : sequence of :class:`ambfit.effects.Effect`
+        Unmodelled physics added to the ideal law, applied stage by stage in order.
+    alpha : float
+        Pole angle [rad].
+    turns : float
+        Turns ``N`` of one pole, used only for flux densities (saturation etc.).
+    physical : bool
+        When True the readings are already physical quantities and the sensor
+        stage is skipped.
+    """
+    ctx = make_context(params, readings, alpha=alpha, turns=turns,
+                       m_prev_top=m_prev_top, m_prev_bottom=m_prev_bottom)
+    if not physical:
+        for e in effects:
+            ctx = e.physical(ctx)
+    for e in effects:
+        ctx = e.geometry(ctx)
+    u = (ctx.x0 + ctx.x) * ctx.cos_alpha
+    ctx = _set(ctx, g_top=ctx.g0 - u, g_bottom=ctx.g0 + u)
+    for e in effects:
+        ctx = e.gap(ctx)
+    ctx = _set(ctx, m_top=ctx.i_top, m_bottom=ctx.i_bottom, k_top=ctx.k, k_bottom=ctx.k)
+    for e in effects:
+        ctx = e.coil(ctx)
+    force = ctx.k_top * ctx.m_top**2 / ctx.g_top**2 - ctx.k_bottom * ctx.m_bottom**2 / ctx.g_bottom**2
+    for e in effects:
+        force = e.force(ctx, force)
+    return force, ctx
+
+
+def axis_force(params: BearingParams, readings: Readings, effects: Sequence[Effect] = (), **kw) -> jnp.ndarray:
+    """Force [N] each reading's axis applies to the rotor along +axis (Eq. 4 plus effects).
+
+    Examples
+    --------
+    >>> p = BearingParams.from_values(g0=762e-6, x0=0.0, k=3.45e-6)
+    >>> r = Readings.build(axis=[0], i_top=[3.0], i_bottom=[0.0], x=[0.0])
+    >>> round(float(axis_force(p, r)[0]), 2)   # the paper's 53.4 N load capacity
+    53.47
+    """
+    return evaluate(params, readings, effects, **kw)[0]
+
+
+def ideal_force(g0, x0, k, i_top, i_bottom, x, alpha: float = ALPHA_DEFAULT):
+    """Eq. 4 for one axis on plain arrays: ``k (i_t^2/g_t^2 - i_b^2/g_b^2)`` [N]."""
+    u = (x0 + x) * jnp.cos(alpha)
+    return k * (i_top**2 / (g0 - u) ** 2 - i_bottom**2 / (g0 + u) ** 2)
+
+
+def gaps(g0, x0, x, alpha: float = ALPHA_DEFAULT):
+    """Pole gaps ``(g_top, g_bottom)`` [m] along the pole direction (contract section 1)."""
+    u = (x0 + x) * jnp.cos(alpha)
+    return g0 - u, g0 + u
+
+
+def flux_density(i, g, turns: float):
+    """Ideal-circuit gap flux density ``MU_0 N i / (2 g)`` [T] for current ``i`` [A] and gap ``g`` [m]."""
+    return MU_0 * turns * i / (2.0 * g)
+
+
+def force_constant(pole_area: float, turns: float, alpha: float = ALPHA_DEFAULT, lamination: float = 1.0) -> float:
+    """Eq. 3's constant ``0.25 MU_0 A N^2 cos(alpha) * lamination`` [N m^2/A^2].
+
+    ``pole_area`` is one pole face [m^2], ``turns`` the turns of one pole.
+    """
+    return 0.25 * MU_0 * pole_area * turns**2 * np.cos(alpha) * lamination

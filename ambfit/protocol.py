@@ -1,0 +1,277 @@
+"""Perturbation protocols as data: the sequence of set-points, biases and loads a rig runs.
+
+A :class:`Protocol` is a table of *steps*.  At each step the controller holds the
+rotor at ``(v_set, w_set)`` [m, sensor coordinates] with bias currents
+``(bias_v, bias_w)`` [A] under the static load ``load_id``; the rig records one
+reading per axis.  Builders return protocols for the paper's experiments and for
+richer designs, and :func:`concat` chains them; :func:`from_dict` reads the same
+description from TOML for ``ambfit simulate``.
+
+Loads are :class:`Load` records: the force ``(F_v, F_w)`` [N] the bearing must
+supply, and whether the experimenter knows it (hung masses on a known rotor
+weight) or not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+G_STANDARD = 9.80665
+"""Standard gravity [m/s^2]."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Load:
+    """A static load: the force the bearing supplies to the rotor along +v and +w [N].
+
+    ``known`` says whether the experimenter knows it (written to ``load_N``).
+    """
+
+    force_v: float
+    force_w: float
+    known: bool = False
+
+    @classmethod
+    def gravity(cls, mass_kg: float, axis_angles_deg: tuple[float, float] = (45.0, -45.0), known: bool = True) -> Load:
+        """Support of a vertical weight ``mass_kg * g`` by axes at the given angles from vertical."""
+        w = mass_kg * G_STANDARD
+        a = np.deg2rad(axis_angles_deg)
+        return cls(float(w * np.cos(a[0])), float(w * np.cos(a[1])), known)
+
+
+@dataclasses.dataclass(frozen=True)
+class Protocol:
+    """A sequence of steps (one reading per axis each), all arrays of equal length.
+
+    Attributes
+    ----------
+    v_set, w_set : array[n]
+        Commanded set-points [m], sensor coordinates.
+    bias_v, bias_w : array[n]
+        Commanded bias currents [A].
+    load_id : array[n] of str
+        Key into ``loads``.
+    experiment : array[n] of str
+    iteration : array[n] of int
+    assembly : array[n] of int
+        Key into ``assemblies``: a rotor reassembly shifts the true origin.
+    loads : dict[str, Load]
+    assemblies : dict[int, tuple[float, float]]
+        Origin shift ``(dv0, dw0)`` [m] of each assembly relative to the rig's truth.
+    dwell_s : float
+        Time between readings [s].
+    """
+
+    v_set: np.ndarray
+    w_set: np.ndarray
+    bias_v: np.ndarray
+    bias_w: np.ndarray
+    load_id: np.ndarray
+    experiment: np.ndarray
+    iteration: np.ndarray
+    assembly: np.ndarray
+    loads: dict
+    assemblies: dict = dataclasses.field(default_factory=lambda: {0: (0.0, 0.0)})
+    dwell_s: float = 5.0
+
+    def __post_init__(self):
+        n = len(self.v_set)
+        for f in ("w_set", "bias_v", "bias_w", "load_id", "experiment", "iteration", "assembly"):
+            if len(getattr(self, f)) != n:
+                raise ValueError(f"protocol field {f!r} has {len(getattr(self, f))} entries, expected {n}")
+        missing = set(self.load_id.tolist()) - set(self.loads)
+        if missing:
+            raise ValueError(f"protocol refers to undefined load(s) {sorted(missing)}; defined: {sorted(self.loads)}")
+        missing = set(self.assembly.tolist()) - set(self.assemblies)
+        if missing:
+            raise ValueError(f"protocol refers to undefined assembly {sorted(missing)}")
+        if np.any(np.asarray(self.bias_v) < 0) or np.any(np.asarray(self.bias_w) < 0):
+            raise ValueError("bias currents must be non-negative")
+
+    def __len__(self) -> int:
+        return len(self.v_set)
+
+    @property
+    def time(self) -> np.ndarray:
+        """Time of each reading [s]."""
+        return self.dwell_s * np.arange(1, len(self) + 1, dtype=float)
+
+
+def _steps(points, biases, *, load, experiment, iteration, assembly=0):
+    rows = [(v, w, bv, bw) for (v, w) in points for (bv, bw) in biases]
+    a = np.asarray(rows, dtype=float).reshape(-1, 4)
+    n = len(a)
+    return dict(
+        v_set=a[:, 0], w_set=a[:, 1], bias_v=a[:, 2], bias_w=a[:, 3],
+        load_id=np.full(n, load, dtype=object), experiment=np.full(n, experiment, dtype=object),
+        iteration=np.full(n, iteration, dtype=int), assembly=np.full(n, assembly, dtype=int),
+    )
+
+
+def _pairs(biases) -> list[tuple[float, float]]:
+    out = []
+    for b in biases:
+        b = np.atleast_1d(np.asarray(b, dtype=float))
+        out.append((float(b[0]), float(b[-1])))
+    return out
+
+
+def _build(parts: Sequence[dict], loads, assemblies=None, dwell_s=5.0) -> Protocol:
+    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return Protocol(**cat, loads=dict(loads), assemblies=dict(assemblies or {0: (0.0, 0.0)}), dwell_s=dwell_s)
+
+
+DEFAULT_LOADS = {"rotor": Load.gravity(1.0, known=True)}
+"""The default static load: a 1 kg rotor share, known, supported by axes at ±45° from vertical (about 6.9 N each)."""
+
+
+def perturbation(
+    biases: Iterable = (1.4, 1.6), offsets: Iterable[float] = (20e-6,), *, center=(0.0, 0.0),
+    iterations: int = 1, experiment: str = "E1", load: str = "rotor", loads: dict | None = None,
+    assembly: int = 0, first_iteration: int = 1, dwell_s: float = 5.0,
+) -> Protocol:
+    """The paper's current-position perturbation (Fig. 3, Eq. 5-7).
+
+    For each iteration, for each offset ``d`` [m], the rotor is held at
+    ``center + d`` and ``center - d`` on both axes at once, and at each position
+    every bias in ``biases`` [A] is applied (two biases give Eq. 6's ratios).  A bias
+    may be a pair ``(b_v, b_w)``.
+
+    Examples
+    --------
+    >>> p = perturbation((1.4, 1.6), (20e-6,), iterations=10)
+    >>> len(p)   # 10 iterations x 2 positions x 2 biases
+    40
+    """
+    cv, cw = center
+    parts = []
+    for it in range(first_iteration, first_iteration + iterations):
+        pts = [(cv + s * d, cw + s * d) for d in offsets for s in (1.0, -1.0)]
+        parts.append(_steps(pts, _pairs(biases), load=load, experiment=experiment, iteration=it, assembly=assembly))
+    return _build(parts, loads or DEFAULT_LOADS, dwell_s=dwell_s)
+
+
+def grid(
+    points: Iterable[tuple[float, float]], biases: Iterable, *, experiment: str = "grid", load: str = "rotor",
+    loads: dict | None = None, iteration: int = 1, assembly: int = 0, dwell_s: float = 5.0,
+) -> Protocol:
+    """Every bias at every ``(v_set, w_set)`` point [m]: non-symmetric designs, position-only designs."""
+    return _build([_steps(list(points), _pairs(biases), load=load, experiment=experiment,
+                          iteration=iteration, assembly=assembly)], loads or DEFAULT_LOADS, dwell_s=dwell_s)
+
+
+def bias_sweep(
+    biases: Sequence[float], points: Iterable[tuple[float, float]] = ((0.0, 0.0),), *, up_down: bool = True,
+    experiment: str = "sweep", load: str = "rotor", loads: dict | None = None, iteration: int = 1,
+    dwell_s: float = 5.0,
+) -> Protocol:
+    """At each point, sweep the bias through ``biases`` and (``up_down``) back again.
+
+    The down leg approaches every operating point from the other side: the
+    protocol for exposing hysteresis.
+    """
+    seq = list(biases) + (list(biases)[-2::-1] if up_down else [])
+    parts = [_steps([p], _pairs(seq), load=load, experiment=experiment, iteration=iteration) for p in points]
+    return _build(parts, loads or DEFAULT_LOADS, dwell_s=dwell_s)
+
+
+def concat(*protocols: Protocol, dwell_s: float | None = None) -> Protocol:
+    """Run protocols one after another (loads and assemblies are merged)."""
+    loads, assemblies = {}, {}
+    for p in protocols:
+        for k, v in p.loads.items():
+            if k in loads and loads[k] != v:
+                raise ValueError(f"load {k!r} is defined differently in two protocols")
+            loads[k] = v
+        assemblies.update(p.assemblies)
+    fields = ("v_set", "w_set", "bias_v", "bias_w", "load_id", "experiment", "iteration", "assembly")
+    cat = {f: np.concatenate([getattr(p, f) for p in protocols]) for f in fields}
+    return Protocol(**cat, loads=loads, assemblies=assemblies,
+                    dwell_s=protocols[0].dwell_s if dwell_s is None else dwell_s)
+
+
+def with_assembly(protocol: Protocol, assembly: int, origin_shift: tuple[float, float]) -> Protocol:
+    """The same protocol run after a rotor reassembly that shifts the true origin by ``origin_shift`` [m]."""
+    return dataclasses.replace(
+        protocol, assembly=np.full(len(protocol), assembly, dtype=int),
+        assemblies={**protocol.assemblies, assembly: tuple(float(s) for s in origin_shift)},
+    )
+
+
+def paper_table2(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
+    """Table 2: bias 1.4/1.6 A, ±20 µm on both axes, ``iterations`` repetitions."""
+    return perturbation((1.4, 1.6), (20e-6,), center=center, iterations=iterations, experiment="table2")
+
+
+def rich(
+    biases: Sequence[float] = (1.0, 1.2, 1.4, 1.6), span: float = 40e-6, n_positions: int = 5,
+    masses_kg: Sequence[float] = (0.0, 0.5, 1.0, 1.5), rotor_kg: float = 1.0, experiment: str = "rich",
+    dwell_s: float = 5.0,
+) -> Protocol:
+    """A rich design: biases swept up and down at v and w set-points over ``±span`` [m]
+    (v and w moved independently, so non-symmetric pairs are included) under several
+    known loads (rotor plus hung masses)."""
+    lin = np.linspace(-span, span, n_positions)
+    rng = np.random.default_rng(12345)  # fixed, so the design is a constant of the code
+    w_pts = rng.permutation(lin)
+    points = list(zip(lin, w_pts))
+    parts, loads = [], {}
+    for j, m in enumerate(masses_kg):
+        lid = f"m{j}"
+        loads[lid] = Load.gravity(rotor_kg + m, known=True)
+        p = bias_sweep(biases, points, experiment=experiment, load=lid, loads={lid: loads[lid]}, iteration=j + 1)
+        parts.append(p)
+    return concat(*parts, dwell_s=dwell_s)
+
+
+def from_dict(spec: dict) -> Protocol:
+    """A protocol from a plain description (as read from TOML by ``ambfit simulate``).
+
+    Units in the keys: ``*_um`` micrometres, ``*_A`` amperes, ``*_N`` newtons.
+
+    ``[loads.NAME]`` tables hold ``mass_kg`` (a known vertical weight) or
+    ``force_v_N``/``force_w_N`` with ``known = true|false``; ``[[block]]`` entries
+    have ``kind`` = ``perturbation`` | ``grid`` | ``bias_sweep`` | ``paper_table2`` |
+    ``rich`` and the keyword arguments of that builder (positions in µm).
+    """
+    loads = dict(DEFAULT_LOADS)
+    for name, d in spec.get("loads", {}).items():
+        if "mass_kg" in d:
+            loads[name] = Load.gravity(float(d["mass_kg"]), known=bool(d.get("known", True)))
+        else:
+            loads[name] = Load(float(d["force_v_N"]), float(d["force_w_N"]), bool(d.get("known", False)))
+    blocks = spec.get("block", [])
+    if not blocks:
+        raise ValueError("protocol description has no [[block]] entries")
+    parts = []
+    um = 1e-6
+    for i, b in enumerate(blocks):
+        b = dict(b)
+        kind = b.pop("kind", None)
+        reassembly = b.pop("origin_shift_um", None)
+        common = {k: b.pop(k) for k in ("experiment", "load", "iteration", "iterations") if k in b}
+        if kind == "perturbation":
+            p = perturbation(b.pop("biases_A"), [o * um for o in b.pop("offsets_um", [20])],
+                             center=tuple(c * um for c in b.pop("center_um", (0, 0))), loads=loads, **common)
+        elif kind == "grid":
+            p = grid([(v * um, w * um) for v, w in b.pop("points_um")], b.pop("biases_A"), loads=loads, **common)
+        elif kind == "bias_sweep":
+            p = bias_sweep(b.pop("biases_A"), [(v * um, w * um) for v, w in b.pop("points_um", [(0, 0)])],
+                           up_down=b.pop("up_down", True), loads=loads, **common)
+        elif kind == "paper_table2":
+            p = paper_table2(common.get("iterations", 10))
+        elif kind == "rich":
+            p = rich(span=b.pop("span_um", 40) * um, biases=b.pop("biases_A", (1.0, 1.2, 1.4, 1.6)),
+                     masses_kg=b.pop("masses_kg", (0.0, 0.5, 1.0, 1.5)))
+        else:
+            raise ValueError(f"block {i}: unknown kind {kind!r}; valid: perturbation, grid, bias_sweep, "
+                             "paper_table2, rich")
+        if b:
+            raise ValueError(f"block {i} ({kind}): unknown key(s) {sorted(b)}")
+        if reassembly is not None:
+            p = with_assembly(p, i + 1, tuple(s * um for s in reassembly))
+        parts.append(p)
+    return concat(*parts, dwell_s=float(spec.get("dwell_s", 5.0)))

@@ -1,0 +1,22 @@
+import os
+
+import pytest
+from hypothesis import HealthCheck, settings
+
+import ambfit  # noqa: F401  (switches JAX to float64 before any test makes an array)
+
+settings.register_profile(
+    "ambfit", deadline=None, max_examples=int(os.environ.get("AMBFIT_HYPOTHESIS_EXAMPLES", "25")),
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile("ambfit")
+
+
+def pytest_collection_modifyitems(config, items):
+    # Slow statistical studies live in benchmarks/; run them here only with `-m slow`.
+    if "slow" in (config.getoption("-m") or ""):
+        return
+    skip = pytest.mark.skip(reason="slow statistical study: run with -m slow or see benchmarks/")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)
