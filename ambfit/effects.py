@@ -23,6 +23,7 @@ ch. 3-4 (pp. 69-109).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -96,11 +97,7 @@ class Effect(eqx.Module):
 
     def describe(self) -> dict[str, list[float] | float]:
         """Parameter values as plain lists, for JSON and reports (SI units)."""
-        out = {}
-        for f in self.__dataclass_fields__:
-            v = np.asarray(getattr(self, f))
-            out[f] = v.tolist()
-        return out
+        return {f.name: np.asarray(getattr(self, f.name)).tolist() for f in dataclasses.fields(self)}
 
 
 class Saturation(Effect):
@@ -382,7 +379,7 @@ def effect_by_name(name: str, **params) -> Effect:
         cls = EFFECTS[name]
     except KeyError:
         raise ValueError(f"unknown effect {name!r}; valid names: {', '.join(EFFECTS)}") from None
-    fields = set(cls.__dataclass_fields__)
+    fields = {f.name for f in dataclasses.fields(cls)}
     bad = set(params) - fields
     if bad:
         raise ValueError(f"effect {name!r} has no parameter(s) {sorted(bad)}; valid: {sorted(fields)}")

@@ -64,6 +64,8 @@ class RigSpec:
         Lamination (stacking) coefficient in Eq. 3 [-].
     saturation_current : float
         Coil current at which the iron saturates [A] (paper: 3.0 A).
+    max_current : float
+        Amplifier limit [A]: a step that needs more coil current than this fails.
     g0, x0 : tuple[float, float]
         True effective gaps and origins ``(v, w)`` [m] of the ideal-law description.
     k : tuple[float, float] or None
@@ -79,6 +81,7 @@ class RigSpec:
     pole_length: float = 10.0e-3
     lamination: float = 0.95
     saturation_current: float = 3.0
+    max_current: float = 5.0
     g0: tuple[float, float] = (775.0e-6, 763.0e-6)
     x0: tuple[float, float] = (33.3e-6, -11.3e-6)
     k: tuple[float, float] | None = None
@@ -171,7 +174,7 @@ class Simulation:
     physical_currents: np.ndarray  # array[n_steps, 2 axes, 2 coils] [A]
 
 
-def _solve_steps(params_by_step, readings_template, loads, effects, alpha, turns, m0):
+def _solve_steps(params_by_step, readings_template, loads, effects, alpha, turns, max_current, m0):
     """Scan over steps; each step solves both axes' control currents by bisection."""
 
     def step(m_prev, inp):
@@ -193,7 +196,9 @@ def _solve_steps(params_by_step, readings_template, loads, effects, alpha, turns
             r = force_at(mid)[0]
             return jnp.where(r > 0, lo, mid), jnp.where(r > 0, mid, hi)
 
-        lo, hi = jax.lax.fori_loop(0, _BISECTION_STEPS, bisect, (-20.0 - bias, 20.0 + bias))
+        # Within the amplifier range each coil current lies in [0, max_current].
+        span = jnp.maximum(max_current - bias, 0.0)
+        lo, hi = jax.lax.fori_loop(0, _BISECTION_STEPS, bisect, (-span, span))
         rlo, rhi = force_at(lo)[0], force_at(hi)[0]
         ic = jnp.where(jnp.abs(rlo) < jnp.abs(rhi), lo, hi)
         res, ctx, it, ib = force_at(ic)
@@ -286,7 +291,7 @@ def simulate(
     m_end, (res, it, ib) = _solve_jit(
         (jnp.asarray(g0), jnp.asarray(x0), jnp.asarray(k)),
         (jnp.asarray(x_phys), jnp.asarray(y_phys), jnp.asarray(bias), jnp.asarray(tt), jnp.asarray(temps)),
-        jnp.asarray(load), effects, spec.alpha, spec.turns, jnp.asarray(state.m, dtype=float),
+        jnp.asarray(load), effects, spec.alpha, spec.turns, spec.max_current, jnp.asarray(state.m, dtype=float),
     )
     res, it, ib = np.asarray(res), np.asarray(it), np.asarray(ib)
     worst = float(np.max(np.abs(res))) if n else 0.0
@@ -295,7 +300,8 @@ def simulate(
         raise RigError(
             f"step {s} (experiment {protocol.experiment[s]}, load {protocol.load_id[s]!r}, "
             f"bias {bias[s].tolist()} A): the bearing cannot balance the load to {FORCE_TOLERANCE_N:g} N "
-            f"(residual {np.abs(res[s]).max():.3g} N); the load is beyond the capacity at this set-point"
+            f"(residual {np.abs(res[s]).max():.3g} N) with coil currents within the amplifier limit of "
+            f"{spec.max_current:g} A; the load is beyond the capacity at this set-point"
         )
 
     # What the sensors report: physical -> sensed, plus noise.
