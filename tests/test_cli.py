@@ -1,0 +1,89 @@
+"""Command line: simulate -> identify round trip, contract JSON, clear errors, help with units."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from ambfit.cli import app
+
+runner = CliRunner()
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_simulate_identify_round_trip(tmp_path):
+    csv, truth, out = tmp_path / "d.csv", tmp_path / "t.json", tmp_path / "o.json"
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--preset", "perturbation", "--iterations", "3",
+                            "--current-noise-ma", "0", "--position-noise-um", "0", "--gap-um", "800,790",
+                            "--origin-um", "-20,15", "--truth", str(truth)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["identify", str(csv), "--method", "closed-form", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    js = json.loads(out.read_text())
+    assert js["method"] == "closed_form" and js["converged"] is True and js["n_rows"] == 24
+    p = js["params"]
+    assert p["g_v0_um"]["value"] == pytest.approx(800.0, rel=1e-6)
+    assert p["w0_um"]["value"] == pytest.approx(15.0, abs=1e-4)
+    assert json.loads(truth.read_text())["params"]["0"]["g_w0_um"] == pytest.approx(790.0)
+    assert "gap [µm]" in r.output
+
+
+def test_simulate_with_effects_and_toml(tmp_path):
+    toml = tmp_path / "p.toml"
+    toml.write_text('[loads.heavy]\nmass_kg = 2.0\n\n[[block]]\nkind = "perturbation"\nbiases_A = [1.2, 1.5]\n'
+                    'offsets_um = [30]\niterations = 2\nload = "heavy"\nexperiment = "toml"\n')
+    csv = tmp_path / "d.csv"
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml),
+                            "--effect", "saturation:b_sat=1.1", "--effect", "hysteresis"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["identify", str(csv), "--by", "experiment"])
+    assert r.exit_code == 0 and "toml" in r.output
+
+
+def test_bad_effect_and_bad_data_give_clear_errors(tmp_path):
+    r = runner.invoke(app, ["simulate", "-o", str(tmp_path / "x.csv"), "--effect", "gremlins"])
+    assert r.exit_code == 2 and "unknown effect 'gremlins'" in r.output and "Traceback" not in r.output
+    bad = tmp_path / "bad.csv"
+    bad.write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\nv,1.4,1.5,1.3,20,20\nq,1.4,1.5,1.3,20,20\n")
+    r = runner.invoke(app, ["identify", str(bad)])
+    assert r.exit_code == 2
+    assert "bad.csv" in r.output and "row 2" in r.output and "'axis'" in r.output and "'q'" in r.output
+
+
+def test_unidentifiable_design_exits_non_zero(tmp_path):
+    one = tmp_path / "one.csv"
+    one.write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\nv,1.4,1.52,1.27,20,20\nv,1.6,1.68,1.51,20,20\n")
+    r = runner.invoke(app, ["identify", str(one)])
+    assert r.exit_code == 2 and "two positions" in r.output
+
+
+@pytest.mark.parametrize("cmd, unit", [("simulate", "[mA]"), ("identify", "[µm]"), ("origin-search", "[µm]")])
+def test_help_explains_units(cmd, unit):
+    r = runner.invoke(app, [cmd, "--help"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0 and unit in r.output
+
+
+def test_origin_search_command(tmp_path):
+    out, js = tmp_path / "s.csv", tmp_path / "s.json"
+    r = runner.invoke(app, ["origin-search", "--iterations", "3", "--current-noise-ma", "0",
+                            "--position-noise-um", "0", "-o", str(out), "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    traj = json.loads(js.read_text())
+    assert traj["converged"] and traj["iterations"][1]["v_center_um"] == pytest.approx(-33.3)
+
+
+def test_installed_entry_point_identifies_the_default_data(tmp_path):
+    exe = Path(sys.executable).with_name("ambfit")
+    out = tmp_path / "o.json"
+    r = subprocess.run([str(exe), "identify", str(ROOT / "data" / "paper_table2.csv"), "--method", "closed-form",
+                        "--json", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    js = json.loads(out.read_text())
+    for key in ("g_v0_um", "v0_um", "g_w0_um", "w0_um"):
+        assert set(js["params"][key]) >= {"value", "std"}
+    # 10 iterations with ~35 µm scatter: the mean lies within 4 standard errors of the truth
+    assert abs(js["params"]["g_v0_um"]["value"] - 775.0) < 4 * js["params"]["g_v0_um"]["std"]
+    assert abs(js["params"]["v0_um"]["value"] - 33.3) < 4 * js["params"]["v0_um"]["std"]

@@ -1,0 +1,120 @@
+"""Eq. 5-7: exact recovery on noise-free rig data, the paper's validity checks, averaging."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from ambfit import closed_form as cf
+from ambfit import protocol as P
+from ambfit import rig
+
+NF = rig.NOISE_FREE
+
+
+@given(
+    g_v=st.floats(550e-6, 1000e-6), g_w=st.floats(550e-6, 1000e-6),
+    x_v=st.floats(-60e-6, 60e-6), x_w=st.floats(-60e-6, 60e-6),
+    b1=st.floats(0.9, 1.6), db=st.floats(0.08, 0.5), d=st.floats(8e-6, 60e-6),
+    cv=st.floats(-40e-6, 40e-6), cw=st.floats(-40e-6, 40e-6),
+)
+def test_recovers_truth_on_noise_free_symmetric_designs(g_v, g_w, x_v, x_w, b1, db, d, cv, cw):
+    spec = rig.PAPER_RIG.with_truth(g0=(g_v, g_w), x0=(x_v, x_w))
+    sim = rig.simulate(spec, P.perturbation((b1, b1 + db), (d,), center=(cv, cw), iterations=2), noise=NF)
+    res = cf.identify(sim.data)
+    for a, ax in enumerate("vw"):
+        est = res.estimates[("all", ax)]
+        assert est.g0 == pytest.approx((g_v, g_w)[a], rel=1e-6)
+        # origin: 1e-6 relative to the gap (the origin itself may be near zero)
+        assert abs(est.x0 - (x_v, x_w)[a]) < 1e-6 * (g_v, g_w)[a]
+        assert est.k == pytest.approx(spec.force_constant, rel=1e-6)
+        assert not est.rejected
+
+
+def test_several_position_pairs_use_least_squares():
+    sim = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6, 40e-6)), noise=NF)
+    sol = cf.solve_rows(sim.data[sim.data.axis == "v"])
+    assert len(sol.positions) == 4
+    assert sol.g0 == pytest.approx(775e-6, rel=1e-9) and sol.x0 == pytest.approx(33.3e-6, rel=1e-8)
+
+
+def test_ratio_checks():
+    assert cf.ratio(1.6, 1.2, 1.7, 1.3) == pytest.approx(math.sqrt((1.6**2 - 1.7**2) / (1.2**2 - 1.3**2)))
+    with pytest.raises(cf.ClosedFormError, match="not positive"):
+        cf.ratio(1.6, 1.3, 1.7, 1.2)   # top rises while bottom falls
+    with pytest.raises(cf.ClosedFormError, match="two different biases"):
+        cf.ratio(1.6, 1.2, 1.7, 1.2)
+
+
+def test_coinciding_positions():
+    with pytest.raises(cf.ClosedFormError, match="coincide"):
+        cf.solve([20e-6, 20.5e-6], [[1.6, 1.7], [1.6, 1.7]], [[1.2, 1.3], [1.2, 1.3]])
+
+
+def test_singular_system():
+    # identical ratios at two different positions: the rows of A are equal
+    with pytest.raises(cf.ClosedFormError, match="singular"):
+        cf.solve([20e-6, -20e-6], [[1.6, 1.7], [1.6, 1.7]], [[1.2, 1.3], [1.2, 1.3]])
+
+
+def test_non_physical_solution():
+    # P = 1 at +20 µm puts the origin at -20 µm; P = 0.9 at -20 µm then needs a negative gap
+    ib2 = math.sqrt(1.0 + 1.25 / 0.81)
+    with pytest.raises(cf.ClosedFormError, match="non-physical"):
+        cf.solve([20e-6, -20e-6], [[1.5, 1.0], [1.5, 1.0]], [[1.5, 1.0], [ib2, 1.0]])
+
+
+def test_single_position_is_rejected_with_a_reason():
+    sim = rig.simulate(rig.PAPER_RIG, P.grid([(10e-6, 10e-6)], [1.4, 1.6]), noise=NF)
+    with pytest.raises(cf.ClosedFormError, match="two positions"):
+        cf.identify(sim.data)
+
+
+def test_three_biases_are_rejected_with_a_reason():
+    sim = rig.simulate(rig.PAPER_RIG, P.perturbation((1.2, 1.4, 1.6), (20e-6,)), noise=NF)
+    with pytest.raises(cf.ClosedFormError, match="exactly two bias"):
+        cf.identify(sim.data)
+
+
+def test_no_known_load_means_no_k():
+    loads = {"u": P.Load(5.0, 4.0, known=False)}
+    sim = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), load="u", loads=loads), noise=NF)
+    res = cf.identify(sim.data)
+    assert math.isnan(res.estimates[("all", "v")].k)
+    params = res.to_json()["params"]
+    assert "k_v_Nm2_per_A2" not in params and params["g_v0_um"]["value"] == pytest.approx(775.0, rel=1e-6)
+
+
+def test_mean_and_standard_error_over_iterations():
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=10, center=(-33.3e-6, 11.3e-6)), seed=4)
+    est = cf.identify(sim.data).estimates[("all", "v")]
+    g = np.array([s.g0 for s in est.iterations.values()])
+    assert est.n == 10
+    assert est.g0 == pytest.approx(g.mean()) and est.g0_sem == pytest.approx(g.std(ddof=1) / math.sqrt(10))
+    # with 0.6 mA noise the per-iteration gap scatter is tens of µm (the paper's Table 2 scale)
+    assert 10e-6 < est.g0_std < 80e-6
+
+
+def test_by_experiment_and_contract_json():
+    a = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.5), (20e-6,), iterations=3, experiment="1"), noise=NF)
+    b = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), iterations=3, experiment="2"), noise=NF)
+    import pandas as pd
+    res = cf.identify(pd.concat([a.data, b.data], ignore_index=True), by_experiment=True)
+    js = res.to_json()
+    assert js["method"] == "closed_form" and js["converged"] is True and js["n_rows"] == 48
+    assert set(js["experiments"]) == {"1", "2"}
+    for key in ("g_v0_um", "v0_um", "g_w0_um", "w0_um", "k_v_Nm2_per_A2", "k_w_Nm2_per_A2"):
+        assert set(js["params"][key]) == {"value", "std"}
+
+
+def test_noisy_iteration_with_negative_radicand_is_rejected_not_nan():
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=6), noise=rig.Noise(0.6e-3, 0.1e-6), seed=0)
+    df = sim.data.copy()
+    # break one iteration: swap the top currents of its two biases at one position
+    idx = df.index[(df.axis == "v") & (df.iteration == 3)][:2]
+    df.loc[idx, "i_top_A"] = df.loc[idx[::-1], "i_top_A"].to_numpy()
+    est = cf.identify(df).estimates[("all", "v")]
+    assert "3" in " ".join(str(k) for k in est.rejected) and est.n == 5
+    assert np.isfinite(est.g0)

@@ -1,0 +1,156 @@
+"""Contract CSV: every error case names file, row, column and value; round trips lose nothing."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ambfit import data as D
+from ambfit import protocol as P
+from ambfit import rig
+
+
+@pytest.fixture
+def table():
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=2), seed=1)
+    df = sim.data.copy()
+    df["operator"] = "alice"          # extra columns must survive
+    df["note"] = ["x,y"] + [""] * (len(df) - 1)
+    return df
+
+
+def _write(df, tmp_path, name="d.csv"):
+    p = tmp_path / name
+    df.to_csv(p, index=False)
+    return p
+
+
+def test_round_trip_keeps_everything(table, tmp_path):
+    p = _write(table, tmp_path)
+    ds = D.read_csv(p)
+    out = tmp_path / "out.csv"
+    D.write_csv(ds, out)
+    back = D.read_csv(out)
+    assert list(back.frame.columns) == list(table.columns)
+    for col in ("i_top_A", "i_bottom_A", "v_um", "w_um", "load_N", "time_s"):
+        np.testing.assert_array_equal(back.frame[col].to_numpy(float), table[col].to_numpy(float))
+    assert back.frame["operator"].tolist() == ["alice"] * len(table)
+    assert back.frame["note"].iloc[0] == "x,y"
+
+
+def _expect(tmp_path, df, *, row, column, value, match):
+    p = _write(df, tmp_path)
+    with pytest.raises(D.DataError, match=match) as info:
+        D.read_csv(p)
+    e = info.value
+    assert e.file == str(p) and e.row == row and e.column == column
+    if value is not None:
+        assert str(e.value) == str(value)
+    msg = str(e)
+    assert str(p) in msg and (row is None or f"row {row}" in msg) and (column is None or column in msg)
+    return e
+
+
+def test_missing_required_column(table, tmp_path):
+    e = _expect(tmp_path, table.drop(columns=["i_bottom_A"]), row=None, column=None, value=None,
+                match="missing required column")
+    assert "i_bottom_A" in str(e)
+
+
+@pytest.mark.parametrize("bad", ["abc", "1.2.3", "inf", "-inf", "nan"])
+def test_non_numeric_or_non_finite(table, tmp_path, bad):
+    df = table.astype({"i_top_A": object})
+    df.loc[3, "i_top_A"] = bad
+    # NaN written as an empty cell in a required column is reported as empty
+    match = "empty cell|not a finite number"
+    _expect(tmp_path, df, row=4, column="i_top_A", value=None, match=match)
+
+
+def test_empty_required_cell(table, tmp_path):
+    df = table.astype({"v_um": object})
+    df.loc[6, "v_um"] = ""
+    _expect(tmp_path, df, row=7, column="v_um", value=None, match="empty cell")
+
+
+def test_negative_current(table, tmp_path):
+    df = table.copy()
+    df.loc[5, "i_bottom_A"] = -0.25
+    _expect(tmp_path, df, row=6, column="i_bottom_A", value=-0.25, match="negative current")
+
+
+def test_unknown_axis(table, tmp_path):
+    df = table.copy()
+    df.loc[2, "axis"] = "x"
+    _expect(tmp_path, df, row=3, column="axis", value="x", match="unknown axis")
+
+
+def test_position_as_large_as_the_gap(table, tmp_path):
+    df = table.copy()
+    df.loc[7, "w_um"] = 20000.0  # e.g. nanometres written into a µm column
+    _expect(tmp_path, df, row=8, column="w_um", value=20000.0, match="as large as the air gap")
+
+
+def test_inconsistent_known_load(table, tmp_path):
+    df = table.copy()
+    v_rows = df.index[df.axis == "v"]
+    df.loc[v_rows[3], "load_N"] = 9.5
+    e = _expect(tmp_path, df, row=int(v_rows[3]) + 1, column="load_N", value=9.5, match="known load differs")
+    assert "rotor" in str(e)
+
+
+def test_known_load_differs_between_axes_is_fine(table, tmp_path):
+    df = table.copy()
+    df.loc[df.axis == "w", "load_N"] = 3.0  # one load_id, different projections on v and w
+    assert len(D.read_csv(_write(df, tmp_path))) == len(df)
+
+
+def test_time_backwards(table, tmp_path):
+    df = table.copy()
+    df.loc[10, "time_s"] = 0.5
+    _expect(tmp_path, df, row=11, column="time_s", value=0.5, match="time goes backwards")
+
+
+def test_non_integer_iteration(table, tmp_path):
+    df = table.astype({"iteration": object})
+    df.loc[4, "iteration"] = "2.5"
+    _expect(tmp_path, df, row=5, column="iteration", value="2.5", match="integer")
+
+
+def test_non_positive_std(table, tmp_path):
+    df = table.copy()
+    df.loc[1, "i_top_std_A"] = 0.0
+    _expect(tmp_path, df, row=2, column="i_top_std_A", value=0.0, match="must be positive")
+
+
+def test_empty_optional_cells_mean_unknown(table, tmp_path):
+    df = table.astype({"load_N": object})
+    df["load_N"] = ""
+    ds = D.read_csv(_write(df, tmp_path))
+    assert ds.frame["load_N"].isna().all()
+
+
+def test_file_level_errors(tmp_path):
+    with pytest.raises(D.DataError, match="no such file"):
+        D.read_csv(tmp_path / "nope.csv")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(D.DataError, match="empty"):
+        D.read_csv(tmp_path / "empty.csv")
+    (tmp_path / "header.csv").write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\n")
+    with pytest.raises(D.DataError, match="no data rows"):
+        D.read_csv(tmp_path / "header.csv")
+    (tmp_path / "dup.csv").write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um,v_um\nv,1,1,1,0,0,0\n")
+    with pytest.raises(D.DataError, match="duplicate column"):
+        D.read_csv(tmp_path / "dup.csv")
+
+
+def test_readings_in_si_units(table, tmp_path):
+    ds = D.read_csv(_write(table, tmp_path))
+    r = D.readings(ds)
+    w = table.axis.to_numpy() == "w"
+    np.testing.assert_allclose(np.asarray(r.x)[w], table.w_um.to_numpy()[w] * 1e-6)
+    np.testing.assert_allclose(np.asarray(r.y)[w], table.v_um.to_numpy()[w] * 1e-6)
+    assert set(np.unique(np.asarray(r.dir_top))) <= {-1.0, 1.0}
+
+
+def test_approach_direction_follows_the_order():
+    df = pd.DataFrame({"axis": ["v"] * 5, "i_top_A": [1.0, 1.2, 1.4, 1.2, 1.0], "experiment": "e"})
+    np.testing.assert_array_equal(D.approach_direction(df, "i_top_A"), [1, 1, 1, -1, -1])
