@@ -71,8 +71,10 @@ def simulate(
                                            "10 iterations), 'rich' (biases 1.0-1.6 A up and down, "
                                            "±40 µm, four known loads), or 'perturbation' (built from "
                                            "--biases-a/--offsets-um/--center-um/--iterations).")] = Preset.table2,
-    protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset); "
-                                                   "see ambfit.protocol.from_dict.")] = None,
+    protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset): "
+                                                   "[[block]] and [loads.NAME] tables as in "
+                                                   "ambfit.protocol.from_dict, plus optional [[effect]] "
+                                                   "tables (name = ..., parameters in SI units).")] = None,
     biases_a: Annotated[str, typer.Option("--biases-a", help="Bias currents [A], comma separated.")] = "1.4,1.6",
     offsets_um: Annotated[str, typer.Option(help="Symmetric position offsets [µm], comma separated.")] = "20",
     center_um: Annotated[str, typer.Option(help="Centre of the position pairs 'v,w' [µm].")] = "0,0",
@@ -95,12 +97,18 @@ def simulate(
     from ambfit import protocol as proto_mod
     from ambfit import rig
 
+    from ambfit.effects import effect_by_name
+
     try:
         effects = [_parse_effect(e) for e in (effect or [])]
         spec = rig.PAPER_RIG.with_truth(g0=_pair(gap_um, 1e-6), x0=_pair(origin_um, 1e-6))
         if protocol is not None:
             with open(protocol, "rb") as f:
-                proto = proto_mod.from_dict(tomllib.load(f))
+                desc = tomllib.load(f)
+            for e in desc.pop("effect", []):
+                e = dict(e)
+                effects.append(effect_by_name(e.pop("name", ""), **e))
+            proto = proto_mod.from_dict(desc)
         elif preset is Preset.table2:
             proto = proto_mod.paper_table2(iterations)
         elif preset is Preset.rich:

@@ -206,6 +206,29 @@ def paper_table2(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
     return perturbation((1.4, 1.6), (20e-6,), center=center, iterations=iterations, experiment="table2")
 
 
+def paper_table1(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
+    """Table 1: bias pairs 1.4/1.5, 1.4/1.6 and 1.5/1.6 A (experiments "1"-"3"), ±20 µm, ``iterations`` each."""
+    return concat(*(perturbation(b, (20e-6,), center=center, iterations=iterations, experiment=str(j + 1))
+                    for j, b in enumerate(((1.4, 1.5), (1.4, 1.6), (1.5, 1.6)))))
+
+
+PAPER_TABLE3_STARTS = ((0.0, 0.0), (30e-6, 30e-6), (-10e-6, -30e-6), (2.78e-6, -36.88e-6))
+"""Table 3's initial rotor positions ``(v, w)`` [m]: each experiment is an origin search from one of them
+(:func:`ambfit.origin.search` with ``start=``)."""
+
+
+def paper_table4(iterations: int = 10, center=(0.0, 0.0), origin_shift=(-80.7e-6, 24.4e-6)) -> Protocol:
+    """Table 4: after a rotor reassembly (true origin moved by ``origin_shift`` [m]), bias pairs 1.0/1.4 and
+    1.2/1.4 A with ±30, ±40 and ±50 µm pairs (experiments "1.0/1.4 ±30" ...), ``iterations`` each.
+
+    The default shift moves the paper's origin (33.3, -11.3) µm to its Table 4 value (-47.4, 13.1) µm.
+    """
+    parts = [perturbation(b, (d,), center=center, iterations=iterations,
+                          experiment=f"{b[0]:.1f}/{b[1]:.1f} ±{d * 1e6:.0f}")
+             for b in ((1.0, 1.4), (1.2, 1.4)) for d in (30e-6, 40e-6, 50e-6)]
+    return with_assembly(concat(*parts), 1, origin_shift)
+
+
 def rich(
     biases: Sequence[float] = (1.0, 1.2, 1.4, 1.6), span: float = 40e-6, n_positions: int = 5,
     masses_kg: Sequence[float] = (0.0, 0.5, 1.0, 1.5), rotor_kg: float = 1.0, experiment: str = "rich",

@@ -34,13 +34,23 @@ def test_simulate_identify_round_trip(tmp_path):
 def test_simulate_with_effects_and_toml(tmp_path):
     toml = tmp_path / "p.toml"
     toml.write_text('[loads.heavy]\nmass_kg = 2.0\n\n[[block]]\nkind = "perturbation"\nbiases_A = [1.2, 1.5]\n'
-                    'offsets_um = [30]\niterations = 2\nload = "heavy"\nexperiment = "toml"\n')
+                    'offsets_um = [30]\niterations = 2\nload = "heavy"\nexperiment = "toml"\n\n'
+                    '[[effect]]\nname = "current_offset"\ntop = 0.01\nbottom = 0.0\n')
     csv = tmp_path / "d.csv"
     r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml),
                             "--effect", "saturation:b_sat=1.1", "--effect", "hysteresis"])
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, ["identify", str(csv), "--by", "experiment"])
     assert r.exit_code == 0 and "toml" in r.output
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml),
+                            "--current-noise-ma", "0", "--position-noise-um", "0"])
+    ref = tmp_path / "ref.csv"
+    toml.write_text(toml.read_text().replace("top = 0.01", "top = 0.0"))
+    runner.invoke(app, ["simulate", "-o", str(ref), "--protocol", str(toml), "--current-noise-ma", "0",
+                        "--position-noise-um", "0"])
+    import pandas as pd
+    diff = pd.read_csv(csv).i_top_A - pd.read_csv(ref).i_top_A
+    assert diff.to_numpy() == pytest.approx(0.01, abs=1e-12)   # the [[effect]] table was applied
 
 
 def test_bad_effect_and_bad_data_give_clear_errors(tmp_path):

@@ -195,3 +195,15 @@ def test_protocol_from_dict_matches_builders():
     assert list(a.experiment) == list(b.experiment)
     with pytest.raises(ValueError, match="unknown kind"):
         P.from_dict({"block": [{"kind": "nope"}]})
+
+
+def test_paper_table_protocols():
+    t1 = P.paper_table1(iterations=2)
+    assert len(t1) == 3 * 2 * 4 and sorted(set(t1.experiment)) == ["1", "2", "3"]
+    t4 = P.paper_table4(iterations=1)
+    assert len(t4) == 6 * 4 and set(t4.assembly) == {1}
+    sim = _sim(t4)
+    from ambfit import closed_form
+    est = closed_form.identify(sim.data, by_experiment=True).estimates
+    assert est[("1.0/1.4 ±50", "v")].x0 == pytest.approx(-47.4e-6, rel=1e-6)
+    assert len(P.PAPER_TABLE3_STARTS) == 4
