@@ -202,8 +202,8 @@ def origin_search(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the trajectory as JSON.")] = None,
 ):
     """Run the paper's effective-origin search on the virtual rig and print its trajectory."""
+    from ambfit import closed_form, origin, rig
     from ambfit import data as data_mod
-    from ambfit import origin, rig
 
     try:
         res = origin.search(
@@ -211,7 +211,7 @@ def origin_search(
             start=_pair(start_um, 1e-6), tolerance=tolerance_um * 1e-6, iterations=iterations,
             run_all=not stop_at_tolerance, effects=[_parse_effect(e) for e in (effect or [])],
             noise=rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6), seed=seed, experiment=experiment)
-    except (ValueError, rig.RigError) as exc:
+    except (ValueError, rig.RigError, closed_form.ClosedFormError) as exc:
         _fail(str(exc))
     t = Table(title=f"effective-origin search ({'converged at iteration ' + str(res.converged_at) if res.converged else 'not converged'})")
     for col in ("it", "v centre", "v offset", "g_v0", "w centre", "w offset", "g_w0"):

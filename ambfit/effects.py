@@ -163,7 +163,7 @@ class Fringing(Effect):
 
     coefficient: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     pole_width: float = 5.0e-3
-    pole_length: float = 10.0e-3
+    pole_length: float = 10.85e-3  # the paper rig's pole (5 mm x 10.85 mm, see ambfit.rig.PAPER_RIG)
     name: ClassVar[str] = "fringing"
     RANGES: ClassVar = {"coefficient": (0.3, 1.0)}
     UNITS: ClassVar = {"coefficient": "-", "pole_width": "m", "pole_length": "m"}

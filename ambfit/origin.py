@@ -114,7 +114,12 @@ def search(
         sim = simulate(spec, proto, effects, noise, seed=rng, state=state)
         state, truth = sim.state, sim.truth
         frame = sim.data
-        est = closed_form.identify(frame)
+        try:
+            est = closed_form.identify(frame)
+        except closed_form.ClosedFormError as exc:
+            raise closed_form.ClosedFormError(
+                f"origin search iteration {it} (centre {center[0] * 1e6:.2f}, {center[1] * 1e6:.2f} µm): {exc}"
+            ) from None
         g = np.array([est.estimates[("all", ax)].g0 for ax in AXES])
         x = np.array([est.estimates[("all", ax)].x0 for ax in AXES])
         e = center + x

@@ -97,3 +97,9 @@ def test_installed_entry_point_identifies_the_default_data(tmp_path):
     # 10 iterations with ~35 µm scatter: the mean lies within 4 standard errors of the truth
     assert abs(js["params"]["g_v0_um"]["value"] - 775.0) < 4 * js["params"]["g_v0_um"]["std"]
     assert abs(js["params"]["v0_um"]["value"] - 33.3) < 4 * js["params"]["v0_um"]["std"]
+
+
+def test_origin_search_failure_is_a_message_not_a_traceback():
+    # biases too close for the noise: Eq. 6's radicand goes negative at some iteration
+    r = runner.invoke(app, ["origin-search", "--biases-a", "1.4,1.401", "--current-noise-ma", "5", "--iterations", "5"])
+    assert r.exit_code == 2 and "origin search iteration" in r.output and "Traceback" not in r.output
