@@ -25,7 +25,7 @@ import pandas as pd
 
 from ambfit import closed_form
 from ambfit.data import Dataset, load_groups
-from ambfit.model import ALPHA_DEFAULT, AXES
+from ambfit.model import ALPHA_DEFAULT, AXES, ideal_force
 
 K_REFERENCE = 3.445e-6
 """Force constant [N m^2/A^2] held fixed on an axis without known loads (it cancels from gap and origin)."""
@@ -201,5 +201,4 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
 def _forces(theta, prob, alpha):
     g0, x0, k, _ = _unpack(jnp.asarray(theta), prob)
     a = prob["ax"]
-    u = (x0[a] + prob["x"]) * np.cos(alpha)
-    return np.asarray(k[a] * (prob["it"] ** 2 / (g0[a] - u) ** 2 - prob["ib"] ** 2 / (g0[a] + u) ** 2))
+    return np.asarray(ideal_force(g0[a], x0[a], k[a], prob["it"], prob["ib"], prob["x"], alpha))
