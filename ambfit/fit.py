@@ -24,8 +24,8 @@ import optimistix as optx
 import pandas as pd
 
 from ambfit import closed_form
-from ambfit.data import Dataset, load_groups
-from ambfit.model import ALPHA_DEFAULT, AXES, ideal_force
+from ambfit.data import Dataset, load_groups, readings
+from ambfit.model import ALPHA_DEFAULT, AXES, gaps, ideal_force
 
 K_REFERENCE = 3.445e-6
 """Force constant [N m^2/A^2] held fixed on an axis without known loads (it cancels from gap and origin)."""
@@ -71,22 +71,18 @@ class FitResult:
 
 
 def _problem(df: pd.DataFrame, sigma_i: float | None, sigma_x: float | None):
-    ax = (df["axis"] == "w").to_numpy().astype(int)
-    v, w = df["v_um"].to_numpy(float) * _UM, df["w_um"].to_numpy(float) * _UM
-    x = np.where(ax == 0, v, w)
-    it, ib = df["i_top_A"].to_numpy(float), df["i_bottom_A"].to_numpy(float)
-    st = df["i_top_std_A"].to_numpy(float) if "i_top_std_A" in df else np.full(len(df), np.nan)
-    sb = df["i_bottom_std_A"].to_numpy(float) if "i_bottom_std_A" in df else np.full(len(df), np.nan)
-    sx_col = np.where(ax == 0, df["v_std_um"] if "v_std_um" in df else np.nan,
-                      df["w_std_um"] if "w_std_um" in df else np.nan).astype(float) * _UM
-    if sigma_i is not None:
-        st, sb = np.full(len(df), sigma_i), np.full(len(df), sigma_i)
-    if sigma_x is not None:
-        sx_col = np.full(len(df), sigma_x)
+    r = readings(df)
+    ax, x, it, ib = (np.asarray(a) for a in (r.axis, r.x, r.i_top, r.i_bottom))
+    def column(name, fill):
+        return df[name].to_numpy(float) if name in df else np.full(len(df), fill)
+    st = column("i_top_std_A", np.nan) if sigma_i is None else np.full(len(df), sigma_i)
+    sb = column("i_bottom_std_A", np.nan) if sigma_i is None else np.full(len(df), sigma_i)
+    sx_col = (np.where(ax == 0, column("v_std_um", np.nan), column("w_std_um", np.nan)) * _UM
+              if sigma_x is None else np.full(len(df), sigma_x))
     for name, a in (("current", st), ("current", sb), ("position", sx_col)):
         if np.isnan(a).any():
             raise FitError(f"no {name} noise level for some rows: give the std columns or declare a level")
-    load = df["load_N"].to_numpy(float) if "load_N" in df else np.full(len(df), np.nan)
+    load = column("load_N", np.nan)
     groups = load_groups(df).to_numpy()
     unknown = sorted({g for g, l in zip(groups, load) if np.isnan(l)})
     gidx = np.array([unknown.index(g) if g in unknown else -1 for g in groups])
@@ -107,9 +103,8 @@ def _residuals(theta, prob, alpha):
     g0, x0, k, loads = _unpack(theta, prob)
     a = prob["ax"]
     c = np.cos(alpha)
-    g, o, kk = g0[a], x0[a], k[a]
-    u = (o + prob["x"]) * c
-    gt, gb = g - u, g + u
+    kk = k[a]
+    gt, gb = gaps(g0[a], x0[a], prob["x"], alpha)
     it, ib = prob["it"], prob["ib"]
     f = kk * (it**2 / gt**2 - ib**2 / gb**2)
     target = jnp.where(prob["known"], prob["load"],
@@ -151,7 +146,7 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
     sol = optx.least_squares(fn, solver, jnp.asarray(theta0), max_steps=max_steps, throw=False)
     ok = bool(sol.result == optx.RESULTS.successful)
     theta = np.asarray(sol.value)
-    jac = np.asarray(jax.jacfwd(lambda th: _residuals(th, prob_j, alpha))(jnp.asarray(theta)))
+    jac = np.asarray(jax.jacfwd(fn)(jnp.asarray(theta), None))
     free = np.array([True, True, True, True, *prob["k_known"]] + [True] * prob["n_unknown"])
     present = np.array([(prob["ax"] == 0).any(), (prob["ax"] == 1).any()] * 2 + [True] * (2 + prob["n_unknown"]))
     free &= present
