@@ -65,28 +65,25 @@ def test_non_numeric_or_non_finite(table, tmp_path, bad):
     _expect(tmp_path, df, row=4, column="i_top_A", value=None, match=match)
 
 
-def test_empty_required_cell(table, tmp_path):
-    df = table.astype({"v_um": object})
-    df.loc[6, "v_um"] = ""
-    _expect(tmp_path, df, row=7, column="v_um", value=None, match="empty cell")
+# One corrupted cell per case: (index, column, new value, expected value in the error or None, message).
+CELL_CASES = {
+    "empty required cell": (6, "v_um", "", None, "empty cell"),
+    "negative current": (5, "i_bottom_A", -0.25, -0.25, "negative current"),
+    "unknown axis": (2, "axis", "x", "x", "unknown axis"),
+    # e.g. nanometres written into a µm column
+    "position as large as the gap": (7, "w_um", 20000.0, 20000.0, "as large as the air gap"),
+    "time backwards": (10, "time_s", 0.5, 0.5, "time goes backwards"),
+    "non-integer iteration": (4, "iteration", "2.5", "2.5", "integer"),
+    "non-positive std": (1, "i_top_std_A", 0.0, 0.0, "must be positive"),
+}
 
 
-def test_negative_current(table, tmp_path):
-    df = table.copy()
-    df.loc[5, "i_bottom_A"] = -0.25
-    _expect(tmp_path, df, row=6, column="i_bottom_A", value=-0.25, match="negative current")
-
-
-def test_unknown_axis(table, tmp_path):
-    df = table.copy()
-    df.loc[2, "axis"] = "x"
-    _expect(tmp_path, df, row=3, column="axis", value="x", match="unknown axis")
-
-
-def test_position_as_large_as_the_gap(table, tmp_path):
-    df = table.copy()
-    df.loc[7, "w_um"] = 20000.0  # e.g. nanometres written into a µm column
-    _expect(tmp_path, df, row=8, column="w_um", value=20000.0, match="as large as the air gap")
+@pytest.mark.parametrize("case", list(CELL_CASES))
+def test_bad_cell(table, tmp_path, case):
+    index, column, new, value, match = CELL_CASES[case]
+    df = table.astype({column: object}) if isinstance(new, str) else table.copy()
+    df.loc[index, column] = new
+    _expect(tmp_path, df, row=index + 1, column=column, value=value, match=match)
 
 
 def test_inconsistent_known_load(table, tmp_path):
@@ -101,24 +98,6 @@ def test_known_load_differs_between_axes_is_fine(table, tmp_path):
     df = table.copy()
     df.loc[df.axis == "w", "load_N"] = 3.0  # one load_id, different projections on v and w
     assert len(D.read_csv(_write(df, tmp_path))) == len(df)
-
-
-def test_time_backwards(table, tmp_path):
-    df = table.copy()
-    df.loc[10, "time_s"] = 0.5
-    _expect(tmp_path, df, row=11, column="time_s", value=0.5, match="time goes backwards")
-
-
-def test_non_integer_iteration(table, tmp_path):
-    df = table.astype({"iteration": object})
-    df.loc[4, "iteration"] = "2.5"
-    _expect(tmp_path, df, row=5, column="iteration", value="2.5", match="integer")
-
-
-def test_non_positive_std(table, tmp_path):
-    df = table.copy()
-    df.loc[1, "i_top_std_A"] = 0.0
-    _expect(tmp_path, df, row=2, column="i_top_std_A", value=0.0, match="must be positive")
 
 
 def test_empty_optional_cells_mean_unknown(table, tmp_path):
