@@ -56,10 +56,24 @@ def test_single_position_is_not_identifiable():
         fit.fit(sim.data)
 
 
-def test_missing_noise_levels_are_an_error():
+def test_missing_noise_levels_are_estimated_or_declared_and_said_so():
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=3), seed=7)
+    bare = sim.data.drop(columns=["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"])
+    est = fit.fit(bare)
+    assert "current estimated" in est.noise_source and "position noise taken as 0" in est.noise_source
+    # the estimated current noise is of the order of the rig's 0.6 mA (position noise folded in)
+    level = float(est.noise_source.split("estimate ")[1].split(" mA")[0])
+    assert 0.3 < level < 1.5
+    dec = fit.fit(bare, sigma_i=0.6e-3, sigma_x=0.1e-6)
+    assert "declared" in dec.noise_source
+    ref = fit.fit(sim.data)
+    assert dec.value("g_v0") == pytest.approx(ref.value("g_v0"), rel=1e-9)
+    assert "std columns" in ref.noise_source
+
+
+def test_noise_free_data_fits_exactly():
     sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=2), noise=rig.NOISE_FREE)
-    with pytest.raises(fit.FitError, match="noise level"):
-        fit.fit(sim.data)
-    res = fit.fit(sim.data, sigma_i=1e-3, sigma_x=0.1e-6)   # a declared level works
+    res = fit.fit(sim.data, sigma_i=1e-3, sigma_x=0.1e-6)
     assert res.value("g_v0") == pytest.approx(775e-6, rel=1e-8)
+    assert res.value("k_w") == pytest.approx(rig.PAPER_RIG.force_constant, rel=1e-8)
     assert np.all(np.abs(res.residuals) < 1e-6)
