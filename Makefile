@@ -18,7 +18,8 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	@mkdir -p reports/demo
-	$(BIN)/ambfit identify data/paper_table2.csv --method closed-form --by experiment --json reports/demo/identify.json
+	$(BIN)/ambfit identify data/paper_table2.csv --json reports/demo/identify.json
+	$(BIN)/ambfit identify data/paper_table2.csv --method closed-form --json reports/demo/identify_closed_form.json
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

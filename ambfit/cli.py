@@ -28,6 +28,24 @@ console = Console(width=None if sys.stdout.isatty() else 140)
 err = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
 
 
+def _enable_compilation_cache():
+    """Persist JAX's compiled fits between runs (``$AMBFIT_JAX_CACHE``, default ``~/.cache/ambfit/jax``):
+    a cold ``ambfit identify`` then skips most of its compile time."""
+    import os
+
+    import jax
+
+    path = os.environ.get("AMBFIT_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "ambfit", "jax"))
+    if path.lower() in ("", "0", "off", "none"):
+        return
+    try:
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    except OSError:  # read-only home: run without the cache
+        pass
+
+
 def _fail(msg: str, code: int = 2):
     err.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
@@ -128,6 +146,7 @@ def simulate(
 
 
 class Method(str, Enum):
+    least_squares = "least-squares"
     closed_form = "closed-form"
 
 
@@ -136,50 +155,126 @@ class By(str, Enum):
     experiment = "experiment"
 
 
+def _pm(v, s, fmt):
+    return f"{v:{fmt}} ± {s:{fmt}}" if s == s else f"{v:{fmt}}"
+
+
 def _closed_form_table(result, title: str) -> Table:
     t = Table(title=title)
     for col in ("experiment", "axis", "iterations", "gap [µm]", "origin [µm]", "k [N·m²/A²]", "rejected"):
         t.add_column(col, justify="right" if col not in ("experiment", "axis") else "left")
-    def pm(v, s, fmt):
-        return f"{v:{fmt}} ± {s:{fmt}}" if s == s else f"{v:{fmt}}"
     for (exp, ax), e in result.estimates.items():
-        k = pm(e.k, e.k_sem, ".3e") if e.k == e.k else "–"
-        t.add_row(exp, ax, str(e.n), pm(e.g0 * 1e6, e.g0_sem * 1e6, ".2f"), pm(e.x0 * 1e6, e.x0_sem * 1e6, ".2f"),
+        k = _pm(e.k, e.k_sem, ".3e") if e.k == e.k else "–"
+        t.add_row(exp, ax, str(e.n), _pm(e.g0 * 1e6, e.g0_sem * 1e6, ".2f"), _pm(e.x0 * 1e6, e.x0_sem * 1e6, ".2f"),
                   k, str(len(e.rejected)))
+    return t
+
+
+def _ls_table(results: dict, title: str) -> Table:
+    """One row per experiment (or 'all'): gap, origin, k of both axes, value ± std; failures say why."""
+    from ambfit.fit import FitError
+
+    t = Table(title=title)
+    cols = ("experiment", "g_v0 [µm]", "v0 [µm]", "g_w0 [µm]", "w0 [µm]", "k_v [N·m²/A²]", "k_w [N·m²/A²]", "χ²/dof")
+    for c in cols:
+        t.add_column(c, justify="left" if c == "experiment" else "right")
+    for key, res in results.items():
+        if isinstance(res, FitError):
+            t.add_row(key, f"failed: {res}", *[""] * (len(cols) - 2))
+            continue
+        cells = []
+        for name, scale, fmt in (("g_v0", 1e6, ".2f"), ("v0", 1e6, ".2f"), ("g_w0", 1e6, ".2f"), ("w0", 1e6, ".2f"),
+                                 ("k_v", 1.0, ".4e"), ("k_w", 1.0, ".4e")):
+            cells.append(_pm(res.value(name) * scale, res.error(name) * scale, fmt) if name in res.names else "–")
+        t.add_row(key, *cells, f"{res.reduced_chi2:.2f}")
     return t
 
 
 @app.command()
 def identify(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
-    method: Annotated[Method, typer.Option(help="Estimator: 'closed-form' (the paper's Eq. 5-7 per "
-                                           "iteration, averaged).")] = Method.closed_form,
+    method: Annotated[Method, typer.Option(help="Estimator: 'least-squares' (all readings, weighted by their "
+                                           "propagated noise; k from known loads) or 'closed-form' (the "
+                                           "paper's Eq. 5-7 per iteration, averaged).")] = Method.least_squares,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON here.")] = None,
     by: Annotated[By, typer.Option(help="'experiment': one estimate per experiment (like the paper's "
-                                   "tables); 'none': pool all iterations.")] = By.none,
+                                   "tables); 'none': one estimate from all rows.")] = By.none,
+    current_noise_ma: Annotated[float | None, typer.Option(
+        "--current-noise-ma", help="Declared current noise std [mA] (default: the std columns, else "
+                                   "estimated from the residuals).")] = None,
+    position_noise_um: Annotated[float | None, typer.Option(
+        help="Declared position noise std [µm] (default: the std columns, else 0).")] = None,
+    require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
+                                            "(needs known loads).")] = False,
     max_position_um: Annotated[float, typer.Option(help="Reject positions at least this large [µm] "
                                                    "(unit check).")] = 762.0,
 ):
     """Identify effective gap, origin (and k when loads are known) for each axis.
 
-    Values are the mean over iterations ± the standard error of that mean.
+    least-squares: value ± standard error from the fit's covariance; exits 3 with the
+    reason when the fit does not converge or the design does not identify the
+    parameters.  closed-form: mean over iterations ± standard error of that mean.
     """
-    from ambfit import closed_form
     from ambfit.data import DataError, read_csv
 
+    _enable_compilation_cache()
     try:
         ds = read_csv(data, max_position_um=max_position_um)
-        result = closed_form.identify(ds, by_experiment=by is By.experiment)
-    except (DataError, closed_form.ClosedFormError) as exc:
+    except DataError as exc:
         _fail(str(exc))
-    console.print(_closed_form_table(result, f"closed form (Eq. 5-7), {data.name}, {result.n_rows} rows"))
-    for (exp, ax), e in result.estimates.items():
-        for it, why in e.rejected.items():
-            err.print(f"[yellow]rejected[/] {exp}/{ax} iteration {it}: {why}", highlight=False)
+    if method is Method.closed_form:
+        from ambfit import closed_form
+
+        try:
+            result = closed_form.identify(ds, by_experiment=by is By.experiment)
+        except closed_form.ClosedFormError as exc:
+            _fail(str(exc), 3)
+        console.print(_closed_form_table(result, f"closed form (Eq. 5-7), {data.name}, {result.n_rows} rows"))
+        for (exp, ax), e in result.estimates.items():
+            for it, why in e.rejected.items():
+                err.print(f"rejected {exp}/{ax} iteration {it}: {why}", highlight=False)
+        record = result.to_json()
+    else:
+        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k)
     if json_out is not None:
         with open(json_out, "w") as f:
-            json.dump(result.to_json(), f, indent=2)
+            json.dump(record, f, indent=2)
         console.print(f"wrote {json_out}")
+    if not record["converged"]:
+        raise typer.Exit(3)
+
+
+def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k) -> dict:
+    from ambfit import fit
+
+    kw = dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
+              sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k)
+    try:
+        pooled = fit.fit(ds, **kw)
+    except fit.FitError as exc:
+        if by is By.none:
+            _fail(str(exc), 3)
+        pooled = exc
+    results = {"all": pooled}
+    if by is By.experiment:
+        results = fit.fit_by(ds, "experiment", **kw)
+    console.print(_ls_table(results, f"least squares, {name}, {len(ds)} rows"))
+    if not isinstance(pooled, fit.FitError):
+        console.print(f"noise: {pooled.noise_source}; start: {pooled.start}; condition {pooled.condition:.3g}; "
+                      f"{pooled.weak_direction}", highlight=False)
+        for ax in ("v", "w"):
+            if not pooled.k_identified["vw".index(ax)]:
+                console.print(f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)",
+                              highlight=False)
+        record = pooled.to_json()
+    else:
+        record = {"method": "least_squares", "params": {}, "converged": False, "n_rows": len(ds),
+                  "error": str(pooled)}
+    if by is By.experiment:
+        record["experiments"] = {k: (r.to_json() if not isinstance(r, fit.FitError) else
+                                     {"converged": False, "error": str(r)}) for k, r in results.items()}
+        record["converged"] = record["converged"] and all(not isinstance(r, fit.FitError) for r in results.values())
+    return record
 
 
 @app.command("origin-search")

@@ -187,8 +187,8 @@ def _fn(theta, args):
 
 
 @eqx.filter_jit
-def solve(theta0, prob: Problem, alpha: float = ALPHA_DEFAULT, max_steps: int = 100, rtol: float = 1e-10,
-          atol: float = 1e-10):
+def solve(theta0, prob: Problem, alpha: float = ALPHA_DEFAULT, max_steps: int = 100, rtol: float = 1e-8,
+          atol: float = 1e-8):
     """Levenberg-Marquardt from ``theta0``; returns ``(theta, result, num_steps)`` (jit- and vmap-safe)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(_fn, solver, theta0, args=(prob, alpha), max_steps=max_steps, throw=False)
@@ -484,36 +484,3 @@ def fit_by(data: Dataset | pd.DataFrame, column: str = "experiment", **kw) -> di
         except FitError as exc:
             out[key] = exc
     return out
-
-
-def force(result: FitResult, axis: str, i_top, i_bottom, x, *, sigma_i: float = 0.0, sigma_x: float = 0.0,
-          alpha: float = ALPHA_DEFAULT) -> tuple[np.ndarray, np.ndarray]:
-    """Bearing force [N] and its standard error for given currents [A] and position [m] on one axis.
-
-    The paper's end goal.  The error propagates the parameters' covariance (delta
-    method) and, if given, the measurement noise of the currents and position.
-    Needs ``k`` of that axis, i.e. a fit with known loads.
-    """
-    if axis not in AXES:
-        raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
-    names = (f"g_{axis}0", f"{axis}0", f"k_{axis}")
-    if names[2] not in result.names:
-        raise FitError(f"the force on axis {axis} needs k_{axis}, which this fit could not identify "
-                       "(no known load on that axis)")
-    idx = [result.names.index(n) for n in names]
-    p = result.values[idx]
-    cov = result.cov[np.ix_(idx, idx)]
-    it, ib, xx = (jnp.asarray(np.broadcast_to(v, np.broadcast(i_top, i_bottom, x).shape), dtype=float)
-                  for v in (i_top, i_bottom, x))
-
-    def f(q, it, ib, xx):
-        return ideal_force(q[0], q[1], q[2], it, ib, xx, alpha)
-
-    val = f(jnp.asarray(p), it, ib, xx)
-    jp = jax.vmap(jax.grad(f), in_axes=(None, 0, 0, 0))(jnp.asarray(p), it.ravel(), ib.ravel(), xx.ravel())
-    var = jnp.einsum("ni,ij,nj->n", jp, jnp.asarray(cov), jp).reshape(val.shape)
-    if sigma_i or sigma_x:
-        d = jax.vmap(jax.grad(lambda a, b, c: f(jnp.asarray(p), a, b, c), argnums=(0, 1, 2)))(
-            it.ravel(), ib.ravel(), xx.ravel())
-        var = var + ((d[0] * sigma_i) ** 2 + (d[1] * sigma_i) ** 2 + (d[2] * sigma_x) ** 2).reshape(val.shape)
-    return np.asarray(val), np.sqrt(np.asarray(var))

@@ -66,8 +66,56 @@ def test_bad_effect_and_bad_data_give_clear_errors(tmp_path):
 def test_unidentifiable_design_exits_non_zero(tmp_path):
     one = tmp_path / "one.csv"
     one.write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\nv,1.4,1.52,1.27,20,20\nv,1.6,1.68,1.51,20,20\n")
+    r = runner.invoke(app, ["identify", str(one), "--method", "closed-form"])
+    assert r.exit_code == 3 and "two positions" in r.output
     r = runner.invoke(app, ["identify", str(one)])
-    assert r.exit_code == 2 and "two positions" in r.output
+    assert r.exit_code == 3 and "does not identify" in r.output and "Traceback" not in r.output
+
+
+def test_least_squares_is_the_default_and_writes_contract_json(tmp_path):
+    out = tmp_path / "o.json"
+    r = runner.invoke(app, ["identify", str(ROOT / "data" / "paper_table2.csv"), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    js = json.loads(out.read_text())
+    assert js["method"] == "least_squares" and js["converged"] is True and js["n_rows"] == 80
+    for key in ("g_v0_um", "v0_um", "g_w0_um", "w0_um", "k_v_Nm2_per_A2", "k_w_Nm2_per_A2"):
+        assert set(js["params"][key]) >= {"value", "std"}
+    truth = json.loads((ROOT / "data" / "paper_table2.truth.json").read_text())["params"]["0"]
+    for key in ("g_v0_um", "v0_um", "g_w0_um", "w0_um", "k_v_Nm2_per_A2"):
+        assert abs(js["params"][key]["value"] - truth[key]) < 4 * js["params"][key]["std"], key
+    assert "χ²/dof" in r.output
+
+
+def test_least_squares_without_known_loads_does_not_report_k(tmp_path):
+    import pandas as pd
+    df = pd.read_csv(ROOT / "data" / "paper_table2.csv")
+    df["load_N"] = float("nan")
+    csv, out = tmp_path / "u.csv", tmp_path / "u.json"
+    df.to_csv(csv, index=False)
+    r = runner.invoke(app, ["identify", str(csv), "--json", str(out)])
+    assert r.exit_code == 0 and "k_v not identified" in r.output
+    assert "k_v_Nm2_per_A2" not in json.loads(out.read_text())["params"]
+    r = runner.invoke(app, ["identify", str(csv), "--require-k"])
+    assert r.exit_code == 3 and "k is not identifiable" in r.output
+
+
+def test_by_experiment_table(tmp_path):
+    csv = tmp_path / "t1.csv"
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(_table1_toml(tmp_path))])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "t1.json"
+    r = runner.invoke(app, ["identify", str(csv), "--by", "experiment", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    js = json.loads(out.read_text())
+    assert set(js["experiments"]) == {"1", "2"} and all(e["converged"] for e in js["experiments"].values())
+
+
+def _table1_toml(tmp_path):
+    p = tmp_path / "t1.toml"
+    p.write_text('[[block]]\nkind = "perturbation"\nbiases_A = [1.4, 1.5]\niterations = 3\nexperiment = "1"\n'
+                 'center_um = [-33.3, 11.3]\n\n[[block]]\nkind = "perturbation"\nbiases_A = [1.4, 1.6]\n'
+                 'iterations = 3\nexperiment = "2"\ncenter_um = [-33.3, 11.3]\n')
+    return p
 
 
 @pytest.mark.parametrize("cmd, unit", [("simulate", "[mA]"), ("identify", "[µm]"), ("origin-search", "[µm]")])
