@@ -84,7 +84,14 @@ def fisher(data: pd.DataFrame, params: BearingParams, loads: dict | None = None,
     corr_info = info_s / np.outer(norms, norms)
     w, v = np.linalg.eigh(corr_info)
     cond = float(np.sqrt(w[-1] / w[0])) if w[0] > 0 else np.inf
+    # A singular information matrix leaves some combinations unbounded: their parameters get an
+    # infinite bound, not the pseudo-inverse's misleading finite number.
+    null = w < 1e-12 * w[-1]
     crlb_s = np.linalg.pinv(info_s)
+    if null.any():
+        loaded = np.any(np.abs(v[:, null]) > 1e-6, axis=1)
+        crlb_s[loaded, :] = np.inf
+        crlb_s[:, loaded] = np.inf
     weakest = {n: float(c) for n, c in zip(names, v[:, 0])}
     return Information(names=names, matrix=info_s / np.outer(scale, scale), crlb=crlb_s * np.outer(scale, scale),
                        condition=cond, weakest=weakest)

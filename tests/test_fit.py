@@ -77,3 +77,94 @@ def test_noise_free_data_fits_exactly():
     assert res.value("g_v0") == pytest.approx(775e-6, rel=1e-8)
     assert res.value("k_w") == pytest.approx(rig.PAPER_RIG.force_constant, rel=1e-8)
     assert np.all(np.abs(res.residuals) < 1e-6)
+
+
+# --- batch fits, information, force measurement -------------------------------------------------
+
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from ambfit import batch, information, measure  # noqa: E402
+
+
+def test_batch_matches_single_fits_both_ways():
+    proto = P.paper_table2(iterations=3, center=(-33.3e-6, 11.3e-6))
+    ds = [rig.simulate(rig.PAPER_RIG, proto, seed=s).data for s in range(4)]
+    singles = np.array([fit.fit(d).values for d in ds])
+    for method in ("vmap", "loop"):
+        b = batch.fit_batch(ds, method=method)
+        assert b.converged.all()
+        np.testing.assert_allclose(b.values, singles, rtol=1e-7)
+        np.testing.assert_allclose(b.error("g_v0"), [fit.fit(d).error("g_v0") for d in ds], rtol=1e-6)
+
+
+def test_batch_rejects_mixed_designs():
+    a = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=2), seed=0).data
+    b = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=3), seed=0).data
+    with pytest.raises(fit.FitError, match="share one design"):
+        batch.fit_batch([a, b])
+
+
+def test_vectorised_closed_form_seed_matches_closed_form():
+    from ambfit import closed_form
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=4), seed=3)
+    prob = batch.stack([fit.build_problem(sim.data)[0]])
+    g0, x0 = batch.closed_form_batch(prob, batch.design_pairs(sim.data))
+    est = closed_form.identify(sim.data).estimates
+    assert g0[0, 0] == pytest.approx(est[("all", "v")].g0, rel=1e-10)
+    assert x0[0, 1] == pytest.approx(est[("all", "w")].x0, rel=1e-8)
+
+
+def test_crlb_matches_least_squares_covariance_at_the_truth():
+    # On noise-free data at the truth the fit's covariance *is* the inverse Fisher information.
+    proto = P.paper_table2(center=(-33.3e-6, 11.3e-6))
+    info = information.design_information(rig.PAPER_RIG, proto, rig.Noise())
+    sim = rig.simulate(rig.PAPER_RIG, proto, noise=rig.NOISE_FREE)
+    res = fit.fit(sim.data, sigma_i=rig.Noise().current, sigma_x=rig.Noise().position)
+    for name in ("g_v0", "v0", "k_w"):
+        assert res.error(name) == pytest.approx(info.std(name), rel=1e-6)
+
+
+def test_information_ranks_designs():
+    # one bias pair at one position is hopeless; symmetric pairs beat it; the rich design beats both
+    noise = rig.Noise()
+    sym = information.design_information(rig.PAPER_RIG, P.paper_table2(), noise)
+    rich = information.design_information(rig.PAPER_RIG, P.rich(), noise)
+    assert rich.std("g_v0") < sym.std("g_v0")
+    assert sym.condition < 1e3
+    loads = {"u": P.Load(5.0, 4.0, known=False)}
+    one = information.design_information(
+        rig.PAPER_RIG, P.concat(*(P.grid([(10e-6, 10e-6)], [1.2, 1.4, 1.6], load="u", loads=loads, iteration=i)
+                                  for i in range(3))), noise)
+    assert one.condition > 1e6
+    assert max(abs(one.weakest["g_v0"]), abs(one.weakest["g_w0"])) > 0.1   # a gap is in the weakest direction
+    assert one.std("g_v0") == np.inf and one.std("g_w0") == np.inf
+
+
+def test_force_measurement_with_uncertainty():
+    sim = rig.simulate(rig.PAPER_RIG, P.rich(), seed=5)
+    res = fit.fit(sim.data)
+    f, s = measure.force(res, "v", [1.7, 2.0], [1.3, 1.0], [0.0, 10e-6])
+    spec = rig.PAPER_RIG
+    from ambfit.model import ideal_force
+    true = np.asarray(ideal_force(spec.g0[0], spec.x0[0], spec.force_constant, np.array([1.7, 2.0]),
+                                  np.array([1.3, 1.0]), np.array([0.0, 10e-6])))
+    assert np.all(np.abs(f - true) < 4 * s) and np.all(s > 0) and np.all(s < 0.05 * np.abs(true))
+    _, s_noisy = measure.force(res, "v", [1.7], [1.3], [0.0], sigma_i=1e-3, sigma_x=0.1e-6)
+    assert s_noisy[0] > s[0]
+    loads = {"u": P.Load(5.0, 4.0, known=False)}
+    unk = fit.fit(rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), iterations=3, load="u",
+                                                             loads=loads), seed=1).data)
+    with pytest.raises(fit.FitError, match="needs k_v"):
+        measure.force(unk, "v", 1.7, 1.3, 0.0)
+
+
+@given(g=st.floats(600e-6, 950e-6), x0=st.floats(-50e-6, 50e-6), b=st.floats(1.0, 1.5),
+       sigma=st.floats(0.2e-3, 2e-3), seed=st.integers(0, 2**16))
+def test_recovery_over_gaps_origins_biases_and_noise(g, x0, b, sigma, seed):
+    spec = rig.PAPER_RIG.with_truth(g0=(g, g * 0.98), x0=(x0, -x0))
+    proto = P.perturbation((b, b + 0.2), (20e-6, 35e-6), center=(-x0, x0), iterations=4)
+    res = fit.fit(rig.simulate(spec, proto, noise=rig.Noise(sigma, 0.1e-6), seed=seed).data)
+    # 4.5 standard errors: over 25 examples x 6 parameters a 4-sigma bound would fail by chance ~1 % of runs
+    for name, t in (("g_v0", g), ("g_w0", 0.98 * g), ("v0", x0), ("w0", -x0), ("k_v", spec.force_constant)):
+        assert abs(res.value(name) - t) < 4.5 * res.error(name), name
