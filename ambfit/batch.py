@@ -18,13 +18,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import pandas as pd
 
 from ambfit.closed_form import POSITION_TOLERANCE, _cluster_positions
 from ambfit.fit import (
-    HEAD_NAMES, K_REFERENCE, NOMINAL_GAP, SCALE_HEAD, FitError, Problem, _seed_loads_and_k, build_problem,
-    free_mask, jacobian, residuals, solve,
+    EDM_MAX, HEAD_NAMES, K_REFERENCE, NOMINAL_GAP, FitError, Problem, _seed_loads_and_k, build_problem, free_mask, jacobian,
+    param_scale, residuals, solve, to_theta,
 )
 from ambfit.model import ALPHA_DEFAULT, AXES
 
@@ -34,7 +33,7 @@ class BatchResult:
     """Estimates of every data set of a batch (SI units).
 
     ``values``, ``std``: array[n_sets, p]; ``converged``: array[n_sets] of bool
-    (optimistix success); ``num_steps``: array[n_sets].
+    (estimated distance to the minimum below ``ambfit.fit.EDM_MAX``); ``num_steps``: array[n_sets].
     """
 
     names: list
@@ -140,7 +139,7 @@ def _vmapped_jac(theta, probs, alpha):
 
 
 def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None, sigma_x: float | None = None,
-              alpha: float = ALPHA_DEFAULT, max_steps: int = 40, method: str = "vmap") -> BatchResult:
+              alpha: float = ALPHA_DEFAULT, max_steps: int = 8, method: str = "vmap") -> BatchResult:
     """Fit every data set of one design; see the module docstring.
 
     Parameters
@@ -148,7 +147,8 @@ def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None,
     datasets : sequence of DataFrame
         Contract tables sharing one design.
     max_steps : int
-        Levenberg-Marquardt steps allowed per data set (closed-form seeds need few).
+        Levenberg-Marquardt steps per reweighting round (closed-form seeds need few; a data set
+        that has not converged after them is flagged, not refitted).
     method : {"vmap", "loop"}
     """
     if method not in ("vmap", "loop"):
@@ -161,21 +161,19 @@ def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None,
     n_loads = built[0][0].n_loads
     theta0 = np.zeros((len(datasets), 6 + n_loads))
     for s, (prob, _) in enumerate(built):
-        head = np.concatenate([g0[s] / SCALE_HEAD[0], x0[s] / SCALE_HEAD[2], np.full(2, K_REFERENCE / SCALE_HEAD[4])])
-        theta0[s] = _seed_loads_and_k(np.concatenate([head, np.zeros(n_loads)]), prob, alpha)
+        theta0[s] = _seed_loads_and_k(to_theta(g0[s], x0[s], K_REFERENCE, np.zeros(n_loads)), prob, alpha)
     if method == "vmap":
-        theta, result, steps = _vmapped(jnp.asarray(theta0), probs, alpha, max_steps)
-        ok = np.asarray(result == optx.RESULTS.successful)
+        theta, _, steps, edm = _vmapped(jnp.asarray(theta0), probs, alpha, max_steps)
         jac = np.asarray(_vmapped_jac(theta, probs, alpha))
     else:
         out = [solve(jnp.asarray(theta0[s]), built[s][0], alpha, max_steps=max_steps) for s in range(len(built))]
         theta = jnp.stack([o[0] for o in out])
-        ok = np.array([bool(o[1] == optx.RESULTS.successful) for o in out])
-        steps = np.array([int(o[2]) for o in out])
+        steps, edm = np.array([int(o[2]) for o in out]), np.array([float(o[3]) for o in out])
         jac = np.stack([np.asarray(jacobian(theta[s], built[s][0], alpha)) for s in range(len(built))])
+    ok = np.asarray(edm) < EDM_MAX
     free = free_mask(built[0][0], meta)
     names = [n for n, f in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if f]
-    scale = np.concatenate([SCALE_HEAD, np.ones(n_loads)])[free]
+    scale = param_scale(n_loads)[free]
     j = jac[:, :, free]
     cov = np.linalg.pinv(np.einsum("sni,snj->sij", j, j)) * np.outer(scale, scale)
     theta = np.asarray(theta)

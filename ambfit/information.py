@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.fit import HEAD_NAMES, SCALE_HEAD, build_problem, free_mask, jacobian
+from ambfit.fit import HEAD_NAMES, build_problem, free_mask, jacobian, param_scale, to_theta
 from ambfit.model import ALPHA_DEFAULT, BearingParams
 
 
@@ -66,7 +66,6 @@ def fisher(data: pd.DataFrame, params: BearingParams, loads: dict | None = None,
     predicts for them (exact for noise-free data).
     """
     prob, meta = build_problem(data, sigma_i=sigma_i, sigma_x=sigma_x)
-    head = np.concatenate([np.asarray(params.g0), np.asarray(params.x0), np.asarray(params.k)]) / SCALE_HEAD
     from ambfit.model import ideal_force
 
     a = np.asarray(prob.ax)
@@ -74,11 +73,11 @@ def fisher(data: pd.DataFrame, params: BearingParams, loads: dict | None = None,
                                prob.i_top, prob.i_bottom, prob.x, alpha))
     gidx = np.asarray(prob.gidx)
     lv = np.array([(loads or {}).get(g, np.mean(f[gidx == j])) for j, g in enumerate(meta.load_groups)])
-    theta = jnp.asarray(np.concatenate([head, lv]))
+    theta = jnp.asarray(to_theta(np.asarray(params.g0), np.asarray(params.x0), np.asarray(params.k), lv))
     free = free_mask(prob, meta)
     j = np.asarray(jacobian(theta, prob, alpha))[:, free]
     names = [n for n, fr in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if fr]
-    scale = np.concatenate([SCALE_HEAD, np.ones(prob.n_loads)])[free]
+    scale = param_scale(prob.n_loads)[free]
     info_s = j.T @ j
     norms = np.sqrt(np.diag(info_s))
     corr_info = info_s / np.outer(norms, norms)
