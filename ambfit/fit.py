@@ -451,6 +451,10 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
         Largest acceptable condition number of the column-scaled Jacobian.
     max_relative_gap_std : float
         A gap known to worse than this relative std counts as not identified.
+    max_steps : int
+        Levenberg-Marquardt step budget per reweighting round.  A first solve takes at
+        most 6 per round (enough from a closed-form seed); if it has not converged, a
+        second one gets ``max_steps``.
 
     Raises
     ------
@@ -475,8 +479,8 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
                            "load (load_N). Hang known masses (or give the rotor weight share) to calibrate it; "
                            "the gap and origin do not need it")
     theta0, how = start(prob, meta, df, alpha)
-    theta, result, steps, edm = solve(jnp.asarray(theta0), prob, alpha)
-    if not edm < EDM_MAX:  # a far start: give Levenberg-Marquardt room
+    theta, result, steps, edm = solve(jnp.asarray(theta0), prob, alpha, max_steps=min(6, max_steps))
+    if not edm < EDM_MAX and max_steps > 6:  # a far start: give Levenberg-Marquardt room
         theta, result, more, edm = solve(theta, prob, alpha, max_steps=max_steps)
         steps = steps + more
     ok = bool(edm < EDM_MAX)

@@ -168,3 +168,26 @@ def test_recovery_over_gaps_origins_biases_and_noise(g, x0, b, sigma, seed):
     # 4.5 standard errors: over 25 examples x 6 parameters a 4-sigma bound would fail by chance ~1 % of runs
     for name, t in (("g_v0", g), ("g_w0", 0.98 * g), ("v0", x0), ("w0", -x0), ("k_v", spec.force_constant)):
         assert abs(res.value(name) - t) < 4.5 * res.error(name), name
+
+
+def test_non_convergence_is_reported_not_silent():
+    spec = rig.PAPER_RIG.with_truth(g0=(900e-6, 650e-6), x0=(-45e-6, 40e-6))
+    df = rig.simulate(spec, P.rich(), seed=2).data
+    with pytest.raises(fit.FitError, match="did not converge") as info:
+        fit.fit(df, max_steps=1)   # one LM step per round from the grid start cannot reach the minimum
+    assert "EDM" in str(info.value)
+    assert fit.fit(df).converged   # with the default budget it does
+
+
+def test_pulls_are_unbiased_with_unit_variance_small_study():
+    # The benchmark (benchmarks/ls_efficiency.py) runs 500 origin-search data sets; this is its fast twin.
+    proto = P.paper_table2(center=(-33.3e-6, 11.3e-6))
+    ds = [rig.simulate(rig.PAPER_RIG, proto, seed=1000 + s).data for s in range(200)]
+    b = batch.fit_batch(ds)
+    assert b.converged.all()
+    truth = {"g_v0": 775e-6, "v0": 33.3e-6, "g_w0": 763e-6, "k_v": rig.PAPER_RIG.force_constant}
+    for name, t in truth.items():
+        pulls = (b.column(name) - t) / b.error(name)
+        # 200 pulls: mean within 3.5/sqrt(200) = 0.25 of 0; sample variance inside its 99.5 % band [0.75, 1.3]
+        assert abs(pulls.mean()) < 0.25, name
+        assert 0.75 < pulls.var(ddof=1) < 1.3, name
