@@ -139,7 +139,7 @@ def _vmapped_jac(theta, probs, alpha):
 
 
 def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None, sigma_x: float | None = None,
-              alpha: float = ALPHA_DEFAULT, max_steps: int = 8, method: str = "vmap") -> BatchResult:
+              alpha: float = ALPHA_DEFAULT, max_steps: int = 4, method: str = "vmap") -> BatchResult:
     """Fit every data set of one design; see the module docstring.
 
     Parameters
