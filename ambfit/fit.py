@@ -257,13 +257,17 @@ def solve(theta0, prob: Problem, alpha: float = ALPHA_DEFAULT, max_steps: int = 
     ``num_steps`` counts the steps of all reweighting rounds; ``result`` is the last round's
     optimistix result; ``edm`` decides convergence (see ``EDM_MAX``).
     """
-    theta, steps = theta0, 0
-    for _ in range(REWEIGHTINGS):
+    def round_(_, carry):
+        theta, steps, _ = carry
         s = _misfit(theta, prob, alpha)[1]
         sol = optx.least_squares(_fn_weighted, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta,
                                  args=(prob, alpha, s), max_steps=max_steps, throw=False)
-        theta, steps = sol.value, steps + sol.stats["num_steps"]
-    return theta, sol.result, steps, _edm(theta, prob, alpha)
+        return sol.value, steps + sol.stats["num_steps"], sol.result
+
+    # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
+    theta, steps, result = jax.lax.fori_loop(
+        0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
+    return theta, result, steps, _edm(theta, prob, alpha)
 
 
 @eqx.filter_jit
@@ -301,10 +305,19 @@ def start(prob: Problem, meta: Meta, data: pd.DataFrame, alpha: float = ALPHA_DE
     return theta, ", ".join(how)
 
 
+@eqx.filter_jit
+def _unit_force(theta, prob: Problem, alpha):
+    """Eq. 4 with k = 1 at each row (one compiled call instead of many small eager ones)."""
+    g0, x0, _, _ = unpack(theta, prob)
+    return ideal_force(g0[prob.ax], x0[prob.ax], 1.0, prob.i_top, prob.i_bottom, prob.x, alpha)
+
+
+_residuals_jit = eqx.filter_jit(residuals)
+
+
 def _seed_loads_and_k(theta, prob: Problem, alpha):
-    g0, x0, k, _ = unpack(jnp.asarray(theta), prob)
     a = np.asarray(prob.ax)
-    unit = np.asarray(ideal_force(g0[a], x0[a], 1.0, prob.i_top, prob.i_bottom, prob.x, alpha))
+    unit = np.asarray(_unit_force(jnp.asarray(theta), prob, alpha))
     known, load, gidx = np.asarray(prob.known), np.asarray(prob.load), np.asarray(prob.gidx)
     theta = np.array(theta)
     for ax in range(2):
@@ -503,7 +516,7 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
 def _finish(theta, ok, message, steps, prob, meta, alpha, how, max_condition, max_relative_gap_std, max_steps):
     free = free_mask(prob, meta)
     names = [n for n, f in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if f]
-    r = np.asarray(residuals(jnp.asarray(theta), prob, alpha))
+    r = np.asarray(_residuals_jit(jnp.asarray(theta), prob, alpha))
     j = np.asarray(jacobian(jnp.asarray(theta), prob, alpha))[:, free]
     dof = len(r) - int(free.sum())
     if dof < 1:
