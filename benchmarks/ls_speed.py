@@ -142,7 +142,7 @@ def cold_identify(repeats):
 def main():
     ap = argparse.ArgumentParser(description="LS speed vs scipy")
     ap.add_argument("--datasets", type=int, default=1000)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
     args = ap.parse_args()
     s1 = single_fit(args.repeats)
