@@ -206,6 +206,9 @@ def identify(
         help="Declared position noise std [µm] (default: the std columns, else 0).")] = None,
     require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
                                             "(needs known loads).")] = False,
+    debias: Annotated[int, typer.Option(help="Subtract the estimator's second-order bias, estimated from this "
+                                        "many synthetic data sets of the fitted model (0: off; 2000 is "
+                                        "plenty).")] = 0,
     max_position_um: Annotated[float, typer.Option(help="Reject positions at least this large [µm] "
                                                    "(unit check).")] = 762.0,
 ):
@@ -235,7 +238,7 @@ def identify(
                 err.print(f"rejected {exp}/{ax} iteration {it}: {why}", highlight=False)
         record = result.to_json()
     else:
-        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k)
+        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias)
     if json_out is not None:
         with open(json_out, "w") as f:
             json.dump(record, f, indent=2)
@@ -244,11 +247,12 @@ def identify(
         raise typer.Exit(3)
 
 
-def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k) -> dict:
+def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias) -> dict:
     from ambfit import fit
 
     kw = dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
-              sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k)
+              sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k,
+              debias=debias)
     try:
         pooled = fit.fit(ds, **kw)
     except fit.FitError as exc:
@@ -262,6 +266,11 @@ def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k) -
     if not isinstance(pooled, fit.FitError):
         console.print(f"noise: {pooled.noise_source}; start: {pooled.start}; condition {pooled.condition:.3g}; "
                       f"{pooled.weak_direction}", highlight=False)
+        if pooled.bias_correction:
+            bc = pooled.bias_correction
+            console.print("bias correction subtracted (µm): " + ", ".join(
+                f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in ("g_v0", "v0", "g_w0", "w0")
+                if n in bc) + f" ({bc['n']} synthetic sets)", highlight=False)
         for ax in ("v", "w"):
             if not pooled.k_identified["vw".index(ax)]:
                 console.print(f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)",

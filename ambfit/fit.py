@@ -88,7 +88,8 @@ class Problem(eqx.Module):
     """Arrays of one data set, ready for the jitted residual (SI units, one entry per row).
 
     ``k_free[a]`` is whether axis ``a`` has a known load (so ``k`` is identifiable);
-    ``gidx`` indexes the nuisance load of rows without a known load (-1 otherwise).
+    ``gidx`` indexes the nuisance load of rows without a known load (-1 otherwise);
+    ``bias`` is the commanded bias current [A] (used only to simulate the model).
     """
 
     ax: jnp.ndarray
@@ -102,6 +103,7 @@ class Problem(eqx.Module):
     known: jnp.ndarray
     gidx: jnp.ndarray
     k_free: jnp.ndarray
+    bias: jnp.ndarray
 
     @property
     def n_params(self) -> int:
@@ -168,7 +170,7 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     prob = Problem(
         ax=jnp.asarray(ax), x=r.x, i_top=r.i_top, i_bottom=r.i_bottom, s_top=jnp.asarray(st),
         s_bottom=jnp.asarray(sb), s_x=jnp.asarray(sx), load=jnp.asarray(np.nan_to_num(load)),
-        known=jnp.asarray(known), gidx=jnp.asarray(gidx), k_free=jnp.asarray(k_free),
+        known=jnp.asarray(known), gidx=jnp.asarray(gidx), k_free=jnp.asarray(k_free), bias=r.bias,
     )
     return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source="; ".join(sources),
                       n_rows=n)
@@ -409,6 +411,7 @@ class FitResult:
     start: str
     k_identified: tuple
     n_rows: int
+    bias_correction: dict | None = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -442,6 +445,7 @@ class FitResult:
                              for i, a in enumerate(head) for b in head[i + 1:]},
             "nuisance_loads_N": {n[5:-1]: {"value": self.value(n), "std": self.error(n)}
                                  for n in self.names if n.startswith("load[")},
+            "bias_correction": self.bias_correction,
         }
 
 
@@ -461,7 +465,7 @@ def describe_weakness(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarra
 
 def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: float | None = None,
         alpha: float = ALPHA_DEFAULT, require_k: bool = False, max_condition: float = 1e8,
-        max_relative_gap_std: float = 0.1, max_steps: int = 200) -> FitResult:
+        max_relative_gap_std: float = 0.1, max_steps: int = 200, debias: int = 0, seed: int = 0) -> FitResult:
     """Weighted least squares of gap, origin (and k with known loads) over all readings.
 
     Parameters
@@ -479,6 +483,11 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
     max_steps : int
         Levenberg-Marquardt step budget per reweighting round.  A first solve takes at
         most ``FIRST_STEPS`` per round; if it has not converged, a second one gets ``max_steps``.
+    debias : int
+        Number of synthetic data sets for the parametric-bootstrap bias correction
+        (:mod:`ambfit.debias`); 0 (default) reports the plain least-squares estimate.
+    seed : int
+        Seed of the bootstrap.
 
     Raises
     ------
@@ -509,8 +518,23 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
         steps = steps + more
     ok = bool(edm < EDM_MAX)
     lm = "successful" if result == optx.RESULTS.successful else str(result)
-    return _finish(np.asarray(theta), ok, f"EDM {float(edm):.2g} (limit {EDM_MAX:g}); optimistix: {lm}", int(steps),
-                   prob, meta, alpha, how, max_condition, max_relative_gap_std, max_steps)
+    theta = np.asarray(theta)
+    correction = None
+    if debias and ok:
+        from ambfit.debias import bootstrap_bias
+
+        correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed, alpha=alpha)
+        theta = theta - correction.bias
+    res = _finish(theta, ok, f"EDM {float(edm):.2g} (limit {EDM_MAX:g}); optimistix: {lm}", int(steps),
+                  prob, meta, alpha, how, max_condition, max_relative_gap_std, max_steps)
+    if correction is not None:
+        free = free_mask(prob, meta)
+        scale = param_scale(prob.n_loads)[free]
+        res = dataclasses.replace(res, bias_correction={
+            "n": correction.n, "converged_fraction": correction.converged_fraction,
+            **{n: {"subtracted": float(b), "mc_error": float(e)}
+               for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
+    return res
 
 
 def _finish(theta, ok, message, steps, prob, meta, alpha, how, max_condition, max_relative_gap_std, max_steps):
