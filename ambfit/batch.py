@@ -21,9 +21,9 @@ import numpy as np
 import pandas as pd
 
 from ambfit.closed_form import POSITION_TOLERANCE, _cluster_positions
-from ambfit.fit import (
-    EDM_MAX, HEAD_NAMES, K_REFERENCE, NOMINAL_GAP, FitError, Problem, _seed_loads_and_k, build_problem, free_mask, jacobian,
-    param_scale, residuals, solve, to_theta,
+from ambfit.likelihood import (
+    EDM_MAX, HEAD_NAMES, K_REFERENCE, NOMINAL_GAP, FitError, Problem, build_problem, free_mask, jacobian, param_scale,
+    residuals, seed_loads_and_k, solve, to_theta,
 )
 from ambfit.model import ALPHA_DEFAULT, AXES
 
@@ -161,7 +161,7 @@ def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None,
     n_loads = built[0][0].n_loads
     theta0 = np.zeros((len(datasets), 6 + n_loads))
     for s, (prob, _) in enumerate(built):
-        theta0[s] = _seed_loads_and_k(to_theta(g0[s], x0[s], K_REFERENCE, np.zeros(n_loads)), prob, alpha)
+        theta0[s] = seed_loads_and_k(to_theta(g0[s], x0[s], K_REFERENCE, np.zeros(n_loads)), prob, alpha)
     if method == "vmap":
         theta, _, steps, edm = _vmapped(jnp.asarray(theta0), probs, alpha, max_steps)
         jac = np.asarray(_vmapped_jac(theta, probs, alpha))

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.fit import Problem, solve, unpack
+from ambfit.likelihood import Problem, solve, unpack
 from ambfit.model import ALPHA_DEFAULT, gaps
 
 

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.fit import HEAD_NAMES, build_problem, free_mask, jacobian, param_scale, to_theta
+from ambfit.likelihood import HEAD_NAMES, build_problem, free_mask, jacobian, param_scale, to_theta
 from ambfit.model import ALPHA_DEFAULT, BearingParams
 
 

@@ -83,7 +83,7 @@ def many_fits(n, repeats):
     built = [fit.build_problem(d) for d in data]
     probs = batch.stack([b[0] for b in built])
     g0, x0 = batch.closed_form_batch(probs, batch.design_pairs(data[0]))
-    theta0 = np.stack([fit._seed_loads_and_k(fit.to_theta(g0[s], x0[s], fit.K_REFERENCE, np.zeros(built[s][0].n_loads)),
+    theta0 = np.stack([fit.seed_loads_and_k(fit.to_theta(g0[s], x0[s], fit.K_REFERENCE, np.zeros(built[s][0].n_loads)),
                                              built[s][0], fit.ALPHA_DEFAULT) for s in range(n)])
     th0 = jnp.asarray(theta0)
     vm = lambda: jax.block_until_ready(batch._vmapped(th0, probs, fit.ALPHA_DEFAULT, 4)[0])  # noqa: E731
