@@ -22,7 +22,7 @@ import pandas as pd
 
 from ambfit.closed_form import POSITION_TOLERANCE, _cluster_positions
 from ambfit.likelihood import (
-    EDM_MAX, HEAD_NAMES, K_REFERENCE, NOMINAL_GAP, FitError, Problem, build_problem, free_mask, jacobian, param_scale,
+    EDM_MAX, K_REFERENCE, NOMINAL_GAP, FitError, Problem, build_problem, free_mask, free_names, jacobian, param_scale,
     residuals, seed_loads_and_k, solve, to_theta,
 )
 from ambfit.model import ALPHA_DEFAULT, AXES
@@ -172,7 +172,7 @@ def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None,
         jac = np.stack([np.asarray(jacobian(theta[s], built[s][0], alpha)) for s in range(len(built))])
     ok = np.asarray(edm) < EDM_MAX
     free = free_mask(built[0][0], meta)
-    names = [n for n, f in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if f]
+    names = free_names(meta, free)
     scale = param_scale(n_loads)[free]
     j = jac[:, :, free]
     cov = np.linalg.pinv(np.einsum("sni,snj->sij", j, j)) * np.outer(scale, scale)

@@ -50,9 +50,11 @@ from ambfit import closed_form
 from ambfit.data import Dataset
 from ambfit.likelihood import (  # noqa: F401  (re-exported: the fit's public vocabulary)
     EDM_MAX, FIRST_STEPS, HEAD_NAMES, K_REFERENCE, NOMINAL_GAP, REWEIGHTINGS, SCALE_HEAD, SCALE_LOAD, FitError, Meta,
-    Problem, build_problem, free_mask, jacobian, param_scale, residuals, seed_loads_and_k, solve, to_theta, unpack,
+    Problem, build_problem, free_mask, free_names, jacobian, param_scale, residuals, seed_loads_and_k, solve,
+    to_theta, unpack,
 )
 from ambfit.model import ALPHA_DEFAULT, AXES
+
 
 def start(prob: Problem, meta: Meta, data: pd.DataFrame, alpha: float = ALPHA_DEFAULT) -> tuple[np.ndarray, str]:
     """Starting point: the closed form (Eq. 7) where the design has two biases at two positions,
@@ -285,7 +287,7 @@ def fit(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: 
 
 def _finish(theta, ok, message, steps, prob, meta, alpha, how, max_condition, max_relative_gap_std, max_steps):
     free = free_mask(prob, meta)
-    names = [n for n, f in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if f]
+    names = free_names(meta, free)
     r = np.asarray(_residuals_jit(jnp.asarray(theta), prob, alpha))
     j = np.asarray(jacobian(jnp.asarray(theta), prob, alpha))[:, free]
     dof = len(r) - int(free.sum())

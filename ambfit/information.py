@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.likelihood import HEAD_NAMES, build_problem, free_mask, jacobian, param_scale, to_theta
+from ambfit.likelihood import build_problem, free_mask, free_names, jacobian, param_scale, to_theta
 from ambfit.model import ALPHA_DEFAULT, BearingParams
 
 
@@ -76,7 +76,7 @@ def fisher(data: pd.DataFrame, params: BearingParams, loads: dict | None = None,
     theta = jnp.asarray(to_theta(np.asarray(params.g0), np.asarray(params.x0), np.asarray(params.k), lv))
     free = free_mask(prob, meta)
     j = np.asarray(jacobian(theta, prob, alpha))[:, free]
-    names = [n for n, fr in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if fr]
+    names = free_names(meta, free)
     scale = param_scale(prob.n_loads)[free]
     info_s = j.T @ j
     norms = np.sqrt(np.diag(info_s))

@@ -247,6 +247,11 @@ def jacobian(theta, prob: Problem, alpha: float = ALPHA_DEFAULT):
     return jax.jacfwd(_fn)(theta, (prob, alpha))
 
 
+def free_names(meta: Meta, free: np.ndarray) -> list[str]:
+    """Names of the estimated entries of theta (``free_mask``): head parameters, then ``load[<group>]``."""
+    return [n for n, f in zip(list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups], free) if f]
+
+
 def free_mask(prob: Problem, meta: Meta) -> np.ndarray:
     """Which entries of theta are estimated: gap/origin of present axes, k where loads are known, loads."""
     p = meta.axes_present
