@@ -286,6 +286,60 @@ def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, d
     return record
 
 
+@app.command()
+def sample(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    out: Annotated[Path | None, typer.Option(help="Write the ArviZ DataTree (posterior, log_likelihood, "
+                                             "sample_stats, observed_data) as NetCDF here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
+                                                  "94 % HDI, R-hat, ESS) here.")] = None,
+    pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
+    steps: Annotated[int, typer.Option(help="Steps per ensemble (at least 50 autocorrelation times).")] = 3000,
+    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat compares them).")] = 4,
+    walkers: Annotated[int | None, typer.Option(help="Walkers per ensemble (default max(32, 4 x parameters)).")] = None,
+    nominal_gap_um: Annotated[float | None, typer.Option(help="Centre the gap prior on this nominal gap [µm] "
+                                                          "(log-sd --gap-prior-log-sd).")] = None,
+    gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
+    seed: Annotated[int, typer.Option(help="Seed.")] = 0,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+):
+    """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
+
+    Exits 3 when the run is too short for its autocorrelation time (and says how long it
+    should be) or R-hat across the ensembles exceeds 1.01.
+    """
+    from ambfit import bayes, fit
+    from ambfit.data import DataError, read_csv
+
+    _enable_compilation_cache()
+    try:
+        ds = read_csv(data)
+        prior = bayes.Prior(gap=(nominal_gap_um or 762.0) * 1e-6, gap_log_sd=gap_prior_log_sd)
+        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps, seed=seed,
+                           progress=progress and sys.stderr.isatty())
+    except DataError as exc:
+        _fail(str(exc))
+    except fit.FitError as exc:
+        _fail(str(exc), 3)
+    console.print(res.summary().to_string(), highlight=False)
+    console.print(res.message, highlight=False)
+    record = res.to_json()
+    if out is not None:
+        res.datatree.to_netcdf(out, engine="h5netcdf")
+        console.print(f"wrote {out}")
+    if json_out is not None:
+        with open(json_out, "w") as f:
+            json.dump(record, f, indent=2)
+        console.print(f"wrote {json_out}")
+    if pair_png is not None:
+        from ambfit import plots
+
+        plots.save(plots.plot_pair(res), pair_png)
+        console.print(f"wrote {pair_png}")
+    if not record["converged"]:
+        raise typer.Exit(3)
+
+
 @app.command("origin-search")
 def origin_search(
     biases_a: Annotated[str, typer.Option("--biases-a", help="The two bias currents [A].")] = "1.4,1.6",

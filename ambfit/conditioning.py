@@ -1,0 +1,181 @@
+"""The solution space of the paper's Fig. 2: misfit over a (gap, origin) grid, and design comparison.
+
+For one axis, every grid point ``(g0, x0)`` is scored by the χ² of the readings
+with the linear parameters profiled out: ``k`` (from the known loads) and the
+nuisance loads enter Eq. 4 linearly, so their best values at each grid point are
+weighted least-squares closed forms.  Without a known load ``k`` is held and the
+loads absorb the scale.  The weights are the effective-variance weights at the
+least-squares optimum (held fixed over the map).  The whole grid is one
+vectorised evaluation (401 x 201 points in well under a second).
+
+Why the valley: with current perturbation at one position only, Eq. 6 fixes the
+ratio ``(g0 - u) / (g0 + u)``, ``u = (x0 + x) cos(alpha)``, i.e. only ``u / g0``:
+every point on a line through the origin of the (gap, u) plane fits.  A second
+position adds a second such line; two nearly parallel lines (positions close
+together, or far from the effective origin compared with their separation)
+meet at a shallow angle and leave a long valley whose direction is the weakest
+eigenvector of the Fisher information.  Symmetric pairs about the effective origin
+make the two ratios move in opposite directions and the lines cross most steeply.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from ambfit.data import Dataset
+from ambfit.likelihood import K_REFERENCE, build_problem
+from ambfit.model import ALPHA_DEFAULT, AXES
+
+
+@dataclasses.dataclass(frozen=True)
+class SolutionSpace:
+    """χ² over a (gap, origin) grid for one axis (SI units).
+
+    ``chi2[i, j]`` is at ``gap[i]``, ``origin[j]``; ``rms`` is the RMS force misfit [N].
+    """
+
+    axis: str
+    gap: np.ndarray
+    origin: np.ndarray
+    chi2: np.ndarray
+    rms: np.ndarray
+    n_rows: int
+
+    @property
+    def minimum(self) -> tuple[float, float]:
+        i, j = np.unravel_index(np.nanargmin(self.chi2), self.chi2.shape)
+        return float(self.gap[i]), float(self.origin[j])
+
+    def delta_chi2(self) -> np.ndarray:
+        return self.chi2 - np.nanmin(self.chi2)
+
+
+@jax.jit
+def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, alpha):
+    """χ² and mean-square misfit for grids g[G], x0[X] (vectorised) with profiled k and loads."""
+    c = jnp.cos(alpha)
+    u = (x0[None, :, None] + x[None, None, :]) * c                       # [1, X, n]
+    gg = g[:, None, None]
+    unit = it**2 / (gg - u) ** 2 - ib**2 / (gg + u) ** 2                  # [G, X, n]
+    # k from the known-load rows (weighted LS through the origin), k_ref if none
+    num = jnp.sum(w * unit * load * known, axis=-1)
+    den = jnp.sum(w * unit**2 * known, axis=-1)
+    k = jnp.where(jnp.sum(known) > 0, num / jnp.where(den > 0, den, 1.0), k_ref)[..., None]
+    f = k * unit
+    # nuisance loads: weighted mean of the force over each group
+    sw = jnp.einsum("n,nm->m", w, gidx_onehot)
+    lmean = jnp.einsum("gxn,n,nm->gxm", f, w, gidx_onehot) / jnp.where(sw > 0, sw, 1.0)
+    target = jnp.where(known, load, jnp.einsum("gxm,nm->gxn", lmean, gidx_onehot))
+    res = f - target
+    ok = jnp.all(jnp.abs(u) < 0.98 * gg, axis=-1)
+    chi2 = jnp.where(ok, jnp.sum(w * res**2, axis=-1), jnp.nan)
+    ms = jnp.where(ok, jnp.mean(res**2, axis=-1), jnp.nan)
+    return chi2, ms
+
+
+def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6, 1000e-6), origin=(-100e-6, 100e-6),
+                   step: float = 1e-6, weights_at=None, alpha: float = ALPHA_DEFAULT, **noise) -> SolutionSpace:
+    """χ² map of one axis over a (gap, origin) grid (defaults: the paper's Fig. 2 axes, 1 µm steps).
+
+    ``weights_at``: a :class:`ambfit.fit.FitResult` whose optimum fixes the
+    effective-variance weights; default: fit the data first.
+    """
+    from ambfit.fit import FitError, fit
+    from ambfit.likelihood import _misfit, to_theta
+
+    df = data.frame if isinstance(data, Dataset) else data
+    if axis not in AXES:
+        raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
+    sub = df[df["axis"] == axis].reset_index(drop=True)
+    if sub.empty:
+        raise ValueError(f"no rows of axis {axis!r}")
+    prob, meta = build_problem(sub, **noise)
+    res = weights_at
+    if res is None:
+        try:
+            res = fit(sub, **noise)
+        except FitError:  # unidentifiable designs still have a map: weight at the nominal point
+            res = None
+    if res is not None:
+        vals = dict(zip(res.names, res.values))
+        g_hat, x_hat = vals.get(f"g_{axis}0", 762e-6), vals.get(f"{axis}0", 0.0)
+        k_hat = vals.get(f"k_{axis}", K_REFERENCE)
+    else:
+        g_hat, x_hat, k_hat = 762e-6, 0.0, K_REFERENCE
+    g_pair, x_pair, k_pair = np.full(2, g_hat), np.full(2, x_hat), np.full(2, k_hat)
+    loads = np.zeros(prob.n_loads)
+    if prob.n_loads:
+        from ambfit.likelihood import seed_loads_and_k
+
+        th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, alpha)
+    else:
+        th = to_theta(g_pair, x_pair, k_pair, loads)
+    s = np.asarray(_misfit(jnp.asarray(th), prob, alpha)[1])
+    w = 1.0 / s**2
+    gs = np.arange(gap[0], gap[1] + step / 2, step)
+    xs = np.arange(origin[0], origin[1] + step / 2, step)
+    gidx = np.asarray(prob.gidx)
+    onehot = np.zeros((len(sub), max(prob.n_loads, 1)))
+    if prob.n_loads:
+        onehot[gidx >= 0, gidx[gidx >= 0]] = 1.0
+    chi2, ms = _grid_chi2(jnp.asarray(gs), jnp.asarray(xs), prob.x, prob.i_top, prob.i_bottom, jnp.asarray(w),
+                          prob.load, prob.known.astype(float), jnp.asarray(onehot), K_REFERENCE, alpha)
+    return SolutionSpace(axis=axis, gap=gs, origin=xs, chi2=np.asarray(chi2), rms=np.sqrt(np.asarray(ms)),
+                         n_rows=len(sub))
+
+
+def weakest_direction(result, axis: str = "v") -> np.ndarray:
+    """Unit vector in (gap, origin) of the least-determined combination, from the fit's covariance."""
+    i, j = result.names.index(f"g_{axis}0"), result.names.index(f"{axis}0")
+    c = result.cov[np.ix_([i, j], [i, j])]
+    w, v = np.linalg.eigh(c)
+    return v[:, -1]
+
+
+# --- design comparison ---------------------------------------------------------------------------
+
+def standard_designs(center=(-33.3e-6, 11.3e-6)) -> dict:
+    """The designs the paper discusses, on the paper's rig load (unknown load, as for Eq. 7).
+
+    ``current-only``: one position, five biases; ``position-only``: one bias, five
+    positions; ``symmetric``: the paper's ±20 µm pairs at 1.4/1.6 A; ``non-symmetric``:
+    positions +10/+50 µm from the effective origin at 1.4/1.6 A; ``rich``: biases
+    1.0-1.6 A at five positions over ±40 µm.  Each with 10 repetitions.
+    """
+    from ambfit import protocol as P
+
+    cv, cw = center
+    loads = {"u": P.Load.gravity(1.0, known=False)}
+    rep = lambda proto: P.concat(*[dataclasses.replace(proto, iteration=np.full(len(proto), i))  # noqa: E731
+                                   for i in range(1, 11)])
+    return {
+        "current-only": rep(P.grid([(cv, cw)], [1.0, 1.2, 1.4, 1.6, 1.8], load="u", loads=loads)),
+        "position-only": rep(P.grid([(cv + d, cw + d) for d in np.linspace(-40e-6, 40e-6, 5)], [1.4], load="u",
+                                    loads=loads)),
+        "symmetric (paper)": P.perturbation((1.4, 1.6), (20e-6,), center=center, iterations=10, load="u",
+                                            loads=loads),
+        "non-symmetric": rep(P.grid([(cv + 10e-6, cw + 10e-6), (cv + 50e-6, cw + 50e-6)], [1.4, 1.6], load="u",
+                                    loads=loads)),
+        "rich": rep(P.grid([(cv + d, cw - d) for d in np.linspace(-40e-6, 40e-6, 5)], [1.0, 1.2, 1.4, 1.6],
+                           load="u", loads=loads)),
+    }
+
+
+def compare_designs(spec=None, noise=None, designs: dict | None = None) -> pd.DataFrame:
+    """Condition number and Cramér-Rao bounds of gap and origin (v axis) for each design."""
+    from ambfit import information, rig
+
+    spec = spec or rig.PAPER_RIG
+    noise = noise or rig.Noise()
+    rows = []
+    for name, proto in (designs or standard_designs((-spec.x0[0], -spec.x0[1]))).items():
+        info = information.design_information(spec, proto, noise)
+        rows.append({"design": name, "readings": 2 * len(proto), "condition": info.condition,
+                     "crlb_gap_um": info.std("g_v0") * 1e6, "crlb_origin_um": info.std("v0") * 1e6,
+                     "weakest_gap_component": info.weakest.get("g_v0", np.nan)})
+    return pd.DataFrame(rows)
