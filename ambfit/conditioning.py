@@ -139,43 +139,57 @@ def weakest_direction(result, axis: str = "v") -> np.ndarray:
 
 # --- design comparison ---------------------------------------------------------------------------
 
-def standard_designs(center=(-33.3e-6, 11.3e-6)) -> dict:
-    """The designs the paper discusses, on the paper's rig load (unknown load, as for Eq. 7).
+def standard_designs(center=(-33.3e-6, 11.3e-6), *, same_load: bool = False) -> dict:
+    """The designs the paper discusses, 10 repetitions each, with unknown loads.
 
     ``current-only``: one position, five biases; ``position-only``: one bias, five
-    positions; ``symmetric``: the paper's ±20 µm pairs at 1.4/1.6 A; ``non-symmetric``:
+    positions; ``symmetric (paper)``: ±20 µm pairs at 1.4/1.6 A; ``non-symmetric``:
     positions +10/+50 µm from the effective origin at 1.4/1.6 A; ``rich``: biases
-    1.0-1.6 A at five positions over ±40 µm.  Each with 10 repetitions.
+    1.0-1.6 A at five positions over ±40 µm.
+
+    ``same_load=False`` (default) gives every position its own unknown load, which is
+    all Eq. 5 assumes (the load is the same only across the biases at one position):
+    the information the paper's method uses.  ``same_load=True`` tells the fit that one
+    load is carried at every position, which least squares can exploit and Eq. 7 cannot.
     """
     from ambfit import protocol as P
 
     cv, cw = center
-    loads = {"u": P.Load.gravity(1.0, known=False)}
-    rep = lambda proto: P.concat(*[dataclasses.replace(proto, iteration=np.full(len(proto), i))  # noqa: E731
-                                   for i in range(1, 11)])
+
+    def design(points, biases):
+        parts = []
+        for j, pt in enumerate(points):
+            lid = "u" if same_load else f"u{j}"
+            loads = {lid: P.Load.gravity(1.0, known=False)}
+            for i in range(1, 11):
+                parts.append(P.grid([pt], biases, load=lid, loads=loads, iteration=i))
+        return P.concat(*parts)
+
+    spread = [(cv + d, cw + d) for d in np.linspace(-40e-6, 40e-6, 5)]
     return {
-        "current-only": rep(P.grid([(cv, cw)], [1.0, 1.2, 1.4, 1.6, 1.8], load="u", loads=loads)),
-        "position-only": rep(P.grid([(cv + d, cw + d) for d in np.linspace(-40e-6, 40e-6, 5)], [1.4], load="u",
-                                    loads=loads)),
-        "symmetric (paper)": P.perturbation((1.4, 1.6), (20e-6,), center=center, iterations=10, load="u",
-                                            loads=loads),
-        "non-symmetric": rep(P.grid([(cv + 10e-6, cw + 10e-6), (cv + 50e-6, cw + 50e-6)], [1.4, 1.6], load="u",
-                                    loads=loads)),
-        "rich": rep(P.grid([(cv + d, cw - d) for d in np.linspace(-40e-6, 40e-6, 5)], [1.0, 1.2, 1.4, 1.6],
-                           load="u", loads=loads)),
+        "current-only": design([(cv, cw)], [1.0, 1.2, 1.4, 1.6, 1.8]),
+        "position-only": design(spread, [1.4]),
+        "symmetric (paper)": design([(cv + 20e-6, cw + 20e-6), (cv - 20e-6, cw - 20e-6)], [1.4, 1.6]),
+        "non-symmetric": design([(cv + 10e-6, cw + 10e-6), (cv + 50e-6, cw + 50e-6)], [1.4, 1.6]),
+        "rich": design(spread, [1.0, 1.2, 1.4, 1.6]),
     }
 
 
 def compare_designs(spec=None, noise=None, designs: dict | None = None) -> pd.DataFrame:
-    """Condition number and Cramér-Rao bounds of gap and origin (v axis) for each design."""
+    """Condition number and Cramér-Rao bounds of gap and origin (v axis) for each design, under both load
+    assumptions of :func:`standard_designs` (one unknown load per position, or one shared)."""
     from ambfit import information, rig
 
     spec = spec or rig.PAPER_RIG
     noise = noise or rig.Noise()
     rows = []
-    for name, proto in (designs or standard_designs((-spec.x0[0], -spec.x0[1]))).items():
-        info = information.design_information(spec, proto, noise)
-        rows.append({"design": name, "readings": 2 * len(proto), "condition": info.condition,
-                     "crlb_gap_um": info.std("g_v0") * 1e6, "crlb_origin_um": info.std("v0") * 1e6,
-                     "weakest_gap_component": info.weakest.get("g_v0", np.nan)})
+    center = (-spec.x0[0], -spec.x0[1])
+    sets = {"": designs} if designs else {"load per position": standard_designs(center),
+                                          "one shared load": standard_designs(center, same_load=True)}
+    for loads, ds in sets.items():
+        for name, proto in ds.items():
+            info = information.design_information(spec, proto, noise)
+            rows.append({"design": name, "loads": loads, "readings": 2 * len(proto), "condition": info.condition,
+                         "crlb_gap_um": info.std("g_v0") * 1e6, "crlb_origin_um": info.std("v0") * 1e6,
+                         "weakest_gap_component": info.weakest.get("g_v0", np.nan)})
     return pd.DataFrame(rows)

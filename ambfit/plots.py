@@ -89,7 +89,9 @@ def plot_design_comparison(table, ax=None):
     finite = np.where(np.isfinite(vals), vals, np.nanmax(vals[np.isfinite(vals)]) * 100 if np.isfinite(vals).any()
                       else 1.0)
     ax.barh(y, finite, color=["tab:gray" if not np.isfinite(v) else "tab:blue" for v in vals])
-    ax.set_yticks(y, table["design"])
+    labels = [f"{d} ({l})" if "loads" in table and l else d for d, l in
+              zip(table["design"], table["loads"] if "loads" in table else [""] * len(table))]
+    ax.set_yticks(y, labels)
     ax.set_xscale("log")
     ax.set_xlabel("sqrt(CRLB) of the v-axis gap [µm] (grey: unbounded)")
     for yi, (v, c) in enumerate(zip(vals, table["condition"])):
