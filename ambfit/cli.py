@@ -340,6 +340,74 @@ def sample(
         raise typer.Exit(3)
 
 
+@app.command("solution-space")
+def solution_space_cmd(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    png: Annotated[Path, typer.Option(help="Write the map here (PNG).")],
+    axis: Annotated[str, typer.Option(help="Axis: v or w.")] = "v",
+    gap_um: Annotated[str, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
+    origin_um: Annotated[str, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
+    step_um: Annotated[float, typer.Option(help="Grid step [µm].")] = 1.0,
+):
+    """Map the misfit over a (gap, origin) grid (the paper's Fig. 2), with the least-squares ellipse
+    and the weakest Fisher direction drawn on it."""
+    from ambfit import conditioning, fit, plots
+    from ambfit.data import DataError, read_csv
+
+    try:
+        ds = read_csv(data)
+        g = _pair(gap_um, 1e-6)
+        o = _pair(origin_um, 1e-6)
+        sub = ds.frame[ds.frame["axis"] == axis]
+        try:
+            res = fit.fit(sub)
+        except fit.FitError as exc:
+            err.print(f"least squares not shown: {exc}", highlight=False)
+            res = None
+        space = conditioning.solution_space(ds, axis, gap=g, origin=o, step=step_um * 1e-6, weights_at=res)
+    except (DataError, ValueError) as exc:
+        _fail(str(exc))
+    plots.save(plots.plot_solution_space(space, result=res), png)
+    gm, xm = space.minimum
+    console.print(f"grid {space.chi2.shape[0]} x {space.chi2.shape[1]}; minimum at gap {gm * 1e6:.1f} µm, origin "
+                  f"{xm * 1e6:.1f} µm; wrote {png}", highlight=False)
+
+
+@app.command()
+def design(
+    data: Annotated[Path, typer.Argument(help="Perturbation data so far, contract CSV.")],
+    steps: Annotated[int, typer.Option(help="How many next steps to recommend.")] = 8,
+    target: Annotated[str, typer.Option(help="Parameter whose variance to minimise (A-optimal): g_v0, g_w0, "
+                                        "v0, w0, k_v, k_w.")] = "g_v0",
+    criterion: Annotated[str, typer.Option(help="'A' (variance of the target) or 'D' (log det of gap and "
+                                           "origin covariance).")] = "A",
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
+):
+    """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
+    from ambfit import design as design_mod
+    from ambfit import fit
+    from ambfit.data import DataError, read_csv
+
+    try:
+        rec = design_mod.recommend(read_csv(data), n_steps=steps, target=target, criterion=criterion)
+    except DataError as exc:
+        _fail(str(exc))
+    except (fit.FitError, ValueError) as exc:
+        _fail(str(exc), 3)
+    unit = 1e6 if target[0] in "gvw" else 1.0
+    t = Table(title=f"next steps ({criterion}-optimal for {target}); now ± {rec.std_now * unit:.3g}")
+    for c in ("#", "v set [µm]", "w set [µm]", "bias [A]", f"{target} std after"):
+        t.add_column(c, justify="right")
+    for i, r in enumerate(rec.steps.itertuples(), 1):
+        t.add_row(str(i), f"{r.v_set_um:.0f}", f"{r.w_set_um:.0f}", f"{r.bias_A:.2f}",
+                  f"{r.predicted_std_after * unit:.3g}")
+    console.print(t)
+    if json_out is not None:
+        with open(json_out, "w") as f:
+            json.dump({"target": target, "criterion": criterion, "std_now": rec.std_now,
+                       "steps": rec.steps.to_dict(orient="records")}, f, indent=2)
+
+
 @app.command("origin-search")
 def origin_search(
     biases_a: Annotated[str, typer.Option("--biases-a", help="The two bias currents [A].")] = "1.4,1.6",

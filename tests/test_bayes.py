@@ -1,0 +1,111 @@
+"""Posterior sampling, ArviZ output, solution-space map and design recommendation (fast versions)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from ambfit import bayes, conditioning, design, fit
+from ambfit import protocol as P
+from ambfit import rig
+
+
+@pytest.fixture(scope="module")
+def table2():
+    return rig.simulate(rig.PAPER_RIG, P.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=4).data
+
+
+@pytest.fixture(scope="module")
+def short_run(table2):
+    return bayes.sample(table2, n_ensembles=2, n_steps=800, seed=1)
+
+
+def test_posterior_recovers_truth_and_agrees_with_least_squares(short_run):
+    post = short_run.datatree.posterior
+    ls = short_run.ls
+    truth = {"g_v0": 775.0, "v0": 33.3, "g_w0": 763.0, "w0": -11.3}
+    for name, t in truth.items():
+        v = np.asarray(post[name])
+        assert abs(v.mean() - t) < 4 * v.std(), name
+        # near-Gaussian posterior: mean and sd within 5 % of a sd / of the sd of least squares
+        assert abs(v.mean() - ls.value(name) * 1e6) < 0.1 * ls.error(name) * 1e6, name
+        assert v.std() == pytest.approx(ls.error(name) * 1e6, rel=0.1), name
+
+
+def test_a_short_run_is_flagged_with_the_length_it_needs(short_run):
+    assert short_run.too_short
+    assert "too short: run at least" in short_run.message
+    js = short_run.to_json()
+    assert js["method"] == "bayes" and js["converged"] is False
+    for key in ("g_v0_um", "v0_um", "k_v_Nm2_per_A2"):
+        assert set(js["params"][key]) >= {"value", "std", "hdi_low", "hdi_high", "r_hat", "ess_bulk"}
+        p = js["params"][key]
+        assert p["hdi_low"] < p["value"] < p["hdi_high"]
+
+
+def test_netcdf_round_trip(short_run, tmp_path):
+    import arviz as az
+    path = tmp_path / "post.nc"
+    short_run.datatree.to_netcdf(path, engine="h5netcdf")
+    back = az.from_netcdf(path)
+    np.testing.assert_allclose(np.asarray(back.posterior["g_v0"]), np.asarray(short_run.datatree.posterior["g_v0"]))
+    assert back.log_likelihood["reading"].shape[-1] == 80
+    loo = az.loo(back)
+    assert np.isfinite(float(loo.elpd))
+
+
+def test_prior_support_is_physical():
+    post_prior = bayes.Prior()
+    draws = post_prior.sample(np.random.default_rng(0), 1000)
+    assert np.all(draws["g0"] > 0) and np.all(draws["k"] > 0)
+
+
+def test_predictive_force(short_run):
+    out = bayes.force_predictive(short_run, "v", [1.7], [1.3], [0.0])
+    from ambfit.model import ideal_force
+    spec = rig.PAPER_RIG
+    true = float(ideal_force(spec.g0[0], spec.x0[0], spec.force_constant, 1.7, 1.3, 0.0))
+    assert abs(out["mean"][0] - true) < 4 * out["sd"][0]
+    assert out["q03"][0] < out["mean"][0] < out["q97"][0]
+
+
+def test_solution_space_grid_and_minimum(table2):
+    res = fit.fit(table2)
+    space = conditioning.solution_space(table2, "v", weights_at=res)
+    assert space.chi2.shape == (401, 201)          # the paper's Fig. 2 axes at 1 µm
+    g, x = space.minimum
+    assert abs(g - res.value("g_v0")) <= 1e-6 and abs(x - res.value("v0")) <= 1e-6
+    d = space.delta_chi2()
+    # the valley runs along the weakest direction: Δχ² grows slower along it than across it
+    v = conditioning.weakest_direction(res, "v")
+    assert abs(v[0]) > abs(v[1])     # mostly along the gap
+
+
+def test_design_comparison_explains_the_paper():
+    t = conditioning.compare_designs()
+    per = t[t["loads"] == "load per position"].set_index("design")
+    assert not np.isfinite(per.loc["current-only", "crlb_gap_um"])        # ill-conditioned: unbounded
+    assert not np.isfinite(per.loc["position-only", "crlb_gap_um"])
+    assert np.isfinite(per.loc["symmetric (paper)", "crlb_gap_um"])
+    assert per.loc["rich", "crlb_gap_um"] < per.loc["symmetric (paper)", "crlb_gap_um"]
+
+
+def test_design_recommendation_reduces_the_predicted_gap_error(table2):
+    rec = design.recommend(table2, n_steps=3)
+    after = rec.steps["predicted_std_after"].to_numpy()
+    assert after[0] < rec.std_now and np.all(np.diff(after) < 0)
+    assert set(rec.steps.columns) >= {"v_set_um", "w_set_um", "bias_A"}
+
+
+def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
+    from typer.testing import CliRunner
+    from ambfit.cli import app
+    d = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=3, center=(-33.3e-6, 11.3e-6)), seed=2).data
+    csv = tmp_path / "d.csv"
+    d.to_csv(csv, index=False)
+    out, js = tmp_path / "p.nc", tmp_path / "p.json"
+    r = CliRunner().invoke(app, ["sample", str(csv), "--steps", "300", "--ensembles", "2", "--out", str(out),
+                                 "--json", str(js), "--no-progress"])
+    assert r.exit_code == 3 and "too short" in r.output     # 300 steps is well below 50 tau
+    rec = json.loads(js.read_text())
+    assert rec["method"] == "bayes" and out.exists()
