@@ -1,0 +1,155 @@
+"""Posterior efficiency on the default data, the paper's Fig. 2 on the rig, and the design comparison.
+
+1. Default data (data/paper_table2.csv): 4 independent emcee ensembles x 3000 steps;
+   effective samples per second (bulk ESS of the slowest parameter / wall time), and the
+   posterior mean and sd against least squares (target: within 5 %).
+2. Fig. 2: the misfit map over gap 600-1000 µm and origin -100...100 µm at 1 µm steps
+   (401 x 201), for (a) the paper's first iteration (pairs at ±20 µm in sensor coordinates,
+   i.e. non-symmetric about the effective origin at -33.3 µm) with one unknown load per
+   position, as Eq. 5-7 see the data, and (b) the ten iterations of the default data by
+   least squares; posterior draws, the least-squares ellipses and the weakest Fisher
+   direction drawn on them.  The evaluation time of one grid is recorded.
+3. Design comparison (conditioning.compare_designs): condition number and CRLB of the
+   gap and origin for current-only, position-only, symmetric, non-symmetric and rich
+   designs, under both load assumptions.
+
+    .venv/bin/python benchmarks/posterior_report.py
+
+Writes reports/posterior/ (Markdown, JSON, PNG).
+"""
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ambfit import bayes, conditioning, fit, plots, rig
+from ambfit import protocol as P
+from ambfit.data import read_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "reports" / "posterior"
+
+
+def _markdown(df: pd.DataFrame) -> str:
+    def cell(v):
+        return f"{v:.3g}" if isinstance(v, (float, np.floating)) else str(v)
+    lines = ["| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join(lines)
+
+
+def main():
+    OUT.mkdir(parents=True, exist_ok=True)
+    md = ["# Posterior, solution space and design comparison", ""]
+    report = {}
+
+    # 1. efficiency on the default data
+    ds = read_csv(ROOT / "data" / "paper_table2.csv")
+    ls = fit.fit(ds)
+    bayes.sample(ds, n_ensembles=1, n_steps=50, ls=ls)          # compile outside the timing
+    t0 = time.perf_counter()
+    res = bayes.sample(ds, n_ensembles=4, n_steps=3000, seed=1, ls=ls)
+    secs = time.perf_counter() - t0
+    js = res.to_json()
+    ess_min = min(p["ess_bulk"] for p in js["params"].values())
+    rows = []
+    for name, key in (("g_v0", "g_v0_um"), ("v0", "v0_um"), ("g_w0", "g_w0_um"), ("w0", "w0_um"),
+                      ("k_v", "k_v_Nm2_per_A2"), ("k_w", "k_w_Nm2_per_A2")):
+        sc = 1e6 if key.endswith("_um") else 1.0
+        p = js["params"][key]
+        m_ls, s_ls = ls.value(name) * sc, ls.error(name) * sc
+        rows.append({"param": name, "post_mean": p["value"], "post_sd": p["std"], "ls_value": m_ls, "ls_std": s_ls,
+                     "mean_diff_in_ls_sd": (p["value"] - m_ls) / s_ls, "sd_ratio": p["std"] / s_ls,
+                     "hdi94": [p["hdi_low"], p["hdi_high"]], "r_hat": p["r_hat"], "ess_bulk": p["ess_bulk"]})
+    report["efficiency"] = {"seconds": secs, "ess_min": ess_min, "ess_per_second": ess_min / secs,
+                            "tau_max": float(np.max(res.tau)), "too_short": res.too_short, "rows": rows}
+    plots.save(plots.plot_pair(res), OUT / "pair.png")
+    res.datatree.to_netcdf(OUT / "posterior_default.nc", engine="h5netcdf")
+    md += ["## 1. Posterior on the default data", "",
+           f"4 ensembles x 3000 steps x {res.n_walkers} walkers in {secs:.1f} s; max autocorrelation time "
+           f"{np.max(res.tau):.0f} steps ({'too short' if res.too_short else 'long enough'}); slowest bulk ESS "
+           f"{ess_min:.0f} → **{ess_min / secs:.0f} effective samples per second**.", "",
+           "| param | posterior mean ± sd | least squares | (mean − LS)/sd_LS | sd / sd_LS | 94 % HDI | R-hat |",
+           "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        f = ".4g"
+        md.append(f"| {r['param']} | {r['post_mean']:{f}} ± {r['post_sd']:.3g} | {r['ls_value']:{f}} ± {r['ls_std']:.3g} "
+                  f"| {r['mean_diff_in_ls_sd']:+.3f} | {r['sd_ratio']:.3f} | {r['hdi94'][0]:{f}} – {r['hdi94'][1]:{f}} "
+                  f"| {r['r_hat']:.3f} |")
+    md += ["", "Pair plot: `pair.png`; the DataTree: `posterior_default.nc`.", ""]
+
+    # 2. Fig. 2
+    first = ds.frame[ds.frame["iteration"] == 1].copy()
+    first["load_N"] = np.nan
+    first["load_id"] = ["pos" + ("+" if v > 0 else "-") for v in first["v_set_um"]]
+    sp_first = conditioning.solution_space(first, "v", weights_at=None)
+    t0 = time.perf_counter()
+    sp_first = conditioning.solution_space(first, "v", weights_at=None)
+    t_grid = time.perf_counter() - t0
+    try:
+        ls_first = fit.fit(first)
+    except fit.FitError as exc:
+        ls_first = None
+        report["fig2_first_fit_error"] = str(exc)
+    samples = None
+    if ls_first is not None:
+        pr = bayes.sample(first, n_ensembles=2, n_steps=3000, seed=2, ls=ls_first)
+        d = pr.draws.reshape(-1, pr.draws.shape[-1])
+        samples = d[:, [pr.names.index("g_v0"), pr.names.index("v0")]]
+    plots.save(plots.plot_solution_space(sp_first, result=ls_first, samples=samples), OUT / "fig2_first_iteration.png")
+    sp_all = conditioning.solution_space(ds, "v", weights_at=ls)
+    dv = res.draws.reshape(-1, res.draws.shape[-1])
+    plots.save(plots.plot_solution_space(sp_all, result=ls, samples=dv[:, [res.names.index("g_v0"),
+                                                                             res.names.index("v0")]]),
+               OUT / "fig2_all_iterations.png")
+    vdir = conditioning.weakest_direction(ls_first, "v") if ls_first is not None else None
+    report["fig2"] = {"grid": list(sp_first.chi2.shape), "grid_seconds": t_grid,
+                      "first_iteration_minimum_um": [m * 1e6 for m in sp_first.minimum],
+                      "weakest_direction_gap_origin": None if vdir is None else vdir.tolist(),
+                      "first_iteration_ls": None if ls_first is None else {
+                          "g_v0_um": [ls_first.value("g_v0") * 1e6, ls_first.error("g_v0") * 1e6],
+                          "v0_um": [ls_first.value("v0") * 1e6, ls_first.error("v0") * 1e6],
+                          "corr": float(ls_first.corr[ls_first.names.index("g_v0"), ls_first.names.index("v0")])}}
+    slope = None if vdir is None else vdir[1] / vdir[0]
+    md += ["## 2. The paper's Fig. 2 on the rig", "",
+           f"Grid 401 x 201 (gap 600–1000 µm, origin −100…100 µm, 1 µm) evaluated in {t_grid * 1e3:.0f} ms.", "",
+           "`fig2_first_iteration.png`: the first iteration of the default data (pairs at ±20 µm in sensor "
+           "coordinates, 13.3 and 53.3 µm from the effective origin, i.e. not symmetric about it), with one unknown "
+           "load per position, the information Eq. 5–7 use. "
+           + ("" if ls_first is None else
+              f"Least squares: g_v0 = {ls_first.value('g_v0') * 1e6:.0f} ± {ls_first.error('g_v0') * 1e6:.0f} µm, "
+              f"v0 = {ls_first.value('v0') * 1e6:.1f} ± {ls_first.error('v0') * 1e6:.1f} µm, correlation "
+              f"{report['fig2']['first_iteration_ls']['corr']:+.3f}; the valley runs along the weakest Fisher "
+              f"direction, {slope:+.3f} µm of origin per µm of gap."),
+           "",
+           "Why the valley: at one position, Eq. 6 fixes only the ratio (g0 − u)/(g0 + u) with "
+           "u = (x0 + x) cos α, i.e. u/g0: every (gap, origin) on the line u = const · g0 fits. Each position "
+           "adds such a line; two positions give two lines through the same point that meet at a small angle when "
+           "the positions are close compared with their distance from the effective origin, and noise slides the "
+           "solution along the narrow valley between them. Pairs symmetric about the effective origin make the two "
+           "ratios move in opposite directions and the lines cross most steeply; that is why the paper moved to "
+           "symmetric pairs after finding the valley. Least squares over all readings additionally uses that the "
+           "same load is carried at every position (when it is), which collapses the valley (`fig2_all_iterations.png`).",
+           ""]
+
+    # 3. design comparison
+    table = conditioning.compare_designs()
+    plots.save(plots.plot_design_comparison(table), OUT / "design_comparison.png")
+    report["designs"] = table.to_dict(orient="records")
+    md += ["## 3. Designs compared (v axis, 0.6 mA / 0.1 µm noise, 10 repetitions each)", "",
+           _markdown(table), "",
+           "Current perturbation alone (one position) leaves the gap unbounded: only u/g0 is fixed. Position "
+           "perturbation alone at one bias gives nothing when each position may carry its own load, and a badly "
+           "conditioned system (condition ~4e3) when the load is shared. Current-position perturbation with two "
+           "positions identifies both; the rich design (four biases, five positions) shrinks the gap's bound "
+           "7x under per-position loads. `design_comparison.png`.", ""]
+    (OUT / "README.md").write_text("\n".join(md) + "\n")
+    (OUT / "report.json").write_text(json.dumps(report, indent=2, default=float))
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()
