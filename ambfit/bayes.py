@@ -31,7 +31,7 @@ import pandas as pd
 from ambfit.data import Dataset
 from ambfit.fit import FitResult, fit
 from ambfit.likelihood import (
-    K_REFERENCE, NOMINAL_GAP, Problem, _misfit, build_problem, free_mask, free_names, param_scale, to_theta,
+    K_REFERENCE, NOMINAL_GAP, Problem, misfit, build_problem, free_mask, free_names, param_scale, to_theta,
 )
 from ambfit.model import ALPHA_DEFAULT
 
@@ -83,7 +83,7 @@ class Posterior(eqx.Module):
 
     def pointwise(self, z):
         """Log-likelihood of each reading [n]."""
-        f, s = _misfit(self.full(z), self.prob, self.alpha)
+        f, s = misfit(self.full(z), self.prob, self.alpha)
         return -0.5 * (f / s) ** 2 - jnp.log(s) - 0.5 * jnp.log(2 * jnp.pi)
 
     def log_prior(self, z):

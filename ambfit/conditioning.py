@@ -86,7 +86,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
     effective-variance weights; default: fit the data first.
     """
     from ambfit.fit import FitError, fit
-    from ambfit.likelihood import _misfit, to_theta
+    from ambfit.likelihood import misfit, to_theta
 
     df = data.frame if isinstance(data, Dataset) else data
     if axis not in AXES:
@@ -115,7 +115,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
         th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, alpha)
     else:
         th = to_theta(g_pair, x_pair, k_pair, loads)
-    s = np.asarray(_misfit(jnp.asarray(th), prob, alpha)[1])
+    s = np.asarray(misfit(jnp.asarray(th), prob, alpha)[1])
     w = 1.0 / s**2
     gs = np.arange(gap[0], gap[1] + step / 2, step)
     xs = np.arange(origin[0], origin[1] + step / 2, step)

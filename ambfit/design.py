@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
@@ -72,17 +73,10 @@ def _information_rows(res: FitResult, df: pd.DataFrame, alpha) -> tuple[np.ndarr
     loads = np.array([vals.get(f"load[{grp}]", 0.0) for grp in meta.load_groups])
     th = jnp.asarray(to_theta(g, x, k, loads))
     it, ib = model_currents(th, prob, prob.bias, alpha)
-    prob = dataclasses.replace(prob, i_top=it, i_bottom=ib) if dataclasses.is_dataclass(prob) else \
-        _with_currents(prob, it, ib)
+    prob = eqx.tree_at(lambda p: (p.i_top, p.i_bottom), prob, (it, ib))
     free = free_mask(prob, meta)
     j = np.asarray(jacobian(th, prob, alpha))[:, free] / param_scale(prob.n_loads)[free]
     return j, free_names(meta, free)
-
-
-def _with_currents(prob, it, ib):
-    import equinox as eqx
-
-    return eqx.tree_at(lambda p: (p.i_top, p.i_bottom), prob, (it, ib))
 
 
 def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.DataFrame | None = None,

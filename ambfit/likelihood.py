@@ -153,7 +153,7 @@ def unpack(theta, prob: Problem):
     return g0, x0, k, theta[6:] * SCALE_LOAD
 
 
-def _misfit(theta, prob: Problem, alpha):
+def misfit(theta, prob: Problem, alpha):
     """Force misfit ``F - L`` [N] of every row and its effective noise std ``s_eff`` [N]."""
     g0, x0, k, loads = unpack(theta, prob)
     a = prob.ax
@@ -171,7 +171,7 @@ def _misfit(theta, prob: Problem, alpha):
 
 def residuals(theta, prob: Problem, alpha: float = ALPHA_DEFAULT):
     """Effective-variance residuals ``(F - L) / s_eff`` of every row (dimensionless)."""
-    f, s = _misfit(theta, prob, alpha)
+    f, s = misfit(theta, prob, alpha)
     return f / jax.lax.stop_gradient(s)
 
 
@@ -182,7 +182,7 @@ def _fn(theta, args):
 
 def _fn_weighted(theta, args):
     prob, alpha, s = args
-    return _misfit(theta, prob, alpha)[0] / s
+    return misfit(theta, prob, alpha)[0] / s
 
 
 REWEIGHTINGS = 2
@@ -230,7 +230,7 @@ def solve(theta0, prob: Problem, alpha: float = ALPHA_DEFAULT, max_steps: int = 
     """
     def round_(_, carry):
         theta, steps, _ = carry
-        s = _misfit(theta, prob, alpha)[1]
+        s = misfit(theta, prob, alpha)[1]
         sol = optx.least_squares(_fn_weighted, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta,
                                  args=(prob, alpha, s), max_steps=max_steps, throw=False)
         return sol.value, steps + sol.stats["num_steps"], sol.result
