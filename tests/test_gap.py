@@ -1,0 +1,42 @@
+"""Sim-to-real gap, first layer (noise floor and where the residuals are structured)."""
+
+import numpy as np
+import pytest
+
+from ambfit import effects as E
+from ambfit import fit, gap
+from ambfit import protocol as P
+from ambfit import rig
+
+
+def _diag(effects, seed=3):
+    d = rig.simulate(rig.PAPER_RIG, P.rich(), effects, seed=seed).data
+    r = fit.fit(d)
+    return gap.noise_floor(r), gap.where(d, r)
+
+
+def test_clean_data_sit_on_the_noise_floor():
+    nf, w = _diag([])
+    # 280 residuals: mean z^2 within ~4 sd (sd = sqrt(2/280) = 0.085) of its expectation
+    assert abs(nf.mean_z2 - nf.expected_mean_z2) < 0.35
+    assert w.regions == []
+    assert "std columns" in nf.source
+
+
+@pytest.mark.parametrize("effect, variables", [
+    (E.Saturation(b_sat=np.asarray(1.1)), {"b_top_T", "b_bottom_T", "bias_A", "control_current_A"}),
+    (E.Hysteresis(width=np.asarray(0.015)), {"sweep_direction"}),
+    (E.CrossCoupling(kappa=np.asarray(2500.0), geometric=np.asarray(0.0)), {"position_other_um", "position_own_um"}),
+    (E.ThermalDrift(), {"time_s", "temperature_C", "b_top_T", "b_bottom_T", "bias_A"}),
+])
+def test_structured_effects_are_located(effect, variables):
+    nf, w = _diag([effect])
+    assert nf.excess > 2.0
+    assert w.regions and w.regions[0].variable in variables
+    assert abs(w.regions[0].z) > w.threshold
+
+
+def test_where_json_follows_the_contract_shape():
+    _, w = _diag([E.Hysteresis(width=np.asarray(0.015))])
+    entry = w.regions[0].to_json()
+    assert set(entry) >= {"region", "rows", "z", "variable"} and "axis" in entry["region"]
