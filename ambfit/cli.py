@@ -408,6 +408,48 @@ def design(
                        "steps": rec.steps.to_dict(orient="records")}, f, indent=2)
 
 
+@app.command()
+def diagnose(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
+    turns: Annotated[float, typer.Option(help="Turns per pole, for the gap flux densities [-].")] = 480.0,
+):
+    """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
+    data, and how far the gap shrinks (work in progress: no nominal-rig comparison yet)."""
+    from ambfit import fit, gap
+    from ambfit.data import DataError, read_csv
+
+    _enable_compilation_cache()
+    try:
+        rec = gap.diagnose(read_csv(data), turns=turns).to_json()
+    except DataError as exc:
+        _fail(str(exc))
+    except fit.FitError as exc:
+        _fail(str(exc), 3)
+    nf = rec["noise_floor"]
+    console.print(f"noise floor ({nf['source']}): mean z² {nf['mean_z2']:.2f} (expected {nf['expected_mean_z2']:.2f}); "
+                  f"held-out excess {rec['heldout_excess_before']:.2f} noise units; folds: {rec['folds']}",
+                  highlight=False)
+    t = Table(title="where the model fails (largest first)")
+    for c in ("region", "rows", "z"):
+        t.add_column(c, justify="left" if c == "region" else "right")
+    for w in rec["where"][:8]:
+        t.add_row(w["region"], str(w["rows"]), f"{w['z']:.1f}")
+    console.print(t)
+    t = Table(title="candidate effects, held-out (best first)")
+    for c in ("effect", "held-out excess after", "shrink", "in-sample mean z²"):
+        t.add_column(c, justify="left" if c == "effect" else "right")
+    for r in rec["ranking"]:
+        t.add_row(r["effect"], f"{r['heldout_excess_after']:.2f}", f"{r['shrink']:.3f}", f"{r['insample_mean_z2']:.2f}")
+    console.print(t)
+    console.print(f"verdict: {rec['verdict']}; confounded with: {', '.join(rec['confounded_with']) or 'none'}; "
+                  f"shrink {rec['shrink']:.3f}", highlight=False)
+    if json_out is not None:
+        with open(json_out, "w") as f:
+            json.dump(rec, f, indent=2)
+        console.print(f"wrote {json_out}")
+
+
 @app.command("origin-search")
 def origin_search(
     biases_a: Annotated[str, typer.Option("--biases-a", help="The two bias currents [A].")] = "1.4,1.6",

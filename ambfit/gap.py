@@ -158,3 +158,107 @@ def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins
     regions = sorted([c for c in cells if abs(c.z) > threshold], key=lambda r: -abs(r.z))
     return Where(tests=pd.DataFrame(tests).sort_values("p_value").reset_index(drop=True), regions=regions,
                  threshold=threshold)
+
+
+# --- which effect, and how far the gap shrinks -----------------------------------------------------
+
+def folds(data: pd.DataFrame) -> tuple[str, list]:
+    """Block cross-validation folds over operating regions: leave one load out when there are three or more
+    load groups, else leave one bias out, else alternate iterations.  Returns (name, [bool test masks])."""
+    df = data.reset_index(drop=True)
+    if "load_id" in df and df["load_id"].nunique() >= 3:
+        return "leave-one-load-out", [(df["load_id"] == v).to_numpy() for v in df["load_id"].unique()]
+    b = np.round(df["bias_A"].to_numpy(float), 6)
+    if len(np.unique(b)) >= 3:
+        return "leave-one-bias-out", [b == v for v in np.unique(b)]
+    it = pd.to_numeric(df["iteration"], errors="coerce").fillna(0).to_numpy() if "iteration" in df else np.arange(len(df))
+    return "alternate iterations", [(it % 2) == 0, (it % 2) == 1]
+
+
+def _excess(z) -> float:
+    return float(np.sqrt(max(np.mean(np.asarray(z) ** 2) - 1.0, 0.0)))
+
+
+@dataclasses.dataclass(frozen=True)
+class Diagnosis:
+    """The contract section 3 record and what it was computed from."""
+
+    record: dict
+
+    def to_json(self) -> dict:
+        return self.record
+
+
+def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DEFAULT_TURNS,
+             floor_tolerance: float = 1.0, min_shrink: float = 0.5, **noise) -> Diagnosis:
+    """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
+
+    For the baseline and for each candidate effect (default: every effect in
+    :data:`ambfit.effects.EFFECTS`), the extended model is fitted with each fold held
+    out and scored on it: ``excess = sqrt(max(mean(z^2) - 1, 0))`` of the pooled
+    held-out standardized residuals.  Verdict: ``none`` when the baseline's held-out
+    residuals sit on the noise floor (excess below ``floor_tolerance`` and no
+    structured region); otherwise the best candidate if it removes at least
+    ``min_shrink`` of the excess *and* leaves the held-out residuals within
+    ``floor_tolerance`` of the floor; otherwise ``unexplained``.  ``confounded_with``
+    lists the candidates whose held-out score is statistically indistinguishable
+    from the verdict's.
+    """
+    from ambfit.effects import EFFECTS
+    from ambfit.extend import fit_extended, heldout_residuals
+
+    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    base = fit(df, **noise)
+    nf = noise_floor(base)
+    loc = where(df, base, turns=turns)
+    fold_name, tests = folds(df)
+    cands = list(candidates) if candidates is not None else [cls() for cls in EFFECTS.values()]
+
+    def heldout(effects):
+        zs, params = [], None
+        for test in tests:
+            ef = fit_extended(df, effects, start=base, mask=(~test).astype(float), turns=turns, **noise)
+            zs.append(heldout_residuals(ef, df, test))
+        full = fit_extended(df, effects, start=base, turns=turns, **noise)
+        params = {n: float(v) for n, v in zip(full.names, full.values)}
+        return np.concatenate(zs), params, full
+
+    z0, p0, _ = heldout(())
+    before = _excess(z0)
+    n_out = len(z0)
+    ranking = []
+    for e in cands:
+        z1, params, full = heldout((e,))
+        after = _excess(z1)
+        shrink = 1.0 - after / before if before > 0 else 0.0
+        head = {k: v for k, v in params.items() if not k.startswith("load[")}
+        ranking.append({"effect": type(e).name, "heldout_rms_before": float(np.sqrt(np.mean(z0**2))),
+                        "heldout_rms_after": float(np.sqrt(np.mean(z1**2))), "heldout_excess_before": before,
+                        "heldout_excess_after": after, "shrink": shrink, "score": float(np.mean(z1**2)),
+                        "insample_mean_z2": float(np.mean(full.residuals**2)),
+                        "params": {k: v for k, v in head.items() if "." in k},
+                        "shift": {k: head[k] - p0[k] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+                                  if k in head and k in p0}})
+    ranking.sort(key=lambda r: r["score"])
+    best = ranking[0] if ranking else None
+    on_floor = before < floor_tolerance and not loc.regions
+    if on_floor:
+        verdict, ref = "none", float(np.mean(z0**2))
+    elif best and best["shrink"] >= min_shrink and best["heldout_excess_after"] < floor_tolerance:
+        verdict, ref = best["effect"], best["score"]
+    else:
+        verdict, ref = "unexplained", None
+    # sd of a mean of n squared standard normals is sqrt(2 / n); scaled by the level when above the floor
+    se = np.sqrt(2.0 / n_out) * max(ref, 1.0) if ref is not None else np.inf
+    confounded = [] if ref is None else [r["effect"] for r in ranking
+                                         if r["effect"] != verdict and abs(r["score"] - ref) < 3 * se]
+    record = {
+        "baseline": "ideal", "noise_floor": nf.to_json(), "folds": fold_name,
+        "where": [r.to_json() for r in loc.regions[:20]],
+        "ranking": ranking, "verdict": verdict, "confounded_with": confounded,
+        "shrink": best["shrink"] if verdict not in ("none", "unexplained") else (0.0 if verdict == "none" else
+                                                                             (best["shrink"] if best else 0.0)),
+        "heldout_excess_before": before,
+        "parameters_baseline": {k: v for k, v in p0.items() if not k.startswith("load[")},
+    }
+    return Diagnosis(record=record)

@@ -40,3 +40,31 @@ def test_where_json_follows_the_contract_shape():
     _, w = _diag([E.Hysteresis(width=np.asarray(0.015))])
     entry = w.regions[0].to_json()
     assert set(entry) >= {"region", "rows", "z", "variable"} and "axis" in entry["region"]
+
+
+@pytest.fixture(scope="module")
+def saturated():
+    return rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=np.asarray(1.15))], seed=3).data
+
+
+def test_diagnosis_names_the_effect_and_the_shrink(saturated):
+    rec = gap.diagnose(saturated).to_json()
+    assert rec["verdict"] == "saturation"
+    assert rec["shrink"] >= 0.8
+    assert set(rec) >= {"baseline", "noise_floor", "where", "ranking", "verdict", "confounded_with", "shrink"}
+    top = rec["ranking"][0]
+    assert top["effect"] == "saturation" and set(top) >= {"heldout_rms_before", "heldout_rms_after", "shrink",
+                                                          "score", "params"}
+    # the fitted knee is near the truth (1.15 T)
+    assert abs(top["params"]["saturation.b_sat[v]"] - 1.15) < 0.05
+
+
+def test_clean_data_get_verdict_none():
+    d = rig.simulate(rig.PAPER_RIG, P.rich(), seed=8).data
+    assert gap.diagnose(d).to_json()["verdict"] == "none"
+
+
+def test_effect_withheld_from_the_library_is_unexplained(saturated):
+    others = [cls() for name, cls in E.EFFECTS.items() if name not in ("saturation",)]
+    rec = gap.diagnose(saturated, candidates=others).to_json()
+    assert rec["verdict"] == "unexplained"
