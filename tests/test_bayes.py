@@ -79,6 +79,14 @@ def test_solution_space_grid_and_minimum(table2):
     # the valley runs along the weakest direction: Δχ² grows slower along it than across it
     v = conditioning.weakest_direction(res, "v")
     assert abs(v[0]) > abs(v[1])     # mostly along the gap
+    perp = np.array([-v[1], v[0]])
+    i0, j0 = np.argmin(np.abs(space.gap - g)), np.argmin(np.abs(space.origin - x))
+
+    def at(direction, step=3e-6):
+        i = i0 + int(round(direction[0] * step / 1e-6))
+        j = j0 + int(round(direction[1] * step / 1e-6))
+        return d[i, j]
+    assert at(v) < at(perp)
 
 
 def test_design_comparison_explains_the_paper():
