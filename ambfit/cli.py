@@ -413,16 +413,21 @@ def diagnose(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
     turns: Annotated[float, typer.Option(help="Turns per pole, for the gap flux densities [-].")] = 480.0,
+    rig_toml: Annotated[Path | None, typer.Option("--rig", help="Nominal rig TOML (nominal_gap_um, turns, "
+                                                  "pole_area_mm2, lamination, position_gain_tolerance, ...) "
+                                                  "for the parameter-level gap.")] = None,
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
-    data, and how far the gap shrinks (work in progress: no nominal-rig comparison yet)."""
+    data, how far the gap shrinks, and (with --rig) how the identified parameters differ from the nominal rig."""
     from ambfit import fit, gap
     from ambfit.data import DataError, read_csv
 
     _enable_compilation_cache()
     try:
-        rec = gap.diagnose(read_csv(data), turns=turns).to_json()
-    except DataError as exc:
+        nominal = gap.NominalRig.from_toml(rig_toml) if rig_toml is not None else None
+        rec = gap.diagnose(read_csv(data), turns=nominal.turns or turns if nominal else turns,
+                           nominal=nominal).to_json()
+    except (DataError, ValueError, OSError) as exc:
         _fail(str(exc))
     except fit.FitError as exc:
         _fail(str(exc), 3)
@@ -444,6 +449,11 @@ def diagnose(
     console.print(t)
     console.print(f"verdict: {rec['verdict']}; confounded with: {', '.join(rec['confounded_with']) or 'none'}; "
                   f"shrink {rec['shrink']:.3f}", highlight=False)
+    for e in rec.get("parameter_gap", []):
+        if e["flagged"]:
+            why = "; ".join(f"{c['effect']} ({c['needs']})" for c in e.get("could_be", []))
+            console.print(f"{e['parameter']}: identified {e['identified']:.4g} vs nominal {e['nominal']:.4g} "
+                          f"({e['z']:+.1f} sd) - could be {why}", highlight=False)
     if json_out is not None:
         with open(json_out, "w") as f:
             json.dump(rec, f, indent=2)
