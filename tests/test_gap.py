@@ -68,3 +68,22 @@ def test_effect_withheld_from_the_library_is_unexplained(saturated):
     others = [cls() for name, cls in E.EFFECTS.items() if name not in ("saturation",)]
     rec = gap.diagnose(saturated, candidates=others).to_json()
     assert rec["verdict"] == "unexplained"
+
+
+def test_parameter_gap_flags_an_effective_gap_above_nominal(tmp_path):
+    toml = tmp_path / "rig.toml"
+    toml.write_text("nominal_gap_um = 762\nturns = 480\npole_area_mm2 = 54.23\nlamination = 0.95\n")
+    nominal = gap.NominalRig.from_toml(toml)
+    # truth: 762 µm of air plus iron reluctance -> effective gap larger than nominal, no residual structure
+    d = rig.simulate(rig.PAPER_RIG.with_truth(g0=(762e-6, 762e-6)), P.rich(),
+                     [E.IronReluctance(l_fe=np.asarray(0.08), mu_r=np.asarray(2000.0), b_knee=np.asarray(5.0))],
+                     seed=1).data
+    entries = {e["parameter"]: e for e in gap.parameter_gap(fit.fit(d), nominal)}
+    g = entries["g_v0_um"]
+    assert g["flagged"] and g["difference"] > 10     # l_fe / (2 mu_r) = 20 µm
+    assert {c["effect"] for c in g["could_be"]} >= {"iron_reluctance", "position_gain"}
+    assert any("calibration" in s for s in g["separate_by"])
+    bad = tmp_path / "bad.toml"
+    bad.write_text("nominal_gap = 762\n")
+    with pytest.raises(ValueError, match="unknown key"):
+        gap.NominalRig.from_toml(bad)
