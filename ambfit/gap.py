@@ -257,8 +257,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
         "baseline": "ideal", "noise_floor": nf.to_json(), "folds": fold_name,
         "where": [r.to_json() for r in loc.regions[:20]],
         "ranking": ranking, "verdict": verdict, "confounded_with": confounded,
-        "shrink": best["shrink"] if verdict not in ("none", "unexplained") else (0.0 if verdict == "none" else
-                                                                             (best["shrink"] if best else 0.0)),
+        # for "unexplained" this is the best candidate's partial shrink; for "none" there is nothing to shrink
+        "shrink": 0.0 if verdict == "none" or best is None else best["shrink"],
         "heldout_excess_before": before,
         "parameters_baseline": {k: v for k, v in p0.items() if not k.startswith("load[")},
     }
