@@ -99,3 +99,33 @@ def plot_design_comparison(table, ax=None):
                 fontsize=8)
     ax.invert_yaxis()
     return ax
+
+
+def plot_residual_map(variable_values, z_before, z_after=None, *, label="", ax=None):
+    """Standardized residuals against one operating variable, before and (optionally) after adding an effect."""
+    ax = _axes(ax)
+    ax.plot(variable_values, z_before, ".", ms=3, alpha=0.6, label="ideal model")
+    if z_after is not None:
+        ax.plot(variable_values, z_after, ".", ms=3, alpha=0.6, label="with the verdict effect")
+    ax.axhspan(-2, 2, color="grey", alpha=0.15, label="±2 noise units")
+    ax.set_xlabel(label)
+    ax.set_ylabel("standardized residual z")
+    ax.legend(fontsize=7)
+    return ax
+
+
+def plot_ranking(record: dict, ax=None):
+    """Held-out excess residual (noise units) after adding each candidate effect; the baseline as a line."""
+    ax = _axes(ax)
+    rk = record["ranking"]
+    names = [r["effect"] for r in rk]
+    vals = [r["heldout_excess_after"] for r in rk]
+    ax.barh(range(len(rk)), vals, color=["tab:green" if n == record["verdict"] else "tab:blue" for n in names])
+    ax.axvline(record["heldout_excess_before"], color="k", ls="--", label="ideal model")
+    ax.set_yticks(range(len(rk)), names)
+    ax.invert_yaxis()
+    ax.set_xscale("symlog", linthresh=1.0)
+    ax.set_xlabel("held-out excess residual [noise units]")
+    ax.set_title(f"verdict: {record['verdict']}, shrink {record['shrink']:.2f}")
+    ax.legend(fontsize=7)
+    return ax
