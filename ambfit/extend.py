@@ -142,7 +142,7 @@ def _solve(z0, prob, spec, alpha, turns, max_steps):
     g = j.T @ r
     h = j.T @ j
     h = h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0))
-    return z, result, g @ jnp.linalg.solve(h, g), _ext_misfit(z[:n_theta], z[n_theta:], prob, spec, alpha, turns)
+    return z, result, g @ jnp.linalg.solve(h, g), _ext_misfit(z[:n_theta], z[n_theta:], prob, spec, alpha, turns), j
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +153,7 @@ class ExtendedFit:
     values: np.ndarray
     effects: tuple
     residuals: np.ndarray      # standardized residuals of every row (held-out rows included)
+    std: np.ndarray            # standard errors of ``values`` (priors included), SI units
     converged: bool
     theta: np.ndarray
     spec: EffectSpec
@@ -181,15 +182,19 @@ def fit_extended(data: pd.DataFrame, effects: Sequence[Effect] = (), *, turns: f
     if not loads:
         theta = seed_loads_and_k(theta, lprob, alpha)
     z0 = np.concatenate([theta, np.zeros(spec.n)])
-    z, result, edm, (f, s) = _solve(jnp.asarray(z0), prob, spec, float(alpha), float(turns), max_steps)
+    z, result, edm, (f, s), jac = _solve(jnp.asarray(z0), prob, spec, float(alpha), float(turns), max_steps)
     z = np.asarray(z)
     n_theta = len(theta)
     free = free_mask(lprob, meta)
     head_names = free_names(meta, free)
     sc = param_scale(lprob.n_loads)
     values = np.concatenate([z[:n_theta][free] * sc[free], np.asarray(spec.centre + spec.width * z[n_theta:])])
+    keep = np.concatenate([free, np.ones(spec.n, bool)])
+    jk = np.asarray(jac)[:, keep]
+    scale = np.concatenate([sc[free], np.asarray(spec.width)])
+    std = np.sqrt(np.abs(np.diag(np.linalg.pinv(jk.T @ jk)))) * scale
     return ExtendedFit(names=head_names + spec.names(), values=values, effects=spec.build(jnp.asarray(z[n_theta:])),
-                       residuals=np.asarray(f) / np.asarray(s), converged=bool(float(edm) < EDM_MAX * 100),
+                       residuals=np.asarray(f) / np.asarray(s), std=std, converged=bool(float(edm) < EDM_MAX * 100),
                        theta=z, spec=spec)
 
 

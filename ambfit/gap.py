@@ -221,11 +221,12 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
             ef = fit_extended(df, effects, start=base, mask=(~test).astype(float), turns=turns, **noise)
             zs.append(heldout_residuals(ef, df, test))
         full = fit_extended(df, effects, start=base, turns=turns, **noise)
-        params = {n: float(v) for n, v in zip(full.names, full.values)}
+        params = {n: (float(v), float(e)) for n, v, e in zip(full.names, full.values, full.std)}
         return np.concatenate(zs), params, full
 
-    z0, p0, _ = heldout(())
+    z0, p0, full0 = heldout(())
     before = _excess(z0)
+    aic0 = float(np.sum(full0.residuals**2) + 2 * len(full0.names))
     n_out = len(z0)
     ranking = []
     for e in cands:
@@ -233,13 +234,22 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
         after = _excess(z1)
         shrink = 1.0 - after / before if before > 0 else 0.0
         head = {k: v for k, v in params.items() if not k.startswith("load[")}
+        n_par = len(full.names)
+        z_in = full.residuals
         ranking.append({"effect": type(e).name, "heldout_rms_before": float(np.sqrt(np.mean(z0**2))),
                         "heldout_rms_after": float(np.sqrt(np.mean(z1**2))), "heldout_excess_before": before,
                         "heldout_excess_after": after, "shrink": shrink, "score": float(np.mean(z1**2)),
-                        "insample_mean_z2": float(np.mean(full.residuals**2)),
-                        "params": {k: v for k, v in head.items() if "." in k},
-                        "shift": {k: head[k] - p0[k] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
-                                  if k in head and k in p0}})
+                        "insample_mean_z2": float(np.mean(z_in**2)),
+                        # Akaike's criterion on the in-sample fit (chi2 + 2 p), relative to the ideal model
+                        "delta_aic": float(np.sum(z_in**2) + 2 * n_par - aic0),
+                        "params": {k: v[0] for k, v in head.items() if "." in k},
+                        "params_std": {k: v[1] for k, v in head.items() if "." in k},
+                        "shift": {k: head[k][0] - p0[k][0] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+                                  if k in head and k in p0},
+                        # standard error of the extended estimate (the shift's reference, the ideal fit on the
+                        # same data, is strongly correlated with it; sqrt(var_ext - var_base) was negative here)
+                        "shift_std": {k: head[k][1] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+                                      if k in head and k in p0}})
     ranking.sort(key=lambda r: r["score"])
     best = ranking[0] if ranking else None
     on_floor = before < floor_tolerance and not loc.regions
@@ -260,7 +270,7 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
         # for "unexplained" this is the best candidate's partial shrink; for "none" there is nothing to shrink
         "shrink": 0.0 if verdict == "none" or best is None else best["shrink"],
         "heldout_excess_before": before,
-        "parameters_baseline": {k: v for k, v in p0.items() if not k.startswith("load[")},
+        "parameters_baseline": {k: v[0] for k, v in p0.items() if not k.startswith("load[")},
     }
     if nominal is not None:
         record["parameter_gap"] = parameter_gap(base, nominal)
