@@ -416,6 +416,8 @@ def diagnose(
     rig_toml: Annotated[Path | None, typer.Option("--rig", help="Nominal rig TOML (nominal_gap_um, turns, "
                                                   "pole_area_mm2, lamination, position_gain_tolerance, ...) "
                                                   "for the parameter-level gap.")] = None,
+    pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
+                                               "explains the data (off: the pair is reported as best_pair).")] = False,
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
     data, how far the gap shrinks, and (with --rig) how the identified parameters differ from the nominal rig."""
@@ -426,7 +428,7 @@ def diagnose(
     try:
         nominal = gap.NominalRig.from_toml(rig_toml) if rig_toml is not None else None
         rec = gap.diagnose(read_csv(data), turns=nominal.turns or turns if nominal else turns,
-                           nominal=nominal).to_json()
+                           nominal=nominal, pair_verdict=pair_verdict).to_json()
     except (DataError, ValueError, OSError) as exc:
         _fail(str(exc))
     except fit.FitError as exc:
@@ -449,6 +451,10 @@ def diagnose(
     console.print(t)
     console.print(f"verdict: {rec['verdict']}; confounded with: {', '.join(rec['confounded_with']) or 'none'}; "
                   f"shrink {rec['shrink']:.3f}", highlight=False)
+    if "best_pair" in rec:
+        bp = rec["best_pair"]
+        console.print(f"best pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
+                      f"{bp['shrink']:.3f}{', explains the data' if bp['explains'] else ''})", highlight=False)
     for e in rec.get("parameter_gap", []):
         if e["flagged"]:
             why = "; ".join(f"{c['effect']} ({c['needs']})" for c in e.get("could_be", []))

@@ -191,7 +191,7 @@ class Diagnosis:
 
 def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DEFAULT_TURNS,
              floor_tolerance: float = 1.0, min_shrink: float = 0.5, nominal: NominalRig | None = None,
-             **noise) -> Diagnosis:
+             pairs: bool = True, pair_verdict: bool = False, **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
     For the baseline and for each candidate effect (default: every effect in
@@ -201,7 +201,9 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
     residuals sit on the noise floor (excess below ``floor_tolerance`` and no
     structured region); otherwise the best candidate if it removes at least
     ``min_shrink`` of the excess *and* leaves the held-out residuals within
-    ``floor_tolerance`` of the floor; otherwise ``unexplained``.  ``confounded_with``
+    ``floor_tolerance`` of the floor; when no single effect does, the pairs of the three
+    best (``pairs=True``) are tried the same way and a pair can be the verdict
+    (``"a+b"``); otherwise ``unexplained``.  ``confounded_with``
     lists the candidates whose held-out score is statistically indistinguishable
     from the verdict's.
     """
@@ -228,34 +230,51 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
     before = _excess(z0)
     aic0 = float(np.sum(full0.residuals**2) + 2 * len(full0.names))
     n_out = len(z0)
-    ranking = []
-    for e in cands:
-        z1, params, full = heldout((e,))
+    def entry(effects):
+        z1, params, full = heldout(tuple(effects))
         after = _excess(z1)
         shrink = 1.0 - after / before if before > 0 else 0.0
         head = {k: v for k, v in params.items() if not k.startswith("load[")}
-        n_par = len(full.names)
         z_in = full.residuals
-        ranking.append({"effect": type(e).name, "heldout_rms_before": float(np.sqrt(np.mean(z0**2))),
-                        "heldout_rms_after": float(np.sqrt(np.mean(z1**2))), "heldout_excess_before": before,
-                        "heldout_excess_after": after, "shrink": shrink, "score": float(np.mean(z1**2)),
-                        "insample_mean_z2": float(np.mean(z_in**2)),
-                        # Akaike's criterion on the in-sample fit (chi2 + 2 p), relative to the ideal model
-                        "delta_aic": float(np.sum(z_in**2) + 2 * n_par - aic0),
-                        "params": {k: v[0] for k, v in head.items() if "." in k},
-                        "params_std": {k: v[1] for k, v in head.items() if "." in k},
-                        "shift": {k: head[k][0] - p0[k][0] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
-                                  if k in head and k in p0},
-                        # standard error of the extended estimate (the shift's reference, the ideal fit on the
-                        # same data, is strongly correlated with it; sqrt(var_ext - var_base) was negative here)
-                        "shift_std": {k: head[k][1] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
-                                      if k in head and k in p0}})
+        return {"effect": "+".join(type(e).name for e in effects),
+                "heldout_rms_before": float(np.sqrt(np.mean(z0**2))),
+                "heldout_rms_after": float(np.sqrt(np.mean(z1**2))), "heldout_excess_before": before,
+                "heldout_excess_after": after, "shrink": shrink, "score": float(np.mean(z1**2)),
+                "insample_mean_z2": float(np.mean(z_in**2)),
+                # Akaike's criterion on the in-sample fit (chi2 + 2 p), relative to the ideal model
+                "delta_aic": float(np.sum(z_in**2) + 2 * len(full.names) - aic0),
+                "params": {k: v[0] for k, v in head.items() if "." in k},
+                "params_std": {k: v[1] for k, v in head.items() if "." in k},
+                "shift": {k: head[k][0] - p0[k][0] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+                          if k in head and k in p0},
+                # standard error of the extended estimate (the shift's reference, the ideal fit on the
+                # same data, is strongly correlated with it; sqrt(var_ext - var_base) was negative here)
+                "shift_std": {k: head[k][1] for k in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+                              if k in head and k in p0}}
+
+    ranking = [entry([e]) for e in cands]
     ranking.sort(key=lambda r: r["score"])
-    best = ranking[0] if ranking else None
     on_floor = before < floor_tolerance and not loc.regions
+
+    def explains(r):
+        return r["shrink"] >= min_shrink and r["heldout_excess_after"] < floor_tolerance
+
+    if not on_floor and ranking and not explains(ranking[0]) and pairs:
+        # no single effect removes the structure: forward selection, the best single plus each other candidate
+        by_name = {type(e).name: e for e in cands}
+        first = ranking[0]["effect"]
+        ranking += [entry([by_name[first], e]) for e in cands if type(e).name != first]
+    ranking.sort(key=lambda r: r["score"])
+    pair_entries = [r for r in ranking if "+" in r["effect"]]
+    best_pair = pair_entries[0] if pair_entries else None
+    if not pair_verdict:
+        singles = [r for r in ranking if "+" not in r["effect"]]
+        best = singles[0] if singles else None
+    else:
+        best = ranking[0] if ranking else None
     if on_floor:
         verdict, ref = "none", float(np.mean(z0**2))
-    elif best and best["shrink"] >= min_shrink and best["heldout_excess_after"] < floor_tolerance:
+    elif best and explains(best):
         verdict, ref = best["effect"], best["score"]
     else:
         verdict, ref = "unexplained", None
@@ -272,6 +291,9 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, turns: float = DE
         "heldout_excess_before": before,
         "parameters_baseline": {k: v[0] for k, v in p0.items() if not k.startswith("load[")},
     }
+    if best_pair is not None:
+        record["best_pair"] = {"effect": best_pair["effect"], "heldout_excess_after": best_pair["heldout_excess_after"],
+                               "shrink": best_pair["shrink"], "explains": bool(explains(best_pair))}
     if nominal is not None:
         record["parameter_gap"] = parameter_gap(base, nominal)
     return Diagnosis(record=record)

@@ -87,3 +87,13 @@ def test_parameter_gap_flags_an_effective_gap_above_nominal(tmp_path):
     bad.write_text("nominal_gap = 762\n")
     with pytest.raises(ValueError, match="unknown key"):
         gap.NominalRig.from_toml(bad)
+
+
+def test_two_effects_are_found_as_a_pair():
+    d = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=np.asarray(1.15)),
+                                               E.Hysteresis(width=np.asarray(0.012))], seed=3).data
+    rec = gap.diagnose(d).to_json()
+    assert rec["verdict"] == "unexplained"            # no single effect explains it ...
+    assert rec["best_pair"]["effect"] == "saturation+hysteresis" and rec["best_pair"]["explains"]  # ... a pair does
+    rec = gap.diagnose(d, pair_verdict=True).to_json()
+    assert rec["verdict"] == "saturation+hysteresis" and rec["shrink"] > 0.8
