@@ -28,11 +28,37 @@ from ambfit import gap, protocol, rig
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def plot_shrink(cases, path):
+    """Held-out shrink of every data set whose verdict named an effect, grouped by the true effect."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(c["truth"] for c in cases if c["truth"] != "none"))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, n in enumerate(names):
+        for c in (c for c in cases if c["truth"] == n):
+            right = c["verdict"] == n
+            ax.plot(i, c["shrink"], "o" if right else "x", color="tab:green" if right else "tab:red", ms=5)
+    ax.axhline(0.8, color="k", ls="--", lw=0.8, label="target 0.8")
+    ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
+    ax.set_ylabel("held-out shrink")
+    ax.set_title("Shrink by true effect (o: verdict right, x: wrong or none)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main():
     ap = argparse.ArgumentParser(description="blind attribution benchmark")
     ap.add_argument("--per-effect", type=int, default=5)
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "gap")
+    ap.add_argument("--plot-only", action="store_true", help="redraw the figure from attribution.json")
     args = ap.parse_args()
+    if args.plot_only:
+        plot_shrink(json.loads((args.out / "attribution.json").read_text())["cases"], args.out / "shrink.png")
+        return
     rng = np.random.default_rng(2026)
     proto = protocol.rich()
     nominal = gap.NominalRig(gap=762e-6, turns=480, pole_area=rig.PAPER_RIG.pole_area, lamination=0.95)
@@ -109,7 +135,9 @@ def main():
            f"{summary['withheld_from_library_unexplained']:.2f} | ≥ 0.80 |",
            f"| time per diagnosis (median; first incl. compilation) | {summary['seconds_per_diagnosis_median']:.1f} s "
            f"({summary['seconds_first']:.0f} s) | ≤ 30 s |"]
+    md += ["", "Figure: `shrink.png` (held-out shrink of every data set, by true effect)."]
     (args.out / "attribution.md").write_text("\n".join(md) + "\n")
+    plot_shrink(cases, args.out / "shrink.png")
     print("\n".join(md))
 
 

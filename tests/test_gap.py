@@ -97,3 +97,17 @@ def test_two_effects_are_found_as_a_pair():
     assert rec["best_pair"]["effect"] == "saturation+hysteresis" and rec["best_pair"]["explains"]  # ... a pair does
     rec = gap.diagnose(d, pair_verdict=True).to_json()
     assert rec["verdict"] == "saturation+hysteresis" and rec["shrink"] > 0.8
+
+
+def test_effect_withheld_from_the_fit_data(saturated):
+    # fit where saturation is weak (low bias), test where it is strong (high bias)
+    from ambfit import extend
+    base = fit.fit(saturated)
+    low = (saturated["bias_A"] <= 1.2 + 1e-9).to_numpy()
+    high = (saturated["bias_A"] >= 1.4 - 1e-9).to_numpy()
+    z0 = extend.heldout_residuals(extend.fit_extended(saturated, [], start=base, mask=low.astype(float)),
+                                  saturated, high)
+    z1 = extend.heldout_residuals(extend.fit_extended(saturated, [E.Saturation()], start=base,
+                                                      mask=low.astype(float)), saturated, high)
+    ex0, ex1 = (np.sqrt(max(np.mean(z**2) - 1, 0)) for z in (z0, z1))
+    assert ex0 > 10 and 1 - ex1 / ex0 > 0.9
