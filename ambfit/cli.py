@@ -418,6 +418,9 @@ def diagnose(
                                                   "for the parameter-level gap.")] = None,
     pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
                                                "explains the data (off: the pair is reported as best_pair).")] = False,
+    report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
+                                                "(residuals against the most structured variable, before and "
+                                                "after adding the verdict effect).")] = None,
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
     data, how far the gap shrinks, and (with --rig) how the identified parameters differ from the nominal rig."""
@@ -427,7 +430,8 @@ def diagnose(
     _enable_compilation_cache()
     try:
         nominal = gap.NominalRig.from_toml(rig_toml) if rig_toml is not None else None
-        rec = gap.diagnose(read_csv(data), turns=nominal.turns or turns if nominal else turns,
+        ds = read_csv(data)
+        rec = gap.diagnose(ds, turns=nominal.turns or turns if nominal else turns,
                            nominal=nominal, pair_verdict=pair_verdict).to_json()
     except (DataError, ValueError, OSError) as exc:
         _fail(str(exc))
@@ -464,6 +468,25 @@ def diagnose(
         with open(json_out, "w") as f:
             json.dump(rec, f, indent=2)
         console.print(f"wrote {json_out}")
+    if report is not None:
+        _diagnosis_figures(ds, rec, report, turns)
+
+
+def _diagnosis_figures(ds, rec, folder: Path, turns: float):
+    from ambfit import effects, extend, fit, gap, plots
+
+    folder.mkdir(parents=True, exist_ok=True)
+    plots.save(plots.plot_ranking(rec), folder / "ranking.png")
+    df = ds.frame.reset_index(drop=True)
+    base = fit.fit(df)
+    ov = gap.operating_variables(df, base, turns)
+    var = rec["where"][0]["variable"] if rec["where"] else "b_top_T"
+    after = None
+    if rec["verdict"] not in ("none", "unexplained"):
+        effs = [effects.EFFECTS[n]() for n in rec["verdict"].split("+")]
+        after = extend.fit_extended(df, effs, start=base, turns=turns).residuals
+    plots.save(plots.plot_residual_map(ov[var], base.residuals, after, label=var), folder / "residuals.png")
+    console.print(f"wrote {folder / 'ranking.png'} and {folder / 'residuals.png'}")
 
 
 @app.command("origin-search")

@@ -111,3 +111,15 @@ def test_effect_withheld_from_the_fit_data(saturated):
                                                       mask=low.astype(float)), saturated, high)
     ex0, ex1 = (np.sqrt(max(np.mean(z**2) - 1, 0)) for z in (z0, z1))
     assert ex0 > 10 and 1 - ex1 / ex0 > 0.9
+
+
+def test_diagnose_cli_writes_contract_json_and_figures(tmp_path, saturated):
+    import json
+    from typer.testing import CliRunner
+    from ambfit.cli import app
+    csv, js, rep = tmp_path / "s.csv", tmp_path / "d.json", tmp_path / "report"
+    saturated.to_csv(csv, index=False)
+    r = CliRunner().invoke(app, ["diagnose", str(csv), "--json", str(js), "--report", str(rep)])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(js.read_text())
+    assert rec["verdict"] == "saturation" and (rep / "ranking.png").exists() and (rep / "residuals.png").exists()
