@@ -382,6 +382,9 @@ def design(
     criterion: Annotated[str, typer.Option(help="'A' (variance of the target) or 'D' (log det of gap and "
                                            "origin covariance).")] = "A",
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
+    max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
+                                                        "sensor origin [µm] (back-up bearing clearance "
+                                                        "less a margin; the paper's rig: 60 µm).")] = None,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
     from ambfit import design as design_mod
@@ -389,7 +392,8 @@ def design(
     from ambfit.data import DataError, read_csv
 
     try:
-        rec = design_mod.recommend(read_csv(data), n_steps=steps, target=target, criterion=criterion)
+        rec = design_mod.recommend(read_csv(data), n_steps=steps, target=target, criterion=criterion,
+                                   max_radius_um=max_radius_um)
     except DataError as exc:
         _fail(str(exc))
     except (fit.FitError, ValueError) as exc:
@@ -537,6 +541,61 @@ def origin_search(
         rig.write_truth(res.truth, truth)
     if not res.converged:
         raise typer.Exit(1)
+
+
+@app.command()
+def report(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for index.html (self-contained, figures "
+                                      "embedded) and report.json.")],
+    steps: Annotated[int, typer.Option(help="emcee steps per ensemble for the posterior.")] = 3000,
+    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat across them).")] = 4,
+    design_steps: Annotated[int, typer.Option(help="How many next perturbations to recommend.")] = 8,
+    max_radius_um: Annotated[float | None, typer.Option(help="Recommend only set-points within this distance "
+                                                        "of the sensor origin [µm] (back-up bearing clearance "
+                                                        "less a margin).")] = 50.0,
+    rig_toml: Annotated[Path | None, typer.Option("--rig", help="Nominal rig TOML for the parameter-level gap "
+                                                  "(see diagnose).")] = None,
+    posterior: Annotated[bool, typer.Option(help="Sample the posterior (the slowest section).")] = True,
+    diagnosis: Annotated[bool, typer.Option(help="Run the sim-to-real gap diagnosis.")] = True,
+    seed: Annotated[int, typer.Option(help="Sampler seed.")] = 0,
+):
+    """One self-contained HTML page: identification table, posterior summary and pair plot, solution-space
+    map, design recommendation and diagnosis."""
+    from ambfit import report as report_mod
+    from ambfit.data import DataError
+
+    _enable_compilation_cache()
+    try:
+        path = report_mod.data_report(data, out, steps=steps, ensembles=ensembles, design_steps=design_steps,
+                                      nominal_toml=rig_toml, max_radius_um=max_radius_um, do_posterior=posterior,
+                                      do_diagnosis=diagnosis, seed=seed, command="ambfit report " + " ".join(sys.argv[2:]))
+    except (DataError, OSError) as exc:
+        _fail(str(exc))
+    console.print(f"wrote {path}")
+    rec = json.loads((Path(out) / "report.json").read_text())
+    if "error" in rec.get("least_squares", {}):
+        raise typer.Exit(3)
+
+
+@app.command()
+def paper(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the reproduction report.")] = Path("reports/paper"),
+    replicates: Annotated[int, typer.Option(help="Repetitions of every experiment for the predicted spreads "
+                                            "(about 1.3 s each).")] = 200,
+    seed: Annotated[int, typer.Option(help="Seed of the reproduction and the replicates.")] = 0,
+    demonstration: Annotated[bool, typer.Option(help="Also simulate which effect explains the paper's gap "
+                                                "excess and what separates the candidates (about 25 s).")] = True,
+):
+    """Rerun the seed paper's Tables 1-4 and Figs. 2, 3 and 5 on the virtual rig; write the side-by-side
+    report (index.html, README.md, comparison.csv, spread.csv, reproduction.json, PNG figures)."""
+    from ambfit import report as report_mod
+
+    _enable_compilation_cache()
+    path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,
+                                   command="ambfit paper " + " ".join(sys.argv[2:]), progress=sys.stderr.isatty())
+    console.print(f"wrote {path}")
+    console.print((Path(out) / "README.md").read_text().split("## Spread")[0], highlight=False)
 
 
 def main():  # pragma: no cover - entry point

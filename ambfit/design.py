@@ -81,12 +81,14 @@ def _information_rows(res: FitResult, df: pd.DataFrame, alpha) -> tuple[np.ndarr
 
 def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.DataFrame | None = None,
               target: str = "g_v0", criterion: str = "A", result: FitResult | None = None,
-              alpha: float | None = None) -> Recommendation:
+              alpha: float | None = None, max_radius_um: float | None = None) -> Recommendation:
     """Greedy A- (variance of ``target``) or D-optimal (log det of gap/origin information) next steps.
 
     ``candidates`` has columns ``v_set_um``, ``w_set_um``, ``bias_A``; default: a grid of
     ±50 µm around the estimated effective origin at biases 0.8-1.8 A.  Candidate rows
     carry the data's most common load group (its known value, or its fitted value).
+    ``max_radius_um`` drops candidates farther than that from the sensor origin (the
+    back-up bearing clearance, 60 µm on the paper's rig, less a margin).
     """
     from ambfit.model import ALPHA_DEFAULT
 
@@ -99,6 +101,12 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
         centre = (-res.value("v0") * 1e6 if "v0" in res.names else 0.0,
                   -res.value("w0") * 1e6 if "w0" in res.names else 0.0)
         candidates = candidate_steps(tuple(round(c) for c in centre))
+    if max_radius_um is not None:
+        # keep the rotor off the back-up bearing: set-points within max_radius_um of the sensor origin
+        r = np.hypot(candidates["v_set_um"], candidates["w_set_um"])
+        candidates = candidates[r <= max_radius_um].reset_index(drop=True)
+        if candidates.empty:
+            raise ValueError(f"no candidate set-point lies within {max_radius_um:g} µm of the sensor origin")
     groups = load_groups(df)
     main = groups.str.rsplit("|", n=1).str[0].mode().iloc[0]
     template = df[groups.str.startswith(main + "|")].iloc[0].copy()
