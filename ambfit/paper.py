@@ -309,6 +309,21 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
                         noise=noise, spec=spec, seconds=time.perf_counter() - t0, failed=failed)
 
 
+def fig2_data(seed: int = 7) -> pd.DataFrame:
+    """The paper's Fig. 2 setting on the rig: pairs at ±20 µm in sensor coordinates with the rotor left at the
+    back-up bearing centre (13.3 and 53.3 µm from the effective origin: not symmetric about it), 10
+    repetitions, one unknown load per position (the information Eq. 5-7 use)."""
+    from ambfit import protocol as P
+    from ambfit.rig import simulate
+
+    parts = []
+    for j, d in enumerate((20e-6, -20e-6)):
+        lid = f"pos{j}"
+        parts += [P.grid([(d, d)], [1.4, 1.6], load=lid, loads={lid: P.Load.gravity(1.0, known=False)},
+                         iteration=i, experiment="fig2") for i in range(1, 11)]
+    return simulate(PAPER_RIG, P.concat(*parts), seed=seed).data
+
+
 # --- the paper's own sim-to-real gap -----------------------------------------------------------------
 
 def published_gap(nominal=None) -> list[dict]:

@@ -247,21 +247,6 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
 
 # --- the seed paper --------------------------------------------------------------------------------------
 
-def _fig2_data(seed: int = 7):
-    """The paper's Fig. 2 setting on the rig: pairs at ±20 µm in sensor coordinates with the rotor left at the
-    back-up bearing centre (13.3 and 53.3 µm from the effective origin: not symmetric about it), 10
-    repetitions, one unknown load per position (the information Eq. 5-7 use)."""
-    from ambfit import protocol as P
-    from ambfit.rig import PAPER_RIG, simulate
-
-    parts = []
-    for j, d in enumerate((20e-6, -20e-6)):
-        lid = f"pos{j}"
-        parts += [P.grid([(d, d)], [1.4, 1.6], load=lid, loads={lid: P.Load.gravity(1.0, known=False)},
-                         iteration=i, experiment="fig2") for i in range(1, 11)]
-    return simulate(PAPER_RIG, P.concat(*parts), seed=seed).data
-
-
 def _side_by_side(comp: pd.DataFrame, t: int) -> pd.DataFrame:
     sub = comp[comp["table"] == t]
     out = pd.DataFrame({
@@ -307,7 +292,7 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
         figs[name] = png(fig)
         plt.close(fig)
 
-    f2 = _fig2_data()
+    f2 = paper.fig2_data()
     sp = conditioning.solution_space(f2, "v")
     try:
         ls2 = fit(f2)
