@@ -224,6 +224,27 @@ class Reproduction:
                             "percentile": float(np.mean(sims < p_sd) * 100)})
         return pd.DataFrame(out)
 
+    def noise_calibration(self, prob: float = 0.90) -> dict:
+        """The current noise Table 2 calls for: ``sigma_i = sigma_rig * s_paper / s_rig``, with ``s`` the
+        per-iteration Eq. 7 gap scatter pooled over both axes (RMS of the two sds).  Eq. 7's gap scatter is
+        proportional to the current noise (the 0.1 µm position noise adds under 1 %), so one run at the rig's
+        level suffices.  The interval is the chi-square interval of the paper's pooled sd (2 x 9 degrees of
+        freedom) combined with the rig's Monte Carlo error."""
+        from scipy.stats import chi2
+
+        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        t2 = load_table(2)
+        s_paper = float(np.sqrt(np.mean([np.var(t2[q].to_numpy(float), ddof=1) for q in ("g_v0_um", "g_w0_um")])))
+        sims = self.replicates[:, j2, :, 2:4]                     # [R, iterations, 2]
+        s_rig = float(np.sqrt(np.mean(np.var(sims, axis=1, ddof=1))))
+        dof = 2 * (len(t2) - 1)
+        lo, hi = (s_paper * np.sqrt(dof / chi2.ppf([1 - (1 - prob) / 2, (1 - prob) / 2], dof))).tolist()
+        scale = self.noise.current / s_rig
+        return {"paper_pooled_gap_scatter_um": s_paper, "rig_pooled_gap_scatter_um": s_rig,
+                "rig_current_noise_mA": self.noise.current * 1e3, "calibrated_current_noise_mA": s_paper * scale * 1e3,
+                "interval_mA": [lo * scale * 1e3, hi * scale * 1e3], "prob": prob, "dof": dof,
+                "rig_level_inside": bool(lo * scale <= self.noise.current <= hi * scale)}
+
     def autocorrelation(self) -> pd.DataFrame:
         """Lag-1 autocorrelation of Table 2's iterations: the paper's against the rig's distribution
         (independent iterations give values near -0.1 with a 5-95 % range of about ±0.5)."""

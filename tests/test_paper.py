@@ -144,3 +144,29 @@ def test_design_stays_within_the_back_up_bearing(tmp_path):
 
     rec = design.recommend(read_csv(ROOT / "data" / "paper_table2.csv"), n_steps=4, max_radius_um=50.0)
     assert (np.hypot(rec.steps["v_set_um"], rec.steps["w_set_um"]) <= 50.0).all()
+
+
+def test_noise_calibration_from_table2(rep):
+    cal = rep.noise_calibration()
+    lo, hi = cal["interval_mA"]
+    assert lo < cal["calibrated_current_noise_mA"] < hi
+    # the rig's default level is one Table 2 supports
+    assert cal["rig_level_inside"], cal
+
+
+def test_eq7_gap_scatter_is_proportional_to_current_noise():
+    # noise_calibration rescales the current noise by the ratio of scatters: check the proportionality
+    from ambfit import closed_form, rig
+
+    proto = protocol.paper_table2(iterations=10, center=(-33.3e-6, 11.3e-6))
+
+    def scatter(sigma_i):
+        g = []
+        for seed in range(20):
+            res = closed_form.identify(rig.simulate(rig.PAPER_RIG, proto, noise=rig.Noise(sigma_i, 0.1e-6),
+                                                    seed=seed).data)
+            g += [s.g0 for s in res.estimates[("all", "v")].iterations.values()]
+        return np.std(g, ddof=1)
+
+    # 200 iterations each: the ratio of two sds has a relative standard error of about 7 %
+    assert scatter(1.2e-3) / scatter(0.6e-3) == pytest.approx(2.0, rel=0.2)
