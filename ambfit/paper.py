@@ -214,7 +214,8 @@ class Reproduction:
                     role = "calibration"
                 else:
                     idx = self._index(t)
-                    sims = self.replicates[:, idx, :, q].mean(axis=2).std(axis=1, ddof=1)
+                    # (two index lists split by a slice would move the row axis first: select in two steps)
+                    sims = self.replicates[:, idx][..., q].mean(axis=2).std(axis=1, ddof=1)   # [R]
                     run = float(self.run[idx, :, q].mean(axis=1).std(ddof=1))
                     role = "prediction"
                 med = float(np.median(sims))

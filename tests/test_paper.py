@@ -75,6 +75,16 @@ def test_reproduction_covers_every_row_and_matches_the_rig(rep):
         assert abs(r.ls - t) < 6 * r.ls_std, (r.label, r.quantity, r.ls, t)
 
 
+def test_spread_is_the_between_row_sd_of_each_replicate(rep):
+    sp = rep.spread().set_index(["table", "quantity"])
+    idx = [j for j, r in enumerate(rep.rows) if r.table == 3]
+    q = paper.QUANTITIES.index("g_v0_um")
+    by_hand = [np.std([np.mean(rep.replicates[k, j, :, q]) for j in idx], ddof=1)
+               for k in range(rep.replicates.shape[0])]
+    assert sp.loc[(3, "g_v0_um"), "rig_median"] == pytest.approx(np.median(by_hand))
+    assert sp.loc[(3, "g_v0_um"), "rig_hi"] == pytest.approx(np.quantile(by_hand, 0.95))
+
+
 def test_noise_calibrated_on_table2_matches_its_scatter(rep):
     sp = rep.spread().set_index(["table", "quantity"])
     for q in ("g_v0_um", "g_w0_um"):
