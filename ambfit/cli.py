@@ -595,7 +595,8 @@ def paper(
     path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,
                                    command="ambfit paper " + " ".join(sys.argv[2:]), progress=sys.stderr.isatty())
     console.print(f"wrote {path}")
-    console.print((Path(out) / "README.md").read_text().split("## Spread")[0], highlight=False)
+    # the summary and the spread table (paper vs prediction); every row of Tables 1-4 is in the report
+    console.print((Path(out) / "README.md").read_text().split("## Table 1")[0], highlight=False)
 
 
 def main():  # pragma: no cover - entry point
