@@ -448,7 +448,7 @@ def _gap_spread_text(gaps, acf, extra) -> str:
         s += ("Above the rig's 95th percentile: " + ", ".join(
             f"Table {t} {q[:-3]} (extra between-experiment sd {e.loc[(t, q), 'extra_sd']:.1f} µm)"
             for t, q in zip(high["table"], high["quantity"])) + "; Table 4's w-axis rows at 1.0/1.4 A read 750.7 and "
-            "773.3 µm a few minutes apart, more than the ±3 µm the rig predicts for ±30/40 µm pairs. ")
+            "773.3 µm, where the rig predicts a row sd of about 3 µm for ±30/40 µm pairs. ")
     return s
 
 
