@@ -230,7 +230,9 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
                                                 for w in dg["where"][:8]]), 2))
             for e in dg.get("parameter_gap", []):
                 if e.get("flagged"):
-                    why = "; ".join(f"{c['effect']}: {c['needs']}" for c in e.get("could_be", []))
+                    why = "; ".join(f"{c['effect']}: {c['needs']}" + (" (implausible" + (f": {c['note']}" if "note"
+                                    in c else "") + ")" if c.get("plausible") is False else "")
+                                    for c in e.get("could_be", []))
                     body.append(_p(f"{html.escape(e['parameter'])}: identified {e['identified']:.4g} vs nominal "
                                    f"{e['nominal']:.4g} ({e['z']:+.1f} sd). Could be {html.escape(why)}."))
         except Exception as exc:  # noqa: BLE001 - a failed section is reported, the rest still stands
