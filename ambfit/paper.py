@@ -265,6 +265,32 @@ class Reproduction:
                         "percentile": float(np.mean(sims < p) * 100)})
         return pd.DataFrame(out)
 
+    def trend(self, first: int = 2) -> pd.DataFrame:
+        """Linear trend of Table 2's origins over iterations ``first``..10 (iteration 1 is uncentred):
+        the paper's slope [µm per iteration] with its OLS standard error, and the rig's 5-95 % range of the
+        same slope for independent iterations.  A drift that runs *during* experiments shows here; one that
+        happens *between* experiments does not."""
+        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        t2 = load_table(2)
+        sl = slice(first - 1, None)
+
+        def fit(y):
+            x = np.arange(len(y), dtype=float)
+            a = np.vstack([x, np.ones_like(x)]).T
+            c = np.linalg.lstsq(a, y, rcond=None)[0]
+            r = y - a @ c
+            return float(c[0]), float(np.sqrt(r @ r / (len(y) - 2) / np.sum((x - x.mean()) ** 2)))
+
+        out = []
+        for q, name in enumerate(QUANTITIES[:2]):
+            y = t2[name].to_numpy(float)[sl]
+            slope, se = fit(y)
+            sims = np.array([fit(self.replicates[k, j2, sl, q])[0] for k in range(len(self.replicates))])
+            out.append({"quantity": name, "iterations": f"{first}-{len(t2)}", "paper_slope": slope, "paper_se": se,
+                        "over_experiment": slope * (len(y) - 1), "rig_lo": float(np.quantile(sims, 0.05)),
+                        "rig_hi": float(np.quantile(sims, 0.95)), "percentile": float(np.mean(sims < slope) * 100)})
+        return pd.DataFrame(out)
+
     def between_experiment_sd(self) -> pd.DataFrame:
         """The spread between experiments that per-reading noise does not explain, µm:
         ``sqrt(max(s_paper^2 - sd_rig_row^2, 0))`` per table and quantity (a variance component)."""

@@ -156,6 +156,14 @@ def test_design_stays_within_the_back_up_bearing(tmp_path):
     assert (np.hypot(rec.steps["v_set_um"], rec.steps["w_set_um"]) <= 50.0).all()
 
 
+def test_table2_trend_is_the_least_squares_slope(rep):
+    tr = rep.trend().set_index("quantity")
+    for q in ("v0_um", "w0_um"):
+        y = paper.load_table(2)[q].to_numpy(float)[1:]
+        assert tr.loc[q, "paper_slope"] == pytest.approx(np.polyfit(np.arange(len(y)), y, 1)[0])
+        assert tr.loc[q, "paper_se"] > 0 and tr.loc[q, "rig_lo"] < tr.loc[q, "rig_hi"]
+
+
 def test_noise_calibration_from_table2(rep):
     cal = rep.noise_calibration()
     lo, hi = cal["interval_mA"]
