@@ -424,9 +424,9 @@ def gap_demonstration(*, seed: int = 0, separate: bool = True) -> dict:
     diffs = np.array([pg[f"g_{ax}0_um"]["difference"] for ax in AXES]) * 1e-6
     l_fe = 0.08
     scenarios = {
-        "iron_reluctance": [effects.IronReluctance(l_fe=jnp_pair(l_fe), mu_r=jnp_pair(l_fe / (2 * diffs)),
-                                                   b_knee=jnp_pair(1.2))],
-        "position_gain": [effects.PositionGain(gain_error=jnp_pair(diffs / 762e-6))],
+        "iron_reluctance": [effects.IronReluctance(l_fe=np.asarray(l_fe), mu_r=l_fe / (2 * diffs),
+                                                   b_knee=np.asarray(1.2))],
+        "position_gain": [effects.PositionGain(gain_error=diffs / 762e-6)],
     }
     spec = PAPER_RIG.with_truth(g0=(762e-6, 762e-6))
     cands = [effects.IronReluctance(), effects.PositionGain(), effects.Fringing()]
@@ -459,21 +459,16 @@ def gap_demonstration(*, seed: int = 0, separate: bool = True) -> dict:
     return out
 
 
-def jnp_pair(x):
-    """A ``(v, w)`` pair as a float array (effect parameters)."""
-    import jax.numpy as jnp
-
-    return jnp.broadcast_to(jnp.asarray(x, dtype=float), (2,))
-
-
 def bias_pair_check(noise: Noise = Noise(current=1e-7, position=1e-10)) -> pd.DataFrame:
     """Table 1's origin against its bias pair on a nearly noise-free rig, with no effect, a 10 mA offset on the
     top current channels and a 1 % gain mismatch between the channels: does any of them make the identified
     origin depend on the bias pair the way the paper's Table 1 does (35.08, 31.75, 28.77 µm)?"""
     from ambfit import effects
 
-    cases = {"none": [], "current_offset (top +10 mA)": [effects.CurrentOffset(top=jnp_pair(0.01), bottom=jnp_pair(0.0))],
-             "current_gain (1 % mismatch)": [effects.CurrentGain(mismatch=jnp_pair(0.01))]}
+    # effect parameters are scalars (both axes) or (v, w) pairs, as arrays so that jit traces them
+    cases = {"none": [],
+             "current_offset (top +10 mA)": [effects.CurrentOffset(top=np.asarray(0.01), bottom=np.asarray(0.0))],
+             "current_gain (1 % mismatch)": [effects.CurrentGain(mismatch=np.asarray(0.01))]}
     out = []
     from ambfit import origin
 

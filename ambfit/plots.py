@@ -181,7 +181,8 @@ def plot_fig3_positions(search, *, backup_clearance: float = 60e-6, ax=None):
         sub = df[(df["iteration"].astype(int) == it)]
         v = sub[sub["axis"] == "v"]["v_um"].to_numpy()
         w = sub[sub["axis"] == "v"]["w_um"].to_numpy()
-        ax.plot(v, w, "o", ms=4, color=cmap(k / max(len(its) - 1, 1)), label=f"iteration {it}" if k in (0, len(its) - 1) else None)
+        ax.plot(v, w, "o", ms=4, color=cmap(k / max(len(its) - 1, 1)),
+                label=f"iteration {it}" if k in (0, len(its) - 1) else None)
         c = search.centers[k] * 1e6
         ax.plot(c[0], c[1], "x", color=cmap(k / max(len(its) - 1, 1)), ms=6)
     t = np.linspace(0, 2 * np.pi, 200)

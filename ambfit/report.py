@@ -96,10 +96,11 @@ def _footer(command: str, seconds: float) -> str:
 # --- one data set --------------------------------------------------------------------------------------
 
 def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design_steps: int = 8,
-                nominal_toml=None, max_radius_um: float | None = 50.0, do_posterior: bool = True, do_diagnosis: bool = True, seed: int = 0,
-                command: str = "") -> Path:
+                nominal_toml=None, max_radius_um: float | None = 50.0, do_posterior: bool = True,
+                do_diagnosis: bool = True, seed: int = 0,
+                command: str = "") -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` and
-    ``out/report.json``.  Returns the HTML path.  Sections that cannot run (e.g. the closed form on
+    ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the closed form on
     non-symmetric pairs) say why instead of stopping the report."""
     from ambfit import closed_form, conditioning, design, plots
     from ambfit.data import read_csv
@@ -125,7 +126,7 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
         (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
         html_path = out / "index.html"
         html_path.write_text(page("ambfit report", body, _footer(command, time.perf_counter() - t0)))
-        return html_path
+        return html_path, record
     rec = res.to_json()
     record["least_squares"] = rec
     rows = []
@@ -217,7 +218,8 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
             conf = ("the ideal model sits on the noise floor, so every candidate fits as well as it does"
                     if dg["verdict"] == "none" else
                     "confounded with: " + (", ".join(dg["confounded_with"]) or "none"))
-            body.append(_p(f"Verdict: <b>{html.escape(dg['verdict'])}</b>; {html.escape(conf)}; shrink {dg['shrink']:.3f}. "
+            body.append(_p(f"Verdict: <b>{html.escape(dg['verdict'])}</b>; {html.escape(conf)}; "
+                           f"shrink {dg['shrink']:.3f}. "
                            f"Noise floor ({html.escape(nf['source'])}): mean z² {nf['mean_z2']:.2f} (expected "
                            f"{nf['expected_mean_z2']:.2f}); held-out excess of the ideal model "
                            f"{dg['heldout_excess_before']:.2f} noise units (folds: {html.escape(dg['folds'])})."))
@@ -244,7 +246,7 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
     html_path = out / "index.html"
     html_path.write_text(page(f"ambfit report: {Path(data_path).name}", body,
                               _footer(command or f"ambfit report {data_path} --out {out}", time.perf_counter() - t0)))
-    return html_path
+    return html_path, record
 
 
 # --- the seed paper --------------------------------------------------------------------------------------
@@ -288,13 +290,8 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
 
     # figures (PNG files and embedded copies)
     def keep(name, obj):
-        import matplotlib.pyplot as plt
-
-        fig = obj.figure if hasattr(obj, "figure") and not hasattr(obj, "savefig") else obj
-        fig.tight_layout()
-        fig.savefig(out / name, dpi=110)
-        figs[name] = png(fig)
-        plt.close(fig)
+        plots.save(obj, out / name, dpi=110)
+        figs[name] = png(obj)
 
     f2 = paper.fig2_data()
     sp = conditioning.solution_space(f2, "v")
@@ -441,8 +438,9 @@ def _gap_spread_text(gaps, acf, extra) -> str:
           + ", ".join(f"Table {t} {q[:-3]} {p:.1f}" for t, q, p in zip(gaps["table"], gaps["quantity"],
                                                                           gaps["percentile"])) + ". ")
     if len(low) or (t13["percentile"] < 50).all():
+        below = ", ".join(f"Table {t} {q[:-3]}" for t, q in zip(low["table"], low["quantity"]))
         s += (f"In Tables 1 and 3 the paper's rows agree better than predicted in {int((t13['percentile'] < 50).sum())} "
-              f"of {len(t13)} cases{' (' + ', '.join(f'Table {t} {q[:-3]}' for t, q in zip(low['table'], low['quantity'])) + ' below the 5th percentile)' if len(low) else ''}. "
+              f"of {len(t13)} cases{f' ({below} below the 5th percentile)' if len(low) else ''}. "
               f"A possible reason is that the paper's iterations are not independent: Table 2's v-axis gap has a lag-1 "
               f"autocorrelation of {rho:+.2f} (the {a.loc['g_v0_um', 'percentile']:.0f}th percentile of independent "
               f"iterations on the rig, so not significant on its own); errors alternating with that correlation make "
@@ -505,7 +503,8 @@ def _origin_spread_text(origins, extra, comp, t2, bpc, trend) -> str:
             f"from experiment to experiment ({step_v:+.2f} µm each); drifting continuously, that would be "
             f"{need_v:+.2f} µm per iteration inside Table 2 (Table 1's experiment 2), {z_v:.1f} standard errors from "
             f"the measured trend. So on v the change happens between experiments (re-levitation, sensor re-zeroing, "
-            f"temperature change during pauses) or depends on the bias pair (6.3 µm over Table 1), which a current-sensor offset or gain mismatch on the rig does not "
+            f"temperature change during pauses) or depends on the bias pair (6.3 µm over Table 1), which a "
+            f"current-sensor offset or gain mismatch on the rig does not "
             f"reproduce: noise-free, the rig's Table 1 origin varies across the three bias pairs by "
             + ", ".join(f"{v:.2f} µm with {e}" for e, v in rng.items()) + " (they shift the origin by about the "
             f"same amount at every bias pair). Row by row this shows as origins up "
