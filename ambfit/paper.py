@@ -145,6 +145,11 @@ class Reproduction:
     seconds: float
     failed: int
 
+    @property
+    def table2_index(self) -> int:
+        """Index of Table 1's row 2, whose iterations are Table 2."""
+        return next(j for j, r in enumerate(self.rows) if r.table == 1 and r.row == 2)
+
     def _index(self, table: int) -> list[int]:
         return [j for j, r in enumerate(self.rows) if r.table == table]
 
@@ -159,8 +164,9 @@ class Reproduction:
         out = []
         rep_means = self.replicates.mean(axis=2)               # [R, rows, 4]
         run_means = self.run.mean(axis=1)                      # [rows, 4]
+        tables = {t: load_table(t).set_index("source_row") for t in (1, 3, 4)}
         for j, r in enumerate(self.rows):
-            paper = load_table(r.table).iloc[[int(s) for s in load_table(r.table)["source_row"]].index(r.row)]
+            paper = tables[r.table].loc[str(r.row)]
             for q, name in enumerate(QUANTITIES):
                 m, s = float(rep_means[:, j, q].mean()), float(rep_means[:, j, q].std(ddof=1))
                 ls = self.least_squares[j]
@@ -170,7 +176,7 @@ class Reproduction:
                             "ls": np.nan if ls is None else ls[name][0],
                             "ls_std": np.nan if ls is None else ls[name][1]})
         # Table 2: the iterations of Table 1's row 2
-        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        j2 = self.table2_index
         t2 = load_table(2)
         for it in range(min(len(t2), self.run.shape[1])):
             for q, name in enumerate(QUANTITIES):
@@ -203,7 +209,7 @@ class Reproduction:
         sd in the rig's distribution.
         """
         out = []
-        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        j2 = self.table2_index
         for t in (2, 1, 3, 4):
             paper = load_table(t)
             for q, name in enumerate(QUANTITIES):
@@ -233,7 +239,7 @@ class Reproduction:
         freedom) combined with the rig's Monte Carlo error."""
         from scipy.stats import chi2
 
-        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        j2 = self.table2_index
         t2 = load_table(2)
         s_paper = float(np.sqrt(np.mean([np.var(t2[q].to_numpy(float), ddof=1) for q in ("g_v0_um", "g_w0_um")])))
         sims = self.replicates[:, j2, :, 2:4]                     # [R, iterations, 2]
@@ -249,7 +255,7 @@ class Reproduction:
     def autocorrelation(self) -> pd.DataFrame:
         """Lag-1 autocorrelation of Table 2's iterations: the paper's against the rig's distribution
         (independent iterations give values near -0.1 with a 5-95 % range of about ±0.5)."""
-        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        j2 = self.table2_index
         t2 = load_table(2)
 
         def lag1(x):
@@ -270,7 +276,7 @@ class Reproduction:
         the paper's slope [µm per iteration] with its OLS standard error, and the rig's 5-95 % range of the
         same slope for independent iterations.  A drift that runs *during* experiments shows here; one that
         happens *between* experiments does not."""
-        j2 = self.rows.index(next(r for r in self.rows if r.table == 1 and r.row == 2))
+        j2 = self.table2_index
         t2 = load_table(2)
         sl = slice(first - 1, None)
 

@@ -20,14 +20,21 @@ def _axes(ax):
     return ax
 
 
+def figure_of(obj):
+    """The matplotlib Figure behind an Axes, a Figure or an ArviZ plot collection."""
+    if hasattr(obj, "get_viz"):          # arviz_plots PlotCollection (matplotlib backend)
+        return obj.get_viz("figure")
+    return obj.figure if hasattr(obj, "figure") and not hasattr(obj, "savefig") else obj
+
+
 def save(obj, path, dpi: int = 120) -> None:
-    """Save an Axes, a Figure or an ArviZ plot collection to ``path``."""
-    if hasattr(obj, "savefig") and not hasattr(obj, "figure"):
-        obj.savefig(path)
-        return
-    fig = obj.figure if hasattr(obj, "figure") else obj
+    """Save an Axes, a Figure or an ArviZ plot collection to ``path`` (a file name or a binary buffer, PNG)."""
+    import os
+
+    fig = figure_of(obj)
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
+    # a file name gives the format by its suffix; a buffer has none
+    fig.savefig(path, dpi=dpi, **({} if isinstance(path, (str, os.PathLike)) else {"format": "png"}))
 
 
 def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.3, 6.2, 11.8, 50, 200, 1000)):
@@ -210,7 +217,7 @@ def plot_fig5_iterations(reproduction, *, fig=None):
     from ambfit.paper import QUANTITIES, load_table
 
     rep = reproduction
-    j = next(k for k, r in enumerate(rep.rows) if r.table == 1 and r.row == 2)
+    j = rep.table2_index
     t2 = load_table(2)
     fig = fig or plt.figure(figsize=(10, 7))
     axes = fig.subplots(2, 1, sharex=True)

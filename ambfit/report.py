@@ -34,20 +34,26 @@ code{background:#f2f2f2;padding:0 3px}footer{margin-top:3em;font-size:.8em;color
 """
 
 
-def png(obj, dpi: int = 110) -> str:
-    """A matplotlib Figure/Axes (or ArviZ plot collection) as an embedded ``<img>`` (base64 PNG); closes it."""
+def png_bytes(obj, dpi: int = 110) -> bytes:
+    """A matplotlib Figure/Axes or ArviZ plot collection rendered to PNG (by :func:`ambfit.plots.save`); closes it."""
     import matplotlib.pyplot as plt
 
-    fig = obj.figure if hasattr(obj, "figure") and not hasattr(obj, "savefig") else obj
-    if hasattr(fig, "viz"):  # arviz PlotCollection
-        fig = fig.viz["chart"].item() if "chart" in fig.viz else plt.gcf()
-    if not hasattr(fig, "savefig"):
-        fig = plt.gcf()
+    from ambfit.plots import figure_of, save
+
     buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=dpi)
-    plt.close(fig)
-    return f'<img alt="figure" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
+    save(obj, buf, dpi=dpi)
+    plt.close(figure_of(obj))
+    return buf.getvalue()
+
+
+def img(data: bytes) -> str:
+    """PNG bytes as an embedded ``<img>`` (base64)."""
+    return f'<img alt="figure" src="data:image/png;base64,{base64.b64encode(data).decode()}">'
+
+
+def png(obj, dpi: int = 110) -> str:
+    """A figure as an embedded ``<img>``; closes it."""
+    return img(png_bytes(obj, dpi))
 
 
 def table(df: pd.DataFrame, digits: int = 2) -> str:
@@ -289,9 +295,10 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     figs = {}
 
     # figures (PNG files and embedded copies)
-    def keep(name, obj):
-        plots.save(obj, out / name, dpi=110)
-        figs[name] = png(obj)
+    def keep(name, obj):   # render once: the PNG file and the page's embedded copy are the same bytes
+        data = png_bytes(obj)
+        (out / name).write_bytes(data)
+        figs[name] = img(data)
 
     f2 = paper.fig2_data()
     sp = conditioning.solution_space(f2, "v")
@@ -303,7 +310,7 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
         ls2, fig2_ls = None, str(exc)
     keep("fig2_solution_space.png", plots.plot_fig2_surface(sp))
     keep("fig2_map.png", plots.plot_solution_space(sp, result=ls2))
-    j2 = next(k for k, r in enumerate(rep.rows) if r.table == 1 and r.row == 2)
+    j2 = rep.table2_index
     keep("fig3_position_pairs.png", plots.plot_fig3_positions(rep.searches[j2]))
     j4 = next(k for k, r in enumerate(rep.rows) if r.table == 4 and r.row == 3)
     keep("fig3_position_pairs_table4.png", plots.plot_fig3_positions(rep.searches[j4]))

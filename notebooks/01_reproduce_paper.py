@@ -107,6 +107,6 @@ plt.show()
 # ## Fig. 3: the position pairs of the search
 
 # %%
-j = next(k for k, r in enumerate(rep.rows) if r.table == 1 and r.row == 2)
+j = rep.table2_index
 plots.plot_fig3_positions(rep.searches[j])
 plt.show()
