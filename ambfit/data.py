@@ -234,7 +234,7 @@ def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -
 
 def readings(data: Dataset | pd.DataFrame):
     """The rows as :class:`ambfit.model.Readings` in SI units."""
-    from ambfit.model import Readings
+    from ambfit.physics.model import Readings
 
     df = data.frame if isinstance(data, Dataset) else data
     ax = (df["axis"] == "w").to_numpy().astype(int)

@@ -22,8 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ambfit import effects as E
-from ambfit import extend, fit, gap, plots, protocol, rig
+from ambfit.physics import effects as E
+from ambfit.estimation import fit
+from ambfit import diagnosis as gap
+from ambfit.faces import plots
+from ambfit.rig import protocol
+from ambfit import rig
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "gap"
@@ -33,21 +37,21 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     sat = [E.Saturation(b_sat=np.asarray(1.15))]
     d = rig.simulate(rig.PAPER_RIG, protocol.rich(), sat, seed=3).data
-    rec = gap.diagnose(d).to_json()
+    dg = gap.diagnose(d)
+    rec = dg.to_json()
     (OUT / "example_saturation.json").write_text(json.dumps(rec, indent=2, default=float))
-    plots.save(plots.plot_ranking(rec), OUT / "ranking.png")
-    base = fit.fit(d)
-    ext = extend.fit_extended(d, [E.Saturation()], start=base)
-    ov = gap.operating_variables(d, base)
-    plots.save(plots.plot_residual_map(ov["b_top_T"], base.residuals, ext.residuals, label="top-gap flux density [T]"),
-               OUT / "residuals_before_after.png")
+    plots.save(plots.plot_ranking(dg), OUT / "ranking.png")
+    base = dg.baseline
+    plots.save(plots.plot_residual_map(dg.operating["b_top_T"], dg.residuals_before, dg.residuals_after,
+                                       label="top-gap flux density [T]"), OUT / "residuals_before_after.png")
+    ov = dg.operating
 
     # 2. withheld from the fit data
     low = (d["bias_A"] <= 1.2 + 1e-9).to_numpy()
     high = (d["bias_A"] >= 1.4 - 1e-9).to_numpy()
-    e0 = extend.fit_extended(d, [], start=base, mask=low.astype(float))
-    e1 = extend.fit_extended(d, [E.Saturation()], start=base, mask=low.astype(float))
-    z0, z1 = extend.heldout_residuals(e0, d, high), extend.heldout_residuals(e1, d, high)
+    e0 = fit.fit(d, start_from=base, mask=low.astype(float))
+    e1 = fit.fit(d, [E.Saturation()], start_from=base, mask=low.astype(float), max_steps=60, throw=False)
+    z0, z1 = gap.heldout_residuals(e0, d, high), gap.heldout_residuals(e1, d, high)
     ex0 = float(np.sqrt(max(np.mean(z0**2) - 1, 0)))
     ex1 = float(np.sqrt(max(np.mean(z1**2) - 1, 0)))
     plots.save(plots.plot_residual_map(ov.loc[high, "b_top_T"], z0, z1, label="top-gap flux density [T] (held out)"),

@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ambfit import batch, fit, protocol, rig
+from ambfit.estimation import batch, core, fit
+from ambfit.rig import protocol
+from ambfit import rig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +39,7 @@ def main():
     args = ap.parse_args()
     spec = rig.PAPER_RIG
     proto = protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1]))
-    truth = dict(zip(fit.HEAD_NAMES, [spec.g0[0], spec.g0[1], spec.x0[0], spec.x0[1], spec.force_constant,
+    truth = dict(zip(core.HEAD_NAMES, [spec.g0[0], spec.g0[1], spec.x0[0], spec.x0[1], spec.force_constant,
                                       spec.force_constant]))
     out = {"design": "paper Table 2, centred, 1 known load", "raw": {}, "debiased": {}}
     for current in (0.6e-3, 1.8e-3):

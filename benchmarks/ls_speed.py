@@ -33,7 +33,10 @@ import numpy as np
 import scipy
 from scipy.optimize import least_squares
 
-from ambfit import batch, fit, protocol, rig
+from ambfit.estimation import batch, core, fit
+from ambfit.estimation.core import IDEAL
+from ambfit.rig import protocol
+from ambfit import rig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,13 +54,13 @@ def single_fit(repeats):
     spec = rig.PAPER_RIG
     proto = protocol.rich(biases=(1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6), n_positions=9, masses_kg=(0.0, 0.5, 1.0, 1.5))
     df = rig.simulate(spec, proto, seed=1).data
-    prob, meta = fit.build_problem(df)
+    prob, meta = core.build_problem(df)
     theta0, _ = fit.start(prob, meta, df)
     th0 = jnp.asarray(theta0)
-    free = fit.free_mask(prob, meta)
-    res_j = jax.jit(lambda th: fit.residuals(th, prob))
-    jac_j = jax.jit(jax.jacfwd(lambda th: fit.residuals(th, prob)))
-    ours = lambda: jax.block_until_ready(fit.solve(th0, prob)[0])  # noqa: E731  (includes the EDM check)
+    free = core.free_mask(prob, meta)
+    res_j = jax.jit(lambda th: core.residuals(th, prob))
+    jac_j = jax.jit(jax.jacfwd(lambda th: core.residuals(th, prob)))
+    ours = lambda: jax.block_until_ready(core.solve(th0, prob)[0])  # noqa: E731  (includes the EDM check)
     ours()  # compile
     fr = np.nonzero(free)[0]
 
@@ -70,7 +73,7 @@ def single_fit(repeats):
                                jac=lambda x: np.asarray(jac_j(full(x)))[:, fr], method="lm", xtol=1e-10, ftol=1e-10)
     sp()
     t_ours, t_sp = _median_time(ours, repeats), _median_time(sp, repeats)
-    a = np.asarray(fit.solve(th0, prob)[0])[fr]
+    a = np.asarray(core.solve(th0, prob)[0])[fr]
     b = sp().x
     return {"rows": len(df), "ours_s": t_ours, "scipy_s": t_sp, "speedup": t_sp / t_ours,
             "max_rel_diff_of_solutions": float(np.max(np.abs(a - b) / np.abs(b)))}
@@ -80,25 +83,25 @@ def many_fits(n, repeats):
     spec = rig.PAPER_RIG
     proto = protocol.paper_table2(center=(-33.3e-6, 11.3e-6))
     data = [rig.simulate(spec, proto, seed=s).data for s in range(n)]
-    built = [fit.build_problem(d) for d in data]
+    built = [core.build_problem(d) for d in data]
     probs = batch.stack([b[0] for b in built])
     g0, x0 = batch.closed_form_batch(probs, batch.design_pairs(data[0]))
-    theta0 = np.stack([fit.seed_loads_and_k(fit.to_theta(g0[s], x0[s], fit.K_REFERENCE, np.zeros(built[s][0].n_loads)),
-                                             built[s][0], fit.ALPHA_DEFAULT) for s in range(n)])
+    theta0 = np.stack([core.seed_loads_and_k(core.to_theta(g0[s], x0[s], core.K_REFERENCE, np.zeros(built[s][0].n_loads)),
+                                             built[s][0], IDEAL) for s in range(n)])
     th0 = jnp.asarray(theta0)
-    vm = lambda: jax.block_until_ready(batch._vmapped(th0, probs, fit.ALPHA_DEFAULT, 4)[0])  # noqa: E731
-    _, _, _, edm = batch._vmapped(th0, probs, fit.ALPHA_DEFAULT, 4)
-    converged = float(np.mean(np.asarray(edm) < fit.EDM_MAX))
+    vm = lambda: jax.block_until_ready(batch._vmapped(th0, probs, IDEAL, 4)[0])  # noqa: E731
+    _, _, _, edm = batch._vmapped(th0, probs, IDEAL, 4)
+    converged = float(np.mean(np.asarray(edm) < core.EDM_MAX))
     vm()
 
     def loop():
-        return [jax.block_until_ready(fit.solve(th0[s], built[s][0], max_steps=4)[0]) for s in range(n)]
+        return [jax.block_until_ready(core.solve(th0[s], built[s][0], max_steps=4)[0]) for s in range(n)]
 
     loop()
-    free = fit.free_mask(built[0][0], built[0][1])
+    free = core.free_mask(built[0][0], built[0][1])
     fr = np.nonzero(free)[0]
-    res_j = jax.jit(lambda th, p: fit.residuals(th, p))
-    jac_j = jax.jit(jax.jacfwd(lambda th, p: fit.residuals(th, p)))
+    res_j = jax.jit(lambda th, p: core.residuals(th, p))
+    jac_j = jax.jit(jax.jacfwd(lambda th, p: core.residuals(th, p)))
 
     def sp_loop():
         out = []

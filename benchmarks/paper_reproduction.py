@@ -11,7 +11,7 @@ comparison.csv, spread.csv, reproduction.json, PNG figures); about 4.5 minutes.
 import argparse
 from pathlib import Path
 
-from ambfit.report import paper_report
+from ambfit.faces.report import paper_report
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

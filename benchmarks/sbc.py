@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ambfit import sbc
+from ambfit.studies import sbc
 
 ROOT = Path(__file__).resolve().parents[1]
 

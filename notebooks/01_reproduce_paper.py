@@ -27,7 +27,8 @@ import os
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from ambfit import paper, plots
+from ambfit.studies import paper
+from ambfit.faces import plots
 
 FAST = os.environ.get("AMBFIT_FAST", "1") != "0"
 REPLICATES = 12 if FAST else 200

@@ -22,9 +22,11 @@
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ambfit import conditioning, fit, plots, rig
-from ambfit import protocol as P
-from ambfit.paper import fig2_data
+from ambfit.estimation import conditioning, fit
+from ambfit.faces import plots
+from ambfit import rig
+from ambfit.rig import protocol as P
+from ambfit.studies.paper import fig2_data
 
 # %% [markdown]
 # ## The paper's setting: pairs at ±20 µm about the back-up bearing centre

@@ -23,7 +23,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ambfit import bayes, fit, plots
+from ambfit.estimation import bayes, fit
+from ambfit.faces import plots
 from ambfit.data import read_csv
 
 FAST = os.environ.get("AMBFIT_FAST", "1") != "0"
@@ -57,7 +58,7 @@ plt.show()
 # iteration (notebook 02) they spread along the valley.
 
 # %%
-from ambfit import conditioning
+from ambfit.estimation import conditioning
 
 d = res.draws.reshape(-1, res.draws.shape[-1])
 samples = d[:, [res.names.index("g_v0"), res.names.index("v0")]]

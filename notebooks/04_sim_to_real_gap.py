@@ -20,8 +20,12 @@
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from ambfit import effects, gap, paper, plots, rig
-from ambfit import protocol as P
+from ambfit.physics import effects
+from ambfit import diagnosis as gap
+from ambfit.studies import paper
+from ambfit.faces import plots
+from ambfit import rig
+from ambfit.rig import protocol as P
 
 # %% [markdown]
 # ## 1. A planted effect: saturation
@@ -45,7 +49,7 @@ plt.show()
 # ## 2. The paper's own gap
 # The identified gaps are the mean of the Table 1, 3 and 4 averages; their standard error
 # is the sd of those averages over sqrt(3).  `published_gap` compares them with the nominal
-# rig in `data/paper/nominal_rig.toml` and names what each candidate would need.
+# rig in `data/paper/bearing.toml` and names what each candidate would need.
 
 # %%
 for e in paper.published_gap():

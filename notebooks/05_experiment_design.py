@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ambfit import design, fit, rig
-from ambfit import protocol as P
+from ambfit.estimation import design, fit
+from ambfit import rig
+from ambfit.rig import protocol as P
 from ambfit.data import read_csv
 
 ROOT = Path.cwd() if (Path.cwd() / "data").exists() else Path.cwd().parent

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from ambfit import bayes, conditioning, design, fit
-from ambfit import protocol as P
+from ambfit.estimation import bayes, conditioning, design, fit
+from ambfit.rig import protocol as P
 from ambfit import rig
 
 
@@ -62,7 +62,7 @@ def test_prior_support_is_physical():
 
 def test_predictive_force(short_run):
     out = bayes.force_predictive(short_run, "v", [1.7], [1.3], [0.0])
-    from ambfit.model import ideal_force
+    from ambfit.physics.model import ideal_force
     spec = rig.PAPER_RIG
     true = float(ideal_force(spec.g0[0], spec.x0[0], spec.force_constant, 1.7, 1.3, 0.0))
     assert abs(out["mean"][0] - true) < 4 * out["sd"][0]
@@ -107,7 +107,7 @@ def test_design_recommendation_reduces_the_predicted_gap_error(table2):
 
 def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
     from typer.testing import CliRunner
-    from ambfit.cli import app
+    from ambfit.faces.cli import app
     d = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=3, center=(-33.3e-6, 11.3e-6)), seed=2).data
     csv = tmp_path / "d.csv"
     d.to_csv(csv, index=False)
@@ -122,7 +122,7 @@ def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
 def test_sbc_small_fast_version():
     # The benchmark (benchmarks/sbc.py) runs 200 data sets; this twin runs 12 and checks the machinery:
     # ranks in range, and the 90 % intervals covering the truth about as often as they claim.
-    from ambfit import sbc
+    from ambfit.studies import sbc
     cal = sbc.run(12, n_steps=600, seed=5)
     assert cal.ranks.shape == (12, 6) and cal.ranks.min() >= 0 and cal.ranks.max() <= cal.n_draws
     pooled = float(np.mean(cal.coverage[0.9]))

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from ambfit.cli import app
+from ambfit.faces.cli import app
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parents[1]

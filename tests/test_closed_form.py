@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ambfit import closed_form as cf
-from ambfit import protocol as P
+from ambfit.estimation import closed_form as cf
+from ambfit.rig import protocol as P
 from ambfit import rig
 
 NF = rig.NOISE_FREE

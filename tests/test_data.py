@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from ambfit import data as D
-from ambfit import protocol as P
+from ambfit.rig import protocol as P
 from ambfit import rig
 
 

@@ -6,8 +6,8 @@ import jax
 import numpy as np
 import pytest
 
-from ambfit import MU_0, BearingParams, Readings, axis_force, flux_density, force_constant, gaps, ideal_force
-from ambfit.model import evaluate
+from ambfit import MU_0, PAPER_BEARING, BearingParams, Readings, axis_force, ideal_force, pole_gaps
+from ambfit.physics.model import evaluate
 
 
 def test_float64_is_on():
@@ -20,14 +20,15 @@ def test_force_hand_computed():
     # F = 3e-6 (4/g_t² - 1/g_b²) = 15.74115217109283 N (python math, see git history).
     f = ideal_force(800e-6, 10e-6, 3e-6, 2.0, 1.0, 20e-6)
     assert float(f) == pytest.approx(15.74115217109283, rel=1e-13)
-    gt, gb = gaps(800e-6, 10e-6, 20e-6)
+    gt, gb = pole_gaps(800e-6, 10e-6, 20e-6)
     assert float(gt) == pytest.approx(0.0007722836140246614, rel=1e-14)
     assert float(gb) == pytest.approx(0.0008277163859753386, rel=1e-14)
 
 
 def test_flux_density_hand_computed():
-    # B = mu0 N i / (2 g) = 4e-7 pi * 480 * 2 / (2 * 772.28 µm) = 0.7810418070970215 T
-    assert float(flux_density(2.0, 0.0007722836140246614, 480)) == pytest.approx(0.7810418070970215, rel=1e-14)
+    # B = mu0 (2 N) i / (2 g) = 4e-7 pi * 480 * 2 / (2 * 772.28 µm) = 0.7810418070970215 T (2 x 240 turns)
+    b = PAPER_BEARING.with_(turns_per_pole=240.0)
+    assert float(b.flux_density(2.0, 0.0007722836140246614)) == pytest.approx(0.7810418070970215, rel=1e-14)
 
 
 def test_paper_load_capacity():
@@ -39,9 +40,10 @@ def test_paper_load_capacity():
 
 
 def test_force_constant_formula():
-    # 0.25 mu0 A N^2 cos(alpha) lamination, A = 50 mm², N = 480, lamination 0.95
+    # 0.25 mu0 A (2N)^2 cos(alpha) lamination, A = 50 mm², 2N = 480, lamination 0.95
     expected = 0.25 * 4e-7 * math.pi * 50e-6 * 480**2 * math.cos(math.radians(22.5)) * 0.95
-    assert force_constant(50e-6, 480, lamination=0.95) == pytest.approx(expected, rel=1e-15)
+    b = PAPER_BEARING.with_(pole_area=50e-6, turns_per_pole=240.0)
+    assert b.force_constant(0.95) == pytest.approx(expected, rel=1e-15)
     assert MU_0 == pytest.approx(4e-7 * math.pi)
 
 
@@ -64,7 +66,8 @@ def test_symmetry_and_sign():
 
 def test_context_exposes_gaps_and_flux():
     p = BearingParams.from_values(800e-6, 10e-6, 3e-6)
-    f, ctx = evaluate(p, Readings.build(axis=[0], i_top=[2.0], i_bottom=[1.0], x=[20e-6]), turns=480)
+    f, ctx = evaluate(p, Readings.build(axis=[0], i_top=[2.0], i_bottom=[1.0], x=[20e-6]),
+                      bearing=PAPER_BEARING.with_(turns_per_pole=240.0))
     assert float(ctx.g_top[0]) == pytest.approx(0.0007722836140246614, rel=1e-14)
     assert float(ctx.b_top()[0]) == pytest.approx(0.7810418070970215, rel=1e-14)
 

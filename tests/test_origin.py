@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from ambfit import origin, rig
+from ambfit.rig import origin
+from ambfit import rig
 
 
 def test_noise_free_search_converges_in_one_move():

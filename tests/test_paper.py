@@ -8,8 +8,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from ambfit import paper, protocol
-from ambfit.cli import app
+from ambfit.studies import paper
+from ambfit.rig import protocol
+from ambfit.faces.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 Q = list(paper.QUANTITIES)
@@ -111,7 +112,7 @@ def _self_contained(html: str) -> bool:
 
 
 def test_paper_report_is_one_self_contained_page(tmp_path):
-    from ambfit import report
+    from ambfit.faces import report
 
     path = report.paper_report(tmp_path / "paper", replicates=3, seed=1, demonstration=False)
     paper_html = path.read_text()
@@ -149,7 +150,7 @@ def test_data_report_cli_rejects_bad_data(tmp_path):
 
 
 def test_design_stays_within_the_back_up_bearing(tmp_path):
-    from ambfit import design
+    from ambfit.estimation import design
     from ambfit.data import read_csv
 
     rec = design.recommend(read_csv(ROOT / "data" / "paper_table2.csv"), n_steps=4, max_radius_um=50.0)
@@ -174,7 +175,8 @@ def test_noise_calibration_from_table2(rep):
 
 def test_eq7_gap_scatter_is_proportional_to_current_noise():
     # noise_calibration rescales the current noise by the ratio of scatters: check the proportionality
-    from ambfit import closed_form, rig
+    from ambfit.estimation import closed_form
+    from ambfit import rig
 
     proto = protocol.paper_table2(iterations=10, center=(-33.3e-6, 11.3e-6))
 

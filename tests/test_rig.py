@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ambfit import effects as E
-from ambfit import protocol as P
+from ambfit.physics import effects as E
+from ambfit.rig import protocol as P
 from ambfit import rig
 
 NF = rig.NOISE_FREE
@@ -16,11 +16,11 @@ def _sim(proto, effects=(), spec=rig.PAPER_RIG, **kw):
 
 def test_paper_rig_matches_the_paper():
     s = rig.PAPER_RIG
-    assert s.bore_diameter == 35e-3 and s.nominal_gap == 762e-6
+    assert s.bearing.bore_diameter == 35e-3 and s.nominal_gap == 762e-6
     assert s.load_capacity == pytest.approx(53.4, rel=1e-12)
     assert s.force_constant == pytest.approx(3.4452e-6, rel=1e-4)
-    # saturation current 3.0 A gives about 1.2 T in the nominal gap with 480 turns
-    b = 4e-7 * np.pi * s.turns * 3.0 / (2 * s.nominal_gap)
+    # saturation current 3.0 A gives about 1.2 T in the nominal gap with 2 x 240 turns
+    b = 4e-7 * np.pi * s.bearing.horseshoe_turns * 3.0 / (2 * s.nominal_gap)
     assert 1.1 < b < 1.3
 
 
@@ -162,7 +162,7 @@ def test_reassembly_moves_the_origin():
     proto = P.with_assembly(P.paper_table2(iterations=1), 1, (-80e-6, 24e-6))
     sim = _sim(proto)
     assert sim.truth["params"]["1"]["v0_um"] == pytest.approx(33.3 - 80)
-    from ambfit import closed_form
+    from ambfit.estimation import closed_form
     est = closed_form.identify(sim.data).estimates
     assert est[("all", "v")].x0 == pytest.approx(-46.7e-6, rel=1e-6)
 
@@ -203,7 +203,7 @@ def test_paper_table_protocols():
     t4 = P.paper_table4(iterations=1)
     assert len(t4) == 6 * 4 and set(t4.assembly) == {1}
     sim = _sim(t4)
-    from ambfit import closed_form
+    from ambfit.estimation import closed_form
     est = closed_form.identify(sim.data, by_experiment=True).estimates
     assert est[("1.0/1.4 ±50", "v")].x0 == pytest.approx(-47.4e-6, rel=1e-6)
     assert len(P.PAPER_TABLE3_STARTS) == 4

@@ -121,9 +121,20 @@ def plot_residual_map(variable_values, z_before, z_after=None, *, label="", ax=N
     return ax
 
 
-def plot_ranking(record: dict, ax=None):
-    """Held-out excess residual (noise units) after adding each candidate effect; the baseline as a line."""
+def plot_diagnosis_residuals(diagnosis, ax=None):
+    """Residuals against the most structured operating variable, before and after adding the verdict's effects."""
+    var = diagnosis.most_structured_variable
+    return plot_residual_map(diagnosis.operating[var], diagnosis.residuals_before, diagnosis.residuals_after,
+                             label=var, ax=ax)
+
+
+def plot_ranking(diagnosis, ax=None):
+    """Held-out excess residual (noise units) after adding each candidate effect; the baseline as a line.
+
+    ``diagnosis``: a :class:`ambfit.Diagnosis` or its contract record (``to_json()``).
+    """
     ax = _axes(ax)
+    record = diagnosis.to_json() if hasattr(diagnosis, "to_json") else diagnosis
     rk = record["ranking"]
     names = [r["effect"] for r in rk]
     vals = [r["heldout_excess_after"] for r in rk]
@@ -214,7 +225,7 @@ def plot_fig5_iterations(reproduction, *, fig=None):
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from ambfit.paper import QUANTITIES, load_table
+    from ambfit.studies.paper import QUANTITIES, load_table
 
     rep = reproduction
     j = rep.table2_index

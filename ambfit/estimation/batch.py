@@ -20,12 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.closed_form import POSITION_TOLERANCE, _cluster_positions
-from ambfit.likelihood import (
-    EDM_MAX, K_REFERENCE, NOMINAL_GAP, FitError, Problem, build_problem, free_mask, free_names, jacobian, param_scale,
+from ambfit.estimation.closed_form import POSITION_TOLERANCE, _cluster_positions
+from ambfit.estimation.core import (
+    EDM_MAX, IDEAL, K_REFERENCE, FitError, Model, Problem, build_problem, free_mask, free_names, jacobian, param_scale,
     residuals, seed_loads_and_k, solve, to_theta,
 )
-from ambfit.model import ALPHA_DEFAULT, AXES
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,7 +80,7 @@ def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray, np.ndarray]]:
     return out
 
 
-def closed_form_batch(prob: Problem, pairs, alpha: float = ALPHA_DEFAULT) -> tuple[np.ndarray, np.ndarray]:
+def closed_form_batch(prob: Problem, pairs, model: Model = IDEAL) -> tuple[np.ndarray, np.ndarray]:
     """Mean Eq. 7 gap and origin per axis for a stacked batch of problems: arrays[n_sets, 2] [m].
 
     Iterations whose radicand is not positive or whose system is singular are
@@ -89,7 +89,7 @@ def closed_form_batch(prob: Problem, pairs, alpha: float = ALPHA_DEFAULT) -> tup
     """
     it, ib, x = (np.asarray(a) for a in (prob.i_top, prob.i_bottom, prob.x))
     n = it.shape[0]
-    c = np.cos(alpha)
+    c = model.bearing.cos_alpha
     sums = np.zeros((n, 2, 2))
     counts = np.zeros((n, 2))
     for ax, rows in pairs:
@@ -113,7 +113,7 @@ def closed_form_batch(prob: Problem, pairs, alpha: float = ALPHA_DEFAULT) -> tup
         counts[ok, ax] += 1
     with np.errstate(invalid="ignore"):
         mean = sums / counts[:, :, None]
-    g0 = np.where(counts > 0, mean[:, :, 0], NOMINAL_GAP)
+    g0 = np.where(counts > 0, mean[:, :, 0], model.bearing.nominal_gap)
     x0 = np.where(counts > 0, mean[:, :, 1], 0.0)
     return g0, x0
 
@@ -129,17 +129,17 @@ def stack(problems: Sequence[Problem]) -> Problem:
 
 
 @eqx.filter_jit
-def _vmapped(theta0, probs, alpha, max_steps):
-    return jax.vmap(lambda t, p: solve(t, p, alpha, max_steps=max_steps))(theta0, probs)
+def _vmapped(theta0, probs, model, max_steps):
+    return jax.vmap(lambda t, p: solve(t, p, model, max_steps=max_steps))(theta0, probs)
 
 
 @eqx.filter_jit
-def _vmapped_jac(theta, probs, alpha):
-    return jax.vmap(lambda t, p: jacobian(t, p, alpha))(theta, probs)
+def _vmapped_jac(theta, probs, model):
+    return jax.vmap(lambda t, p: jacobian(t, p, model))(theta, probs)
 
 
 def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None, sigma_x: float | None = None,
-              alpha: float = ALPHA_DEFAULT, max_steps: int = 4, method: str = "vmap") -> BatchResult:
+              bearing: Bearing = PAPER_BEARING, max_steps: int = 4, method: str = "vmap") -> BatchResult:
     """Fit every data set of one design; see the module docstring.
 
     Parameters
@@ -153,23 +153,24 @@ def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None,
     """
     if method not in ("vmap", "loop"):
         raise ValueError(f"method must be 'vmap' or 'loop', got {method!r}")
+    model = Model.of((), bearing)
     built = [build_problem(d, sigma_i=sigma_i, sigma_x=sigma_x) for d in datasets]
     meta = built[0][1]
     probs = stack([b[0] for b in built])
     pairs = design_pairs(datasets[0].reset_index(drop=True))
-    g0, x0 = closed_form_batch(probs, pairs, alpha)
+    g0, x0 = closed_form_batch(probs, pairs, model)
     n_loads = built[0][0].n_loads
     theta0 = np.zeros((len(datasets), 6 + n_loads))
     for s, (prob, _) in enumerate(built):
-        theta0[s] = seed_loads_and_k(to_theta(g0[s], x0[s], K_REFERENCE, np.zeros(n_loads)), prob, alpha)
+        theta0[s] = seed_loads_and_k(to_theta(g0[s], x0[s], K_REFERENCE, np.zeros(n_loads)), prob, model)
     if method == "vmap":
-        theta, _, steps, edm = _vmapped(jnp.asarray(theta0), probs, alpha, max_steps)
-        jac = np.asarray(_vmapped_jac(theta, probs, alpha))
+        theta, _, steps, edm = _vmapped(jnp.asarray(theta0), probs, model, max_steps)
+        jac = np.asarray(_vmapped_jac(theta, probs, model))
     else:
-        out = [solve(jnp.asarray(theta0[s]), built[s][0], alpha, max_steps=max_steps) for s in range(len(built))]
+        out = [solve(jnp.asarray(theta0[s]), built[s][0], model, max_steps=max_steps) for s in range(len(built))]
         theta = jnp.stack([o[0] for o in out])
         steps, edm = np.array([int(o[2]) for o in out]), np.array([float(o[3]) for o in out])
-        jac = np.stack([np.asarray(jacobian(theta[s], built[s][0], alpha)) for s in range(len(built))])
+        jac = np.stack([np.asarray(jacobian(theta[s], built[s][0], model)) for s in range(len(built))])
     ok = np.asarray(edm) < EDM_MAX
     free = free_mask(built[0][0], meta)
     names = free_names(meta, free)
@@ -177,12 +178,12 @@ def fit_batch(datasets: Sequence[pd.DataFrame], *, sigma_i: float | None = None,
     j = jac[:, :, free]
     cov = np.linalg.pinv(np.einsum("sni,snj->sij", j, j)) * np.outer(scale, scale)
     theta = np.asarray(theta)
-    r = np.asarray(_vmapped_res(jnp.asarray(theta), probs, alpha))
+    r = np.asarray(_vmapped_res(jnp.asarray(theta), probs, model))
     return BatchResult(names=names, values=theta[:, free] * scale, std=np.sqrt(np.abs(np.einsum("sii->si", cov))),
                        converged=ok, num_steps=np.asarray(steps), chi2=np.sum(r**2, axis=1),
                        dof=r.shape[1] - int(free.sum()))
 
 
 @eqx.filter_jit
-def _vmapped_res(theta, probs, alpha):
-    return jax.vmap(lambda t, p: residuals(t, p, alpha))(theta, probs)
+def _vmapped_res(theta, probs, model):
+    return jax.vmap(lambda t, p: residuals(t, p, model))(theta, probs)

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ambfit.physics.bearing import PAPER_BEARING
+
 CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;max-width:1150px;margin:2em auto;padding:0 1em;
 color:#222;line-height:1.45}
@@ -38,7 +40,7 @@ def png_bytes(obj, dpi: int = 110) -> bytes:
     """A matplotlib Figure/Axes or ArviZ plot collection rendered to PNG (by :func:`ambfit.plots.save`); closes it."""
     import matplotlib.pyplot as plt
 
-    from ambfit.plots import figure_of, save
+    from ambfit.faces.plots import figure_of, save
 
     buf = io.BytesIO()
     save(obj, buf, dpi=dpi)
@@ -102,15 +104,16 @@ def _footer(command: str, seconds: float) -> str:
 # --- one data set --------------------------------------------------------------------------------------
 
 def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design_steps: int = 8,
-                nominal_toml=None, max_radius_um: float | None = 50.0, do_posterior: bool = True,
+                bearing=PAPER_BEARING, max_radius_um: float | None = 50.0, do_posterior: bool = True,
                 do_diagnosis: bool = True, seed: int = 0,
                 command: str = "") -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` and
     ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the closed form on
     non-symmetric pairs) say why instead of stopping the report."""
-    from ambfit import closed_form, conditioning, design, plots
+    from ambfit.estimation import closed_form, conditioning, design
+    from ambfit.faces import plots
     from ambfit.data import read_csv
-    from ambfit.fit import FitError, fit
+    from ambfit.estimation.fit import FitError, fit
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -125,7 +128,7 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
     # 1. identification
     body.append("<h2>1. Identification</h2>")
     try:
-        res = fit(ds)
+        res = fit(ds, bearing=bearing)
     except FitError as exc:
         body.append(_p(f"Least squares failed: {html.escape(str(exc))}", "bad"))
         record["least_squares"] = {"error": str(exc)}
@@ -159,7 +162,7 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
     # 2. posterior
     body.append("<h2>2. Posterior</h2>")
     if do_posterior:
-        from ambfit import bayes
+        from ambfit.estimation import bayes
 
         try:
             sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, seed=seed, ls=res)
@@ -214,11 +217,10 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
     # 5. diagnosis
     body.append("<h2>5. Sim-to-real gap diagnosis</h2>")
     if do_diagnosis:
-        from ambfit import gap
+        from ambfit import diagnosis as gap
 
         try:
-            nominal = gap.NominalRig.from_toml(nominal_toml) if nominal_toml else None
-            dg = gap.diagnose(ds, nominal=nominal).to_json()
+            dg = gap.diagnose(ds, bearing=bearing).to_json()
             record["diagnosis"] = dg
             nf = dg["noise_floor"]
             conf = ("the ideal model sits on the noise floor, so every candidate fits as well as it does"
@@ -277,8 +279,10 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     import matplotlib
 
     matplotlib.use("Agg", force=False)
-    from ambfit import conditioning, paper, plots
-    from ambfit.fit import FitError, fit
+    from ambfit.estimation import conditioning
+    from ambfit.studies import paper
+    from ambfit.faces import plots
+    from ambfit.estimation.fit import FitError, fit
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -488,7 +492,7 @@ def _origin_spread_text(origins, extra, comp, t2, bpc, trend) -> str:
     n_high = int((origins["percentile"] > 95).sum())
     ex = extra[~extra["quantity"].str.startswith("g_")]["extra_sd"]
     rng = {e: float(g["v0_um"].max() - g["v0_um"].min()) for e, g in bpc.groupby("effect", sort=False)}
-    from ambfit.paper import load_table
+    from ambfit.studies.paper import load_table
 
     v1 = load_table(1)["v0_um"].to_numpy(float)
     step_v = float(np.mean(np.diff(v1)))

@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.likelihood import build_problem, free_mask, free_names, jacobian, param_scale, to_theta
-from ambfit.model import ALPHA_DEFAULT, BearingParams
+from ambfit.estimation.core import Model, build_problem, free_mask, free_names, jacobian, param_scale, to_theta
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
+from ambfit.physics.model import BearingParams, evaluate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,7 +59,7 @@ class Information:
 
 
 def fisher(data: pd.DataFrame, params: BearingParams, loads: dict | None = None, *, sigma_i: float | None = None,
-           sigma_x: float | None = None, alpha: float = ALPHA_DEFAULT) -> Information:
+           sigma_x: float | None = None, bearing: Bearing = PAPER_BEARING) -> Information:
     """Fisher information of the readings ``data`` (noise-free, contract table) at ``params``.
 
     ``loads`` maps the design's nuisance load groups (``"<load_id>|<axis>"``) to
@@ -66,16 +67,13 @@ def fisher(data: pd.DataFrame, params: BearingParams, loads: dict | None = None,
     predicts for them (exact for noise-free data).
     """
     prob, meta = build_problem(data, sigma_i=sigma_i, sigma_x=sigma_x)
-    from ambfit.model import ideal_force
-
-    a = np.asarray(prob.ax)
-    f = np.asarray(ideal_force(np.asarray(params.g0)[a], np.asarray(params.x0)[a], np.asarray(params.k)[a],
-                               prob.i_top, prob.i_bottom, prob.x, alpha))
+    model = Model.of((), bearing)
+    f = np.asarray(evaluate(params, prob.readings, bearing=bearing)[0])
     gidx = np.asarray(prob.gidx)
     lv = np.array([(loads or {}).get(g, np.mean(f[gidx == j])) for j, g in enumerate(meta.load_groups)])
     theta = jnp.asarray(to_theta(np.asarray(params.g0), np.asarray(params.x0), np.asarray(params.k), lv))
     free = free_mask(prob, meta)
-    j = np.asarray(jacobian(theta, prob, alpha))[:, free]
+    j = np.asarray(jacobian(theta, prob, model))[:, free]
     names = free_names(meta, free)
     scale = param_scale(prob.n_loads)[free]
     info_s = j.T @ j
@@ -101,4 +99,4 @@ def design_information(spec, protocol, noise, *, loads: dict | None = None) -> I
     from ambfit import rig
 
     sim = rig.simulate(spec, protocol, noise=rig.NOISE_FREE)
-    return fisher(sim.data, spec.params(), loads, sigma_i=noise.current, sigma_x=noise.position, alpha=spec.alpha)
+    return fisher(sim.data, spec.params(), loads, sigma_i=noise.current, sigma_x=noise.position, bearing=spec.bearing)

@@ -53,7 +53,7 @@ def _fail(msg: str, code: int = 2):
 
 def _parse_effect(text: str):
     """``NAME`` or ``NAME:param=value,param=value`` (SI units) -> Effect."""
-    from ambfit.effects import effect_by_name
+    from ambfit.physics.effects import effect_by_name
 
     name, _, rest = text.partition(":")
     params = {}
@@ -63,6 +63,23 @@ def _parse_effect(text: str):
             raise ValueError(f"effect option {text!r}: expected param=value, got {item!r}")
         params[key.strip()] = float(val)
     return effect_by_name(name.strip(), **params)
+
+
+BearingOption = Annotated[Path | None, typer.Option(
+    "--bearing", help="Bearing description TOML (pole angle, turns, pole area, nominal gap, clearance, current "
+                      "limit, ...; DATA-CONTRACT.md section 4). Default: the seed paper's rig.")]
+
+
+def _bearing(path: Path | None):
+    """The bearing description from ``--bearing`` (the paper's rig when not given)."""
+    from ambfit.physics.bearing import PAPER_BEARING, Bearing, BearingError
+
+    if path is None:
+        return PAPER_BEARING
+    try:
+        return Bearing.from_toml(path)
+    except BearingError as exc:
+        _fail(str(exc))
 
 
 def _pair(text: str | None, scale: float):
@@ -91,7 +108,7 @@ def simulate(
                                            "--biases-a/--offsets-um/--center-um/--iterations).")] = Preset.table2,
     protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset): "
                                                    "[[block]] and [loads.NAME] tables as in "
-                                                   "ambfit.protocol.from_dict, plus optional [[effect]] "
+                                                   "ambfit.rig.protocol.from_dict, plus optional [[effect]] "
                                                    "tables (name = ..., parameters in SI units).")] = None,
     biases_a: Annotated[str, typer.Option("--biases-a", help="Bias currents [A], comma separated.")] = "1.4,1.6",
     offsets_um: Annotated[str, typer.Option(help="Symmetric position offsets [µm], comma separated.")] = "20",
@@ -112,10 +129,10 @@ def simulate(
 ):
     """Simulate a perturbation experiment on the virtual rig and write contract CSV."""
     from ambfit import data as data_mod
-    from ambfit import protocol as proto_mod
+    from ambfit.rig import protocol as proto_mod
     from ambfit import rig
 
-    from ambfit.effects import effect_by_name
+    from ambfit.physics.effects import effect_by_name
 
     try:
         effects = [_parse_effect(e) for e in (effect or [])]
@@ -172,7 +189,7 @@ def _closed_form_table(result, title: str) -> Table:
 
 def _ls_table(results: dict, title: str) -> Table:
     """One row per experiment (or 'all'): gap, origin, k of both axes, value ± std; failures say why."""
-    from ambfit.fit import FitError
+    from ambfit.estimation.core import FitError
 
     t = Table(title=title)
     cols = ("experiment", "g_v0 [µm]", "v0 [µm]", "g_w0 [µm]", "w0 [µm]", "k_v [N·m²/A²]", "k_w [N·m²/A²]", "χ²/dof")
@@ -211,6 +228,7 @@ def identify(
                                         "plenty).")] = 0,
     max_position_um: Annotated[float, typer.Option(help="Reject positions at least this large [µm] "
                                                    "(unit check).")] = 762.0,
+    bearing: BearingOption = None,
 ):
     """Identify effective gap, origin (and k when loads are known) for each axis.
 
@@ -221,15 +239,16 @@ def identify(
     from ambfit.data import DataError, read_csv
 
     _enable_compilation_cache()
+    desc = _bearing(bearing)
     try:
         ds = read_csv(data, max_position_um=max_position_um)
     except DataError as exc:
         _fail(str(exc))
     if method is Method.closed_form:
-        from ambfit import closed_form
+        from ambfit.estimation import closed_form
 
         try:
-            result = closed_form.identify(ds, by_experiment=by is By.experiment)
+            result = closed_form.identify(ds, by_experiment=by is By.experiment, bearing=desc)
         except closed_form.ClosedFormError as exc:
             _fail(str(exc), 3)
         console.print(_closed_form_table(result, f"closed form (Eq. 5-7), {data.name}, {result.n_rows} rows"))
@@ -238,7 +257,7 @@ def identify(
                 err.print(f"rejected {exp}/{ax} iteration {it}: {why}", highlight=False)
         record = result.to_json()
     else:
-        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias)
+        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias, desc)
     if json_out is not None:
         with open(json_out, "w") as f:
             json.dump(record, f, indent=2)
@@ -247,12 +266,12 @@ def identify(
         raise typer.Exit(3)
 
 
-def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias) -> dict:
-    from ambfit import fit
+def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias, bearing) -> dict:
+    from ambfit.estimation import fit
 
     kw = dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
               sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k,
-              debias=debias)
+              debias=debias, bearing=bearing)
     try:
         pooled = fit.fit(ds, **kw)
     except fit.FitError as exc:
@@ -271,10 +290,12 @@ def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, d
             console.print("bias correction subtracted (µm): " + ", ".join(
                 f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in ("g_v0", "v0", "g_w0", "w0")
                 if n in bc) + f" ({bc['n']} synthetic sets)", highlight=False)
-        for ax in ("v", "w"):
-            if not pooled.k_identified["vw".index(ax)]:
+        for ax, ok in pooled.k_identified.items():
+            if not ok:
                 console.print(f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)",
                               highlight=False)
+        for problem in pooled.health():
+            err.print(f"[bold yellow]warning:[/] {problem}", highlight=False, soft_wrap=True)
         record = pooled.to_json()
     else:
         record = {"method": "least_squares", "params": {}, "converged": False, "n_rows": len(ds),
@@ -302,19 +323,21 @@ def sample(
     gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
     seed: Annotated[int, typer.Option(help="Seed.")] = 0,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    bearing: BearingOption = None,
 ):
     """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
 
     Exits 3 when the run is too short for its autocorrelation time (and says how long it
     should be) or R-hat across the ensembles exceeds 1.01.
     """
-    from ambfit import bayes, fit
+    from ambfit.estimation import bayes, fit
     from ambfit.data import DataError, read_csv
 
     _enable_compilation_cache()
     try:
         ds = read_csv(data)
-        prior = bayes.Prior(gap=(nominal_gap_um or 762.0) * 1e-6, gap_log_sd=gap_prior_log_sd)
+        prior = bayes.Prior(gap=nominal_gap_um * 1e-6 if nominal_gap_um else _bearing(bearing).nominal_gap,
+                            gap_log_sd=gap_prior_log_sd)
         res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps, seed=seed,
                            progress=progress and sys.stderr.isatty())
     except DataError as exc:
@@ -332,7 +355,7 @@ def sample(
             json.dump(record, f, indent=2)
         console.print(f"wrote {json_out}")
     if pair_png is not None:
-        from ambfit import plots
+        from ambfit.faces import plots
 
         plots.save(plots.plot_pair(res), pair_png)
         console.print(f"wrote {pair_png}")
@@ -351,7 +374,8 @@ def solution_space_cmd(
 ):
     """Map the misfit over a (gap, origin) grid (the paper's Fig. 2), with the least-squares ellipse
     and the weakest Fisher direction drawn on it."""
-    from ambfit import conditioning, fit, plots
+    from ambfit.estimation import conditioning, fit
+    from ambfit.faces import plots
     from ambfit.data import DataError, read_csv
 
     try:
@@ -387,8 +411,8 @@ def design(
                                                         "less a margin; the paper's rig: 60 µm).")] = None,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
-    from ambfit import design as design_mod
-    from ambfit import fit
+    from ambfit.estimation import design as design_mod
+    from ambfit.estimation import fit
     from ambfit.data import DataError, read_csv
 
     try:
@@ -416,10 +440,7 @@ def design(
 def diagnose(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
-    turns: Annotated[float, typer.Option(help="Turns per pole, for the gap flux densities [-].")] = 480.0,
-    rig_toml: Annotated[Path | None, typer.Option("--rig", help="Nominal rig TOML (nominal_gap_um, turns, "
-                                                  "pole_area_mm2, lamination, position_gain_tolerance, ...) "
-                                                  "for the parameter-level gap.")] = None,
+    bearing: BearingOption = None,
     pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
                                                "explains the data (off: the pair is reported as best_pair).")] = False,
     report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
@@ -427,70 +448,47 @@ def diagnose(
                                                 "after adding the verdict effect).")] = None,
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
-    data, how far the gap shrinks, and (with --rig) how the identified parameters differ from the nominal rig."""
-    from ambfit import fit, gap
+    data, how far the gap shrinks, and how the identified parameters differ from the bearing as drawn."""
     from ambfit.data import DataError, read_csv
+    from ambfit.diagnosis import diagnose as run_diagnosis
+    from ambfit.estimation.core import FitError
 
     _enable_compilation_cache()
+    desc = _bearing(bearing)
     try:
-        nominal = gap.NominalRig.from_toml(rig_toml) if rig_toml is not None else None
         ds = read_csv(data)
-        rec = gap.diagnose(ds, turns=nominal.turns or turns if nominal else turns,
-                           nominal=nominal, pair_verdict=pair_verdict).to_json()
+        dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict)
     except (DataError, ValueError, OSError) as exc:
         _fail(str(exc))
-    except fit.FitError as exc:
+    except FitError as exc:
         _fail(str(exc), 3)
-    nf = rec["noise_floor"]
-    console.print(f"noise floor ({nf['source']}): mean z² {nf['mean_z2']:.2f} (expected {nf['expected_mean_z2']:.2f}); "
-                  f"held-out excess {rec['heldout_excess_before']:.2f} noise units; folds: {rec['folds']}",
-                  highlight=False)
+    console.print(dg.summary().split("\n")[0], highlight=False)
     t = Table(title="where the model fails (largest first)")
     for c in ("region", "rows", "z"):
         t.add_column(c, justify="left" if c == "region" else "right")
-    for w in rec["where"][:8]:
-        t.add_row(w["region"], str(w["rows"]), f"{w['z']:.1f}")
+    for w in dg.where.regions[:8]:
+        t.add_row(w.describe(), str(w.rows), f"{w.z:.1f}")
     console.print(t)
     t = Table(title="candidate effects, held-out (best first)")
     for c in ("effect", "held-out excess after", "shrink", "in-sample mean z²"):
         t.add_column(c, justify="left" if c == "effect" else "right")
-    for r in rec["ranking"]:
-        t.add_row(r["effect"], f"{r['heldout_excess_after']:.2f}", f"{r['shrink']:.3f}", f"{r['insample_mean_z2']:.2f}")
+    for r in dg.to_dataframe().itertuples():
+        t.add_row(r.effect, f"{r.heldout_excess_after:.2f}", f"{r.shrink:.3f}", f"{r.insample_mean_z2:.2f}")
     console.print(t)
-    console.print(f"verdict: {rec['verdict']}; confounded with: {', '.join(rec['confounded_with']) or 'none'}; "
-                  f"shrink {rec['shrink']:.3f}", highlight=False)
-    if "best_pair" in rec:
-        bp = rec["best_pair"]
-        console.print(f"best pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
-                      f"{bp['shrink']:.3f}{', explains the data' if bp['explains'] else ''})", highlight=False)
-    for e in rec.get("parameter_gap", []):
-        if e["flagged"]:
-            why = "; ".join(f"{c['effect']} ({c['needs']})" for c in e.get("could_be", []))
-            console.print(f"{e['parameter']}: identified {e['identified']:.4g} vs nominal {e['nominal']:.4g} "
-                          f"({e['z']:+.1f} sd) - could be {why}", highlight=False)
+    console.print(dg.verdict_text(), highlight=False)
+    for line in dg.flagged_parameters():
+        console.print(line, highlight=False)
     if json_out is not None:
         with open(json_out, "w") as f:
-            json.dump(rec, f, indent=2)
+            json.dump(dg.to_json(), f, indent=2)
         console.print(f"wrote {json_out}")
     if report is not None:
-        _diagnosis_figures(ds, rec, report, turns)
+        from ambfit.faces import plots
 
-
-def _diagnosis_figures(ds, rec, folder: Path, turns: float):
-    from ambfit import effects, extend, fit, gap, plots
-
-    folder.mkdir(parents=True, exist_ok=True)
-    plots.save(plots.plot_ranking(rec), folder / "ranking.png")
-    df = ds.frame.reset_index(drop=True)
-    base = fit.fit(df)
-    ov = gap.operating_variables(df, base, turns)
-    var = rec["where"][0]["variable"] if rec["where"] else "b_top_T"
-    after = None
-    if rec["verdict"] not in ("none", "unexplained"):
-        effs = [effects.EFFECTS[n]() for n in rec["verdict"].split("+")]
-        after = extend.fit_extended(df, effs, start=base, turns=turns).residuals
-    plots.save(plots.plot_residual_map(ov[var], base.residuals, after, label=var), folder / "residuals.png")
-    console.print(f"wrote {folder / 'ranking.png'} and {folder / 'residuals.png'}")
+        report.mkdir(parents=True, exist_ok=True)
+        plots.save(plots.plot_ranking(dg), report / "ranking.png")
+        plots.save(plots.plot_diagnosis_residuals(dg), report / "residuals.png")
+        console.print(f"wrote {report / 'ranking.png'} and {report / 'residuals.png'}")
 
 
 @app.command("origin-search")
@@ -513,7 +511,9 @@ def origin_search(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the trajectory as JSON.")] = None,
 ):
     """Run the paper's effective-origin search on the virtual rig and print its trajectory."""
-    from ambfit import closed_form, origin, rig
+    from ambfit.estimation import closed_form
+    from ambfit.rig import origin
+    from ambfit import rig
     from ambfit import data as data_mod
 
     try:
@@ -554,21 +554,20 @@ def report(
     max_radius_um: Annotated[float | None, typer.Option(help="Recommend only set-points within this distance "
                                                         "of the sensor origin [µm] (back-up bearing clearance "
                                                         "less a margin).")] = 50.0,
-    rig_toml: Annotated[Path | None, typer.Option("--rig", help="Nominal rig TOML for the parameter-level gap "
-                                                  "(see diagnose).")] = None,
+    bearing: BearingOption = None,
     posterior: Annotated[bool, typer.Option(help="Sample the posterior (the slowest section).")] = True,
     diagnosis: Annotated[bool, typer.Option(help="Run the sim-to-real gap diagnosis.")] = True,
     seed: Annotated[int, typer.Option(help="Sampler seed.")] = 0,
 ):
     """One self-contained HTML page: identification table, posterior summary and pair plot, solution-space
     map, design recommendation and diagnosis."""
-    from ambfit import report as report_mod
+    from ambfit.faces import report as report_mod
     from ambfit.data import DataError
 
     _enable_compilation_cache()
     try:
         path, rec = report_mod.data_report(
-            data, out, steps=steps, ensembles=ensembles, design_steps=design_steps, nominal_toml=rig_toml,
+            data, out, steps=steps, ensembles=ensembles, design_steps=design_steps, bearing=_bearing(bearing),
             max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
             command="ambfit report " + " ".join(sys.argv[2:]))
     except (DataError, OSError) as exc:
@@ -590,7 +589,7 @@ def paper(
 ):
     """Rerun the seed paper's Tables 1-4 and Figs. 2, 3 and 5 on the virtual rig; write the side-by-side
     report (index.html, README.md, comparison.csv, spread.csv, reproduction.json, PNG figures)."""
-    from ambfit import report as report_mod
+    from ambfit.faces import report as report_mod
 
     _enable_compilation_cache()
     path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,

@@ -16,7 +16,7 @@ construction; the *spreads* are the prediction.
 
 Example
 -------
->>> from ambfit import paper
+>>> from ambfit.studies import paper
 >>> paper.load_table(1)[["source_row", "g_v0_um"]].to_dict("records")[0]
 {'source_row': '1', 'g_v0_um': 778.71}
 """
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ambfit.model import AXES
-from ambfit.rig import PAPER_RIG, Noise, RigSpec
+from ambfit.physics.model import AXES
+from ambfit.rig.virtual import PAPER_RIG, Noise, RigSpec
 
 QUANTITIES = ("v0_um", "w0_um", "g_v0_um", "g_w0_um")
 """The four identified quantities of every table, µm."""
@@ -41,11 +41,11 @@ TABLE4_SHIFT = (-80.7e-6, 24.4e-6)
 
 def data_dir() -> Path:
     """``data/paper/`` of the source tree (or the copy packaged with a wheel)."""
-    here = Path(__file__).resolve().parent
-    for cand in (here.parent / "data" / "paper", here / "paper_data"):
+    package = Path(__file__).resolve().parents[1]
+    for cand in (package.parent / "data" / "paper", package / "paper_data"):
         if (cand / "table1.csv").exists():
             return cand
-    raise FileNotFoundError(f"the paper's tables are not found next to {here} (data/paper/ or ambfit/paper_data/)")
+    raise FileNotFoundError(f"the paper's tables are not found next to {package} (data/paper/ or ambfit/paper_data/)")
 
 
 def _read(name: str) -> pd.DataFrame:
@@ -103,7 +103,7 @@ def rows() -> list[Row]:
 
 def run_row(row: Row, *, spec: RigSpec = PAPER_RIG, noise: Noise = Noise(), seed=0, iterations: int = 10):
     """The paper's experiment for one row: the effective-origin search (:func:`ambfit.origin.search`)."""
-    from ambfit import origin
+    from ambfit.rig import origin
 
     s = spec if row.origin_shift == (0.0, 0.0) else spec.with_truth(x0=np.asarray(spec.x0) + row.origin_shift)
     return origin.search(s, biases=row.biases, offset=row.offset, start=row.start, iterations=iterations,
@@ -321,7 +321,7 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
     """
     import time
 
-    from ambfit.closed_form import ClosedFormError
+    from ambfit.estimation.closed_form import ClosedFormError
 
     t0 = time.perf_counter()
     rs = rows()
@@ -333,7 +333,7 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
     run = np.stack([_values(s) for s in searches])
     ls_out = []
     if least_squares:
-        from ambfit.fit import FitError, fit
+        from ambfit.estimation.fit import FitError, fit
 
         for s in searches:
             try:
@@ -367,8 +367,8 @@ def fig2_data(seed: int = 7) -> pd.DataFrame:
     """The paper's Fig. 2 setting on the rig: pairs at ±20 µm in sensor coordinates with the rotor left at the
     back-up bearing centre (13.3 and 53.3 µm from the effective origin: not symmetric about it), 10
     repetitions, one unknown load per position (the information Eq. 5-7 use)."""
-    from ambfit import protocol as P
-    from ambfit.rig import simulate
+    from ambfit.rig import protocol as P
+    from ambfit.rig.virtual import simulate
 
     parts = []
     for j, d in enumerate((20e-6, -20e-6)):
@@ -383,10 +383,11 @@ def fig2_data(seed: int = 7) -> pd.DataFrame:
 def published_gap(nominal=None) -> list[dict]:
     """The paper's identified gaps (Conclusion: 775 and 763 µm, sd 1.3 and 2.2 µm over the averages of
     Tables 1, 3 and 4) against its nominal 762 µm, with the effects that could explain each difference
-    (:func:`ambfit.gap.parameter_gap`).  The standard error is the sd over the three table averages / sqrt(3)."""
-    from ambfit.gap import NominalRig, parameter_gap
+    (:func:`ambfit.diagnosis.parameter_gap`).  The standard error is the sd over the three table averages / sqrt(3)."""
+    from ambfit.diagnosis import parameter_gap
+    from ambfit.physics.bearing import Bearing
 
-    nominal = nominal or NominalRig.from_toml(data_dir() / "nominal_rig.toml")
+    nominal = nominal or Bearing.from_toml(data_dir() / "bearing.toml")
     avgs = pd.concat([load_table(t, averages=True) for t in (1, 3, 4)])
     vals = {}
     for ax in AXES:
@@ -416,29 +417,32 @@ def gap_demonstration(*, seed: int = 0, separate: bool = True) -> dict:
     A rig with the nominal gap on both axes is given, in turn, (a) iron-path reluctance with the relative
     permeability :func:`published_gap` implies for each axis and (b) position-sensor gain errors of the size
     that would explain the same gaps.  Each runs the paper's Table 2 protocol (origin search, 1.4/1.6 A,
-    ±20 µm, 10 iterations); least squares gives the effective gaps and :func:`ambfit.gap.diagnose` is asked
+    ±20 µm, 10 iterations); least squares gives the effective gaps and :func:`ambfit.diagnose` is asked
     to choose among iron reluctance, position gain and fringing.  With ``separate``, the separating
     experiment follows: a bias sweep 0.6-2.6 A at five set-points (flux densities up to about 1 T), where
     iron reluctance grows with flux density and a sensor gain does not.
     """
-    from ambfit import effects, gap, origin
-    from ambfit import protocol as P
-    from ambfit.fit import fit
-    from ambfit.rig import simulate
+    from ambfit.physics import effects
+    from ambfit import diagnosis as gap
+    from ambfit.rig import origin
+    from ambfit.rig import protocol as P
+    from ambfit.estimation.fit import fit
+    from ambfit.rig.virtual import simulate
 
     pg = {e["parameter"]: e for e in published_gap()}
     diffs = np.array([pg[f"g_{ax}0_um"]["difference"] for ax in AXES]) * 1e-6
-    l_fe = 0.08
+    nominal = PAPER_RIG.nominal_gap
+    l_fe = PAPER_RIG.bearing.iron_path
     scenarios = {
         "iron_reluctance": [effects.IronReluctance(l_fe=np.asarray(l_fe), mu_r=l_fe / (2 * diffs),
                                                    b_knee=np.asarray(1.2))],
-        "position_gain": [effects.PositionGain(gain_error=diffs / 762e-6)],
+        "position_gain": [effects.PositionGain(gain_error=diffs / nominal)],
     }
-    spec = PAPER_RIG.with_truth(g0=(762e-6, 762e-6))
+    spec = PAPER_RIG.with_truth(g0=(nominal, nominal))
     cands = [effects.IronReluctance(), effects.PositionGain(), effects.Fringing()]
-    out = {"nominal_gap_um": 762.0, "implied": {
+    out = {"nominal_gap_um": nominal * 1e6, "implied": {
         "iron_reluctance_mu_r": (l_fe / (2 * diffs)).tolist(), "iron_path_mm": l_fe * 1e3,
-        "position_gain_percent": (diffs / 762e-6 * 100).tolist()}, "scenarios": {}}
+        "position_gain_percent": (diffs / nominal * 100).tolist()}, "scenarios": {}}
     for name, eff in scenarios.items():
         s = origin.search(spec, biases=(1.4, 1.6), offset=20e-6, iterations=10, effects=eff, seed=seed,
                           experiment="table2")
@@ -469,14 +473,14 @@ def bias_pair_check(noise: Noise = Noise(current=1e-7, position=1e-10)) -> pd.Da
     """Table 1's origin against its bias pair on a nearly noise-free rig, with no effect, a 10 mA offset on the
     top current channels and a 1 % gain mismatch between the channels: does any of them make the identified
     origin depend on the bias pair the way the paper's Table 1 does (35.08, 31.75, 28.77 µm)?"""
-    from ambfit import effects
+    from ambfit.physics import effects
 
     # effect parameters are scalars (both axes) or (v, w) pairs, as arrays so that jit traces them
     cases = {"none": [],
              "current_offset (top +10 mA)": [effects.CurrentOffset(top=np.asarray(0.01), bottom=np.asarray(0.0))],
              "current_gain (1 % mismatch)": [effects.CurrentGain(mismatch=np.asarray(0.01))]}
     out = []
-    from ambfit import origin
+    from ambfit.rig import origin
 
     for name, eff in cases.items():
         for r in (r for r in rows() if r.table == 1):

@@ -21,6 +21,7 @@ make the two ratios move in opposite directions and the lines cross most steeply
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -28,8 +29,9 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
-from ambfit.likelihood import K_REFERENCE, build_problem
-from ambfit.model import ALPHA_DEFAULT, AXES
+from ambfit.estimation.core import K_REFERENCE, Model, build_problem, misfit, seed_loads_and_k, to_theta
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
+from ambfit.physics.model import ideal_force
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,13 +57,12 @@ class SolutionSpace:
         return self.chi2 - np.nanmin(self.chi2)
 
 
-@jax.jit
-def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, alpha):
+@functools.partial(jax.jit, static_argnames="cos_alpha")
+def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, cos_alpha):
     """χ² and mean-square misfit for grids g[G], x0[X] (vectorised) with profiled k and loads."""
-    c = jnp.cos(alpha)
-    u = (x0[None, :, None] + x[None, None, :]) * c                       # [1, X, n]
     gg = g[:, None, None]
-    unit = it**2 / (gg - u) ** 2 - ib**2 / (gg + u) ** 2                  # [G, X, n]
+    unit = ideal_force(gg, x0[None, :, None], 1.0, it, ib, x[None, None, :], cos_alpha)   # [G, X, n], k = 1
+    u = (x0[None, :, None] + x[None, None, :]) * cos_alpha
     # k from the known-load rows (weighted LS through the origin), k_ref if none
     num = jnp.sum(w * unit * load * known, axis=-1)
     den = jnp.sum(w * unit**2 * known, axis=-1)
@@ -79,14 +80,13 @@ def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, alpha):
 
 
 def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6, 1000e-6), origin=(-100e-6, 100e-6),
-                   step: float = 1e-6, weights_at=None, alpha: float = ALPHA_DEFAULT, **noise) -> SolutionSpace:
+                   step: float = 1e-6, weights_at=None, bearing: Bearing = PAPER_BEARING, **noise) -> SolutionSpace:
     """χ² map of one axis over a (gap, origin) grid (defaults: the paper's Fig. 2 axes, 1 µm steps).
 
     ``weights_at``: a :class:`ambfit.fit.FitResult` whose optimum fixes the
     effective-variance weights; default: fit the data first.
     """
-    from ambfit.fit import FitError, fit
-    from ambfit.likelihood import misfit, to_theta
+    from ambfit.estimation.fit import FitError, fit
 
     df = data.frame if isinstance(data, Dataset) else data
     if axis not in AXES:
@@ -98,24 +98,23 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
     res = weights_at
     if res is None:
         try:
-            res = fit(sub, **noise)
+            res = fit(sub, bearing=bearing, **noise)
         except FitError:  # unidentifiable designs still have a map: weight at the nominal point
             res = None
     if res is not None:
         vals = dict(zip(res.names, res.values))
-        g_hat, x_hat = vals.get(f"g_{axis}0", 762e-6), vals.get(f"{axis}0", 0.0)
+        g_hat, x_hat = vals.get(f"g_{axis}0", bearing.nominal_gap), vals.get(f"{axis}0", 0.0)
         k_hat = vals.get(f"k_{axis}", K_REFERENCE)
     else:
-        g_hat, x_hat, k_hat = 762e-6, 0.0, K_REFERENCE
+        g_hat, x_hat, k_hat = bearing.nominal_gap, 0.0, K_REFERENCE
     g_pair, x_pair, k_pair = np.full(2, g_hat), np.full(2, x_hat), np.full(2, k_hat)
     loads = np.zeros(prob.n_loads)
+    model = Model.of((), bearing)
     if prob.n_loads:
-        from ambfit.likelihood import seed_loads_and_k
-
-        th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, alpha)
+        th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, model)
     else:
         th = to_theta(g_pair, x_pair, k_pair, loads)
-    s = np.asarray(misfit(jnp.asarray(th), prob, alpha)[1])
+    s = np.asarray(misfit(jnp.asarray(th), prob, model)[1])
     w = 1.0 / s**2
     gs = np.arange(gap[0], gap[1] + step / 2, step)
     xs = np.arange(origin[0], origin[1] + step / 2, step)
@@ -124,7 +123,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
     if prob.n_loads:
         onehot[gidx >= 0, gidx[gidx >= 0]] = 1.0
     chi2, ms = _grid_chi2(jnp.asarray(gs), jnp.asarray(xs), prob.x, prob.i_top, prob.i_bottom, jnp.asarray(w),
-                          prob.load, prob.known.astype(float), jnp.asarray(onehot), K_REFERENCE, alpha)
+                          prob.load, prob.known.astype(float), jnp.asarray(onehot), K_REFERENCE, bearing.cos_alpha)
     return SolutionSpace(axis=axis, gap=gs, origin=xs, chi2=np.asarray(chi2), rms=np.sqrt(np.asarray(ms)),
                          n_rows=len(sub))
 
@@ -152,7 +151,7 @@ def standard_designs(center=(-33.3e-6, 11.3e-6), *, same_load: bool = False) -> 
     the information the paper's method uses.  ``same_load=True`` tells the fit that one
     load is carried at every position, which least squares can exploit and Eq. 7 cannot.
     """
-    from ambfit import protocol as P
+    from ambfit.rig import protocol as P
 
     cv, cw = center
 
@@ -178,7 +177,8 @@ def standard_designs(center=(-33.3e-6, 11.3e-6), *, same_load: bool = False) -> 
 def compare_designs(spec=None, noise=None, designs: dict | None = None) -> pd.DataFrame:
     """Condition number and Cramér-Rao bounds of gap and origin (v axis) for each design, under both load
     assumptions of :func:`standard_designs` (one unknown load per position, or one shared)."""
-    from ambfit import information, rig
+    from ambfit.estimation import information
+    from ambfit import rig
 
     spec = spec or rig.PAPER_RIG
     noise = noise or rig.Noise()

@@ -30,7 +30,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.model import Context, _set
+from ambfit.physics.model import Context, _set
 
 __all__ = [
     "Effect", "Saturation", "IronReluctance", "Fringing", "Leakage", "CurrentOffset",
@@ -143,7 +143,7 @@ class IronReluctance(Effect):
     UNITS: ClassVar = {"l_fe": "m", "mu_r": "-", "b_knee": "T"}
 
     def extra_gap(self, i, g, ctx):
-        b = 4e-7 * np.pi * ctx.turns * i / (2.0 * g)
+        b = ctx.bearing.flux_density(i, g)
         mu = _ax(self.mu_r, ctx.axis) / (1.0 + (b / _ax(self.b_knee, ctx.axis)) ** 4)
         return _ax(self.l_fe, ctx.axis) / (2.0 * mu)
 
@@ -157,24 +157,22 @@ class Fringing(Effect):
 
     ``A_eff = (w + 2 c g) (l + 2 c g)``, so each coil's force constant is scaled by
     ``(1 + 2 c g / w) (1 + 2 c g / l)`` with ``w`` and ``l`` the pole width and axial
-    length.  ``c`` = 0.3-1.0 covers the usual fringe-width estimates (Roters,
-    *Electromagnetic Devices*, Wiley 1941, ch. 5; Schweitzer & Maslen 2009, p. 84).
+    length (from the bearing description).  ``c`` = 0.3-1.0 covers the usual fringe-width
+    estimates (Roters, *Electromagnetic Devices*, Wiley 1941, ch. 5; Schweitzer & Maslen 2009, p. 84).
     """
 
     coefficient: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.5))
-    pole_width: float = 5.0e-3
-    pole_length: float = 10.85e-3  # the paper rig's pole (5 mm x 10.85 mm, see ambfit.rig.PAPER_RIG)
     name: ClassVar[str] = "fringing"
     RANGES: ClassVar = {"coefficient": (0.3, 1.0)}
-    UNITS: ClassVar = {"coefficient": "-", "pole_width": "m", "pole_length": "m"}
+    UNITS: ClassVar = {"coefficient": "-"}
 
-    def area_factor(self, g, axis):
+    def area_factor(self, g, axis, bearing):
         c = _ax(self.coefficient, axis)
-        return (1.0 + 2.0 * c * g / self.pole_width) * (1.0 + 2.0 * c * g / self.pole_length)
+        return (1.0 + 2.0 * c * g / bearing.pole_width) * (1.0 + 2.0 * c * g / bearing.pole_length)
 
     def coil(self, ctx):
-        return _set(ctx, k_top=ctx.k_top * self.area_factor(ctx.g_top, ctx.axis),
-                    k_bottom=ctx.k_bottom * self.area_factor(ctx.g_bottom, ctx.axis))
+        return _set(ctx, k_top=ctx.k_top * self.area_factor(ctx.g_top, ctx.axis, ctx.bearing),
+                    k_bottom=ctx.k_bottom * self.area_factor(ctx.g_bottom, ctx.axis, ctx.bearing))
 
 
 class Leakage(Effect):
@@ -283,20 +281,19 @@ class CrossCoupling(Effect):
 
     kappa: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1500.0))
     geometric: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.0))
-    sin_alpha: float = float(np.sin(np.deg2rad(22.5)))
     name: ClassVar[str] = "cross_coupling"
     RANGES: ClassVar = {"kappa": (1000.0, 3000.0), "geometric": (1.0, 1.0)}
     SIGNED: ClassVar = ("kappa",)
     UNITS: ClassVar = {"kappa": "N/m", "geometric": "-"}
 
-    def _pair(self, g, yp, axis):
-        a = _ax(self.geometric, axis) * yp * self.sin_alpha / g
+    def _pair(self, g, yp, ctx):
+        a = _ax(self.geometric, ctx.axis) * yp * ctx.bearing.sin_alpha / g
         return 0.5 * ((1.0 - a) ** -2 + (1.0 + a) ** -2)
 
     def coil(self, ctx):
         yp = ctx.y0 + ctx.y
-        return _set(ctx, k_top=ctx.k_top * self._pair(ctx.g_top, yp, ctx.axis),
-                    k_bottom=ctx.k_bottom * self._pair(ctx.g_bottom, yp, ctx.axis))
+        return _set(ctx, k_top=ctx.k_top * self._pair(ctx.g_top, yp, ctx),
+                    k_bottom=ctx.k_bottom * self._pair(ctx.g_bottom, yp, ctx))
 
     def force(self, ctx, force):
         return force + _ax(self.kappa, ctx.axis) * (ctx.y0 + ctx.y)

@@ -20,11 +20,11 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from ambfit import closed_form
-from ambfit.effects import Effect
-from ambfit.model import AXES
-from ambfit.protocol import perturbation
-from ambfit.rig import Noise, RigSpec, RigState, simulate
+from ambfit.estimation import closed_form
+from ambfit.physics.effects import Effect
+from ambfit.physics.model import AXES
+from ambfit.rig.protocol import perturbation
+from ambfit.rig.virtual import Noise, RigSpec, RigState, simulate
 
 
 @dataclasses.dataclass(frozen=True)

@@ -29,11 +29,11 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
-from ambfit.fit import FitResult, fit
-from ambfit.likelihood import (
-    K_REFERENCE, NOMINAL_GAP, Problem, misfit, build_problem, free_mask, free_names, param_scale, to_theta,
+from ambfit.estimation.fit import FitResult, fit
+from ambfit.estimation.core import (
+    IDEAL, K_REFERENCE, Model, Problem, build_problem, free_mask, free_names, misfit, param_scale, to_theta, unpack,
 )
-from ambfit.model import ALPHA_DEFAULT
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 PARAM_UNITS = {"g_v0": "µm", "g_w0": "µm", "v0": "µm", "w0": "µm", "k_v": "N m²/A²", "k_w": "N m²/A²"}
 
@@ -48,7 +48,7 @@ class Prior:
     with log-sd ``k_log_sd``; nuisance loads: ``N(0, load_sd)``.
     """
 
-    gap: float = NOMINAL_GAP
+    gap: float = PAPER_BEARING.nominal_gap
     gap_log_sd: float = 0.3
     origin_sd: float = 200e-6
     k: float = K_REFERENCE
@@ -69,28 +69,26 @@ class Prior:
         return {"g0": g, "x0": x, "k": k}
 
 
-class Posterior(eqx.Module):
+class LogDensity(eqx.Module):
     """Jitted log-density over the free entries of the scaled parameter vector."""
 
     prob: Problem
     theta_ref: jnp.ndarray
     free_idx: jnp.ndarray
     prior: Prior = eqx.field(static=True)
-    alpha: float = eqx.field(static=True)
+    model: Model = IDEAL
 
     def full(self, z):
         return self.theta_ref.at[self.free_idx].set(z)
 
     def pointwise(self, z):
         """Log-likelihood of each reading [n]."""
-        f, s = misfit(self.full(z), self.prob, self.alpha)
+        f, s = misfit(self.full(z), self.prob, self.model)
         return -0.5 * (f / s) ** 2 - jnp.log(s) - 0.5 * jnp.log(2 * jnp.pi)
 
     def log_prior(self, z):
-        th = self.full(z)
-        sc = param_scale(th.shape[0] - 6)
-        g0, x0, k = th[0:2] * sc[0], th[2:4] * sc[2], th[4:6] * sc[4]
-        loads = th[6:] * sc[6:] if th.shape[0] > 6 else jnp.zeros(0)
+        u = unpack(self.full(z), self.prob, self.model)
+        g0, x0, k, loads = u.params.g0, u.params.x0, u.params.k, u.loads
         p = self.prior
         ok = jnp.all(g0 > 0) & jnp.all(jnp.abs(x0) < g0) & jnp.all(k > 0)
         lp = -0.5 * jnp.sum((jnp.log(jnp.abs(g0) / p.gap) / p.gap_log_sd) ** 2) - jnp.sum(jnp.log(jnp.abs(g0)))
@@ -107,17 +105,17 @@ class Posterior(eqx.Module):
 
 
 @eqx.filter_jit
-def _logp_batch(post: Posterior, zs):
+def _logp_batch(post: LogDensity, zs):
     return jax.vmap(post)(zs)
 
 
 @eqx.filter_jit
-def _pointwise_batch(post: Posterior, zs):
+def _pointwise_batch(post: LogDensity, zs):
     return jax.vmap(post.pointwise)(zs)
 
 
 @dataclasses.dataclass(frozen=True)
-class SamplingResult:
+class Posterior:
     """Draws and diagnostics of several independent emcee ensembles.
 
     Attributes
@@ -189,7 +187,7 @@ def _display_scale(name: str) -> float:
 
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior = Prior(), n_ensembles: int = 4, n_walkers: int | None = None,
            n_steps: int = 3000, min_tau_multiple: float = 50.0, seed: int = 0, progress: bool = False,
-           alpha: float = ALPHA_DEFAULT, ls: FitResult | None = None, **fit_kw) -> SamplingResult:
+           bearing: Bearing = PAPER_BEARING, ls: FitResult | None = None, **fit_kw) -> Posterior:
     """Sample the posterior with ``n_ensembles`` independent emcee ensembles.
 
     Each ensemble starts in a small Gaussian ball (0.1 sd of the least-squares
@@ -199,16 +197,16 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior = Prior(), n_ensembles:
     import emcee
 
     df = data.frame if isinstance(data, Dataset) else data
-    ls = ls or fit(df, alpha=alpha, **fit_kw)
+    ls = ls or fit(df, bearing=bearing, **fit_kw)
     prob, meta = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
     free = free_mask(prob, meta)
     names = free_names(meta, free)
     scale = param_scale(prob.n_loads)
     theta_hat = np.zeros(len(free))
     theta_hat[free] = ls.values / scale[free]
-    theta_hat[~free] = to_theta(NOMINAL_GAP, 0.0, K_REFERENCE, np.zeros(prob.n_loads))[~free]
-    post = Posterior(prob=prob, theta_ref=jnp.asarray(theta_hat), free_idx=jnp.asarray(np.nonzero(free)[0]),
-                     prior=prior, alpha=float(alpha))
+    theta_hat[~free] = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(prob.n_loads))[~free]
+    post = LogDensity(prob=prob, theta_ref=jnp.asarray(theta_hat), free_idx=jnp.asarray(np.nonzero(free)[0]),
+                     prior=prior, model=Model.of((), bearing))
     ndim = int(free.sum())
     n_walkers = n_walkers or max(32, 4 * ndim)
     cov_z = ls.cov / np.outer(scale[free], scale[free])
@@ -241,7 +239,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior = Prior(), n_ensembles:
     draws_z = draws_z[:, :n_draw]
     draws = draws_z * scale[free]
     dt = _datatree(names, draws, post, draws_z, df, tau, np.array(accs))
-    return SamplingResult(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=n_steps,
+    return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=n_steps,
                           n_walkers=n_walkers, too_short=bool(too_short), message=message, datatree=dt, ls=ls,
                           acceptance=np.array(accs))
 
@@ -265,13 +263,13 @@ def _datatree(names, draws, post, draws_z, df, tau, acc):
     return dt
 
 
-def force_predictive(result: SamplingResult, axis: str, i_top, i_bottom, x, *, sigma_i: float = 0.0,
-                     sigma_x: float = 0.0, seed: int = 0, alpha: float = ALPHA_DEFAULT) -> dict:
+def force_predictive(result: Posterior, axis: str, i_top, i_bottom, x, *, sigma_i: float = 0.0,
+                     sigma_x: float = 0.0, seed: int = 0) -> dict:
     """Posterior predictive force [N] on ``axis`` for given currents [A] and position [m]: mean, sd and 94 % HDI.
 
     Parameter uncertainty comes from the draws; reading noise (``sigma_i``, ``sigma_x``) is added per draw.
     """
-    from ambfit.model import ideal_force
+    from ambfit.physics.model import ideal_force
 
     need = (f"g_{axis}0", f"{axis}0", f"k_{axis}")
     if need[2] not in result.names:
@@ -284,6 +282,6 @@ def force_predictive(result: SamplingResult, axis: str, i_top, i_bottom, x, *, s
     it_s = it[None, :] + sigma_i * rng.standard_normal((n, it.size))
     ib_s = ib[None, :] + sigma_i * rng.standard_normal((n, ib.size))
     x_s = xx[None, :] + sigma_x * rng.standard_normal((n, xx.size))
-    f = np.asarray(ideal_force(d[:, :1], d[:, 1:2], d[:, 2:3], it_s, ib_s, x_s, alpha))
+    f = np.asarray(ideal_force(d[:, :1], d[:, 1:2], d[:, 2:3], it_s, ib_s, x_s, result.ls.bearing.cos_alpha))
     lo, hi = np.quantile(f, [0.03, 0.97], axis=0)
     return {"mean": f.mean(axis=0), "sd": f.std(axis=0, ddof=1), "q03": lo, "q97": hi}

@@ -30,7 +30,8 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
-from ambfit.model import ALPHA_DEFAULT, AXES
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
+from ambfit.physics.model import ideal_force
 
 POSITION_TOLERANCE = 2e-6
 """Readings whose own-axis positions differ by less than this [m] count as one position."""
@@ -93,7 +94,8 @@ def ratio(i_top_1, i_bottom_1, i_top_2, i_bottom_2) -> float:
     return math.sqrt(rad)
 
 
-def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None, alpha: float = ALPHA_DEFAULT) -> Solution:
+def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
+          bearing: Bearing = PAPER_BEARING) -> Solution:
     """Eq. 6-7 for one iteration of one axis.
 
     Parameters
@@ -106,8 +108,8 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None, al
         The two bias settings [A] (recorded only).
     loads : array[p, 2], optional
         Known loads [N] of the readings (NaN where unknown) to calibrate ``k``.
-    alpha : float
-        Pole angle [rad].
+    bearing : Bearing
+        The bearing (its pole angle).
 
     """
     x = np.asarray(positions, dtype=float)
@@ -119,7 +121,7 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None, al
     if sep < POSITION_TOLERANCE:
         raise ClosedFormError(
             f"two positions coincide ({sep * 1e6:.3g} µm apart): Eq. 7 becomes singular; use distinct set-points")
-    c = math.cos(alpha)
+    c = bearing.cos_alpha
     p = np.array([ratio(it[j, 0], ib[j, 0], it[j, 1], ib[j, 1]) for j in range(len(x))])
     a = np.stack([1.0 - p, -(1.0 + p)], axis=1)
     rhs = (1.0 + p) * x * c
@@ -137,7 +139,7 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None, al
     k = math.nan
     if loads is not None:
         f = np.asarray(loads, dtype=float).reshape(len(x), 2)
-        unit = it**2 / (g0 - u[:, None]) ** 2 - ib**2 / (g0 + u[:, None]) ** 2
+        unit = ideal_force(g0, x0, 1.0, it, ib, x[:, None], c)
         ok = np.isfinite(f) & (np.abs(unit) > 0)
         if ok.any():
             # Least squares through the origin: F = k * unit.
@@ -193,7 +195,7 @@ def _cluster_positions(x: np.ndarray, tol: float) -> np.ndarray:
     return labels
 
 
-def solve_rows(df: pd.DataFrame, *, alpha: float = ALPHA_DEFAULT) -> Solution:
+def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solution:
     """Solve one iteration of one axis from its contract rows (see :func:`solve`).
 
     Positions are grouped by the own-axis set-point column when present, else by
@@ -229,7 +231,7 @@ def solve_rows(df: pd.DataFrame, *, alpha: float = ALPHA_DEFAULT) -> Solution:
         it.append(row_t)
         ib.append(row_b)
         loads.append(row_l)
-    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), alpha=alpha)
+    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), bearing=bearing)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,7 +288,8 @@ def _none(x):
     return None if not np.isfinite(x) else float(x)
 
 
-def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False, alpha: float = ALPHA_DEFAULT) -> ClosedFormResult:
+def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
+             bearing: Bearing = PAPER_BEARING) -> ClosedFormResult:
     """Closed-form identification of every iteration, averaged as in the paper's tables.
 
     Iterations are the (``experiment``, ``iteration``) groups of each axis (a file
@@ -301,7 +304,7 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False, alpha
 
     Examples
     --------
-    >>> from ambfit import rig, protocol
+    >>> from ambfit.rig import protocol, virtual as rig
     >>> sim = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(iterations=1), noise=rig.NOISE_FREE)
     >>> est = identify(sim.data).estimates[("all", "v")]
     >>> round(est.g0 * 1e6, 6), round(est.x0 * 1e6, 6)
@@ -326,7 +329,7 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False, alpha
             for (e, i), grp in sub.groupby(["experiment", "_it"], sort=False):
                 key = f"{e}:{i}" if not by_experiment else i
                 try:
-                    sols[key] = solve_rows(grp, alpha=alpha)
+                    sols[key] = solve_rows(grp, bearing=bearing)
                 except ClosedFormError as exc:
                     rejected[key] = str(exc)
             if not sols:

@@ -24,9 +24,9 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset, load_groups
-from ambfit.fit import FitResult, fit
-from ambfit.likelihood import build_problem, free_mask, free_names, jacobian, param_scale
-from ambfit.model import AXES
+from ambfit.estimation.fit import FitResult, fit
+from ambfit.estimation.core import K_REFERENCE, Model, build_problem, free_mask, free_names, jacobian, param_scale, to_theta
+from ambfit.physics.model import AXES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,28 +60,29 @@ def _rows_for(steps: pd.DataFrame, template: pd.Series, load_by_axis: dict, std:
     return pd.DataFrame(out)
 
 
-def _information_rows(res: FitResult, df: pd.DataFrame, alpha) -> tuple[np.ndarray, list]:
+def _information_rows(res: FitResult, df: pd.DataFrame) -> tuple[np.ndarray, list]:
     """Per-row Jacobian (SI parameter units) of the standardized residuals at the estimate, for ``df``."""
-    from ambfit.debias import model_currents
-    from ambfit.likelihood import to_theta
+    from ambfit.estimation.debias import model_currents
 
     prob, meta = build_problem(df)
+    model = Model.of((), res.bearing)
     vals = dict(zip(res.names, res.values))
-    g = np.array([vals.get("g_v0", 762e-6), vals.get("g_w0", 762e-6)])
+    nominal = res.bearing.nominal_gap
+    g = np.array([vals.get("g_v0", nominal), vals.get("g_w0", nominal)])
     x = np.array([vals.get("v0", 0.0), vals.get("w0", 0.0)])
-    k = np.array([vals.get("k_v", 3.445e-6), vals.get("k_w", 3.445e-6)])
+    k = np.array([vals.get("k_v", K_REFERENCE), vals.get("k_w", K_REFERENCE)])
     loads = np.array([vals.get(f"load[{grp}]", 0.0) for grp in meta.load_groups])
     th = jnp.asarray(to_theta(g, x, k, loads))
-    it, ib = model_currents(th, prob, prob.bias, alpha)
-    prob = eqx.tree_at(lambda p: (p.i_top, p.i_bottom), prob, (it, ib))
+    it, ib = model_currents(th, prob, prob.bias, model)
+    prob = prob.with_readings(it, ib, prob.x)
     free = free_mask(prob, meta)
-    j = np.asarray(jacobian(th, prob, alpha))[:, free] / param_scale(prob.n_loads)[free]
+    j = np.asarray(jacobian(th, prob, model))[:, free] / param_scale(prob.n_loads)[free]
     return j, free_names(meta, free)
 
 
 def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.DataFrame | None = None,
               target: str = "g_v0", criterion: str = "A", result: FitResult | None = None,
-              alpha: float | None = None, max_radius_um: float | None = None) -> Recommendation:
+              max_radius_um: float | None = None) -> Recommendation:
     """Greedy A- (variance of ``target``) or D-optimal (log det of gap/origin information) next steps.
 
     ``candidates`` has columns ``v_set_um``, ``w_set_um``, ``bias_A``; default: a grid of
@@ -90,9 +91,6 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     ``max_radius_um`` drops candidates farther than that from the sensor origin (the
     back-up bearing clearance, 60 µm on the paper's rig, less a margin).
     """
-    from ambfit.model import ALPHA_DEFAULT
-
-    alpha = ALPHA_DEFAULT if alpha is None else alpha
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     res = result or fit(df)
     if target not in res.names:
@@ -122,7 +120,7 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
            "x_um": float(np.nanmedian(df["v_std_um"])) if "v_std_um" in df else 0.1}
     cand_rows = _rows_for(candidates, template, load_by_axis, std)
     both = pd.concat([df, cand_rows], ignore_index=True)
-    j, names = _information_rows(res, both, alpha)
+    j, names = _information_rows(res, both)
     n0 = len(df)
     info = j[:n0].T @ j[:n0]
     jc = j[n0:].reshape(len(candidates), 2, -1)          # one step = two rows (v, w)

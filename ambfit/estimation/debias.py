@@ -24,21 +24,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.likelihood import Problem, solve, unpack
-from ambfit.model import ALPHA_DEFAULT, gaps
+from ambfit.estimation.core import IDEAL, Model, Problem, solve, target, unpack
+from ambfit.physics.model import pole_gaps
 
 
-def model_currents(theta, prob: Problem, bias, alpha: float = ALPHA_DEFAULT):
+def model_currents(theta, prob: Problem, bias, model: Model = IDEAL):
     """Noise-free ``(i_top, i_bottom)`` [A] that carry each row's load at its bias and position under ``theta``.
 
     Solves ``k ((b + c)^2 / g_t^2 - (b - c)^2 / g_b^2) = L`` for the control current ``c``
     (the root continuous with ``c = 0`` at zero load).
     """
-    g0, x0, k, loads = unpack(theta, prob)
+    p = unpack(theta, prob, model)
     a = prob.ax
-    gt, gb = gaps(g0[a], x0[a], prob.x, alpha)
-    nuisance = loads[jnp.maximum(prob.gidx, 0)] if loads.shape[0] else jnp.zeros(prob.x.shape)
-    load = jnp.where(prob.known, prob.load, nuisance) / k[a]
+    gt, gb = pole_gaps(p.params.g0[a], p.params.x0[a], prob.x, model.bearing.cos_alpha)
+    load = target(prob, p.loads) / p.params.k[a]
     p, q = 1.0 / gt**2, 1.0 / gb**2
     qa = p - q
     qb = 2.0 * bias * (p + q)
@@ -59,27 +58,26 @@ class Correction:
 
 
 @eqx.filter_jit
-def _bootstrap(theta, prob: Problem, bias, key, n: int, alpha):
-    it0, ib0 = model_currents(theta, prob, bias, alpha)
+def _bootstrap(theta, prob: Problem, bias, key, n: int, model: Model):
+    it0, ib0 = model_currents(theta, prob, bias, model)
 
     def one(key):
         k1, k2, k3 = jax.random.split(key, 3)
         shape = prob.x.shape
-        synth = eqx.tree_at(
-            lambda p: (p.i_top, p.i_bottom, p.x), prob,
-            (it0 + prob.s_top * jax.random.normal(k1, shape), ib0 + prob.s_bottom * jax.random.normal(k2, shape),
-             prob.x + prob.s_x * jax.random.normal(k3, shape)))
-        value, _, _, edm = solve(theta, synth, alpha)
+        synth = prob.with_readings(it0 + prob.s_top * jax.random.normal(k1, shape),
+                                   ib0 + prob.s_bottom * jax.random.normal(k2, shape),
+                                   prob.x + prob.s_x * jax.random.normal(k3, shape))
+        value, _, _, edm = solve(theta, synth, model)
         return value, edm
 
     return jax.vmap(one)(jax.random.split(key, n))
 
 
-def bootstrap_bias(theta, prob: Problem, bias, *, n: int = 2000, seed: int = 0, alpha: float = ALPHA_DEFAULT,
+def bootstrap_bias(theta, prob: Problem, bias, *, n: int = 2000, seed: int = 0, model: Model = IDEAL,
                    edm_max: float = 1e-6) -> Correction:
     """Estimated bias of the estimator at ``theta`` (scaled parameters), from ``n`` synthetic data sets."""
     values, edm = _bootstrap(jnp.asarray(theta), prob, jnp.asarray(bias, dtype=float), jax.random.PRNGKey(seed), n,
-                             alpha)
+                             model)
     values, ok = np.asarray(values), np.asarray(edm) < edm_max
     v = values[ok]
     return Correction(bias=v.mean(axis=0) - np.asarray(theta), mc_error=v.std(axis=0, ddof=1) / np.sqrt(len(v)),

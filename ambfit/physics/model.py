@@ -8,12 +8,12 @@ with effective gap ``g0`` [m], effective origin ``x0`` [m] and force constant
     g_bottom = g0 + (x0 + x) * cos(alpha)
     F        = k * (i_top**2 / g_top**2 - i_bottom**2 / g_bottom**2)
 
-``k = 0.25 * MU_0 * A * N**2 * cos(alpha) * lamination`` (Eq. 3), with ``A`` the
-area of one pole face [m^2] and ``N`` the turns of one pole.  The flux density in
-a gap of the ideal circuit (two air gaps in series per horseshoe, iron ignored)
-is ``B = MU_0 * N * i / (2 g)`` [T].
+The law is written once, in :func:`pole_gaps` and :func:`horseshoe_force`; every
+estimator calls these (or :func:`evaluate`, which threads unmodelled effects through
+them).  The bearing's facts (pole angle, turns, pole face) come from
+:class:`ambfit.physics.bearing.Bearing`.
 
-Unmodelled physics enters through :mod:`ambfit.effects`: :func:`axis_force`
+Unmodelled physics enters through :mod:`ambfit.physics.effects`: :func:`evaluate`
 threads a :class:`Context` through every effect's stages, so the same effect
 objects serve the virtual rig (as truth) and the fit (as model extensions).
 
@@ -33,16 +33,9 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from collections.abc import Sequence
 
-    from ambfit.effects import Effect
+    from ambfit.physics.effects import Effect
 
-MU_0 = 4e-7 * np.pi
-"""Magnetic permeability of vacuum (air) [H/m]."""
-
-ALPHA_DEFAULT = np.deg2rad(22.5)
-"""Angle between a horseshoe's centre line and its pole faces [rad] (the paper's 22.5 deg)."""
-
-AXES = ("v", "w")
-"""Axis names in index order: rows with ``axis == AXES[j]`` use parameter ``j``."""
+from ambfit.physics.bearing import AXES, MU_0, PAPER_BEARING, Bearing  # noqa: F401  (AXES, MU_0 re-exported)
 
 
 class BearingParams(eqx.Module):
@@ -168,8 +161,7 @@ class Context(eqx.Module):
     y0: jnp.ndarray
     k: jnp.ndarray
     g0_other: jnp.ndarray
-    cos_alpha: float
-    turns: float
+    bearing: Bearing = eqx.field(static=True)
     g_top: jnp.ndarray
     g_bottom: jnp.ndarray
     m_top: jnp.ndarray
@@ -180,12 +172,12 @@ class Context(eqx.Module):
     m_prev_bottom: jnp.ndarray
 
     def b_top(self) -> jnp.ndarray:
-        """Flux density in the top gaps [T], ``MU_0 N m_top / (2 g_top)``."""
-        return MU_0 * self.turns * self.m_top / (2.0 * self.g_top)
+        """Ideal-circuit flux density in the top gaps [T] (:meth:`Bearing.flux_density`)."""
+        return self.bearing.flux_density(self.m_top, self.g_top)
 
     def b_bottom(self) -> jnp.ndarray:
-        """Flux density in the bottom gaps [T]."""
-        return MU_0 * self.turns * self.m_bottom / (2.0 * self.g_bottom)
+        """Ideal-circuit flux density in the bottom gaps [T]."""
+        return self.bearing.flux_density(self.m_bottom, self.g_bottom)
 
 
 def _set(ctx: Context, **fields) -> Context:
@@ -194,8 +186,8 @@ def _set(ctx: Context, **fields) -> Context:
 
 
 def make_context(
-    params: BearingParams, readings: Readings, *, alpha: float = ALPHA_DEFAULT, turns: float = 480.0,
-    m_prev_top=None, m_prev_bottom=None,
+    params: BearingParams, readings: Readings, *, bearing: Bearing = PAPER_BEARING, m_prev_top=None,
+    m_prev_bottom=None,
 ) -> Context:
     """Context for ``readings`` under ``params`` before any effect has acted."""
     ax = readings.axis
@@ -205,7 +197,7 @@ def make_context(
         bias=readings.bias, time=readings.time, temperature=readings.temperature,
         dir_top=readings.dir_top, dir_bottom=readings.dir_bottom,
         g0=params.g0[ax], x0=params.x0[ax], y0=params.x0[1 - ax], k=params.k[ax],
-        g0_other=params.g0[1 - ax], cos_alpha=float(np.cos(alpha)), turns=float(turns),
+        g0_other=params.g0[1 - ax], bearing=bearing,
         g_top=nan, g_bottom=nan, m_top=nan, m_bottom=nan, k_top=nan, k_bottom=nan,
         m_prev_top=nan if m_prev_top is None else jnp.asarray(m_prev_top, dtype=float),
         m_prev_bottom=nan if m_prev_bottom is None else jnp.asarray(m_prev_bottom, dtype=float),
@@ -214,8 +206,7 @@ def make_context(
 
 def evaluate(
     params: BearingParams, readings: Readings, effects: Sequence[Effect] = (), *,
-    alpha: float = ALPHA_DEFAULT, turns: float = 480.0, physical: bool = False,
-    m_prev_top=None, m_prev_bottom=None,
+    bearing: Bearing = PAPER_BEARING, physical: bool = False, m_prev_top=None, m_prev_bottom=None,
 ) -> tuple[jnp.ndarray, Context]:
     """Force on each reading's axis [N] and the final :class:`Context`.
 
@@ -226,29 +217,26 @@ def evaluate(
         Measured readings (or physical ones with ``physical=True``, as the rig uses).
     effects : sequence of :class:`ambfit.effects.Effect`
         Unmodelled physics added to the ideal law, applied stage by stage in order.
-    alpha : float
-        Pole angle [rad].
-    turns : float
-        Turns ``N`` of one pole, used only for flux densities (saturation etc.).
+    bearing : Bearing
+        The bearing's facts: pole angle, turns (for flux densities), pole face.
     physical : bool
         When True the readings are already physical quantities and the sensor
         stage is skipped.
     """
-    ctx = make_context(params, readings, alpha=alpha, turns=turns,
-                       m_prev_top=m_prev_top, m_prev_bottom=m_prev_bottom)
+    ctx = make_context(params, readings, bearing=bearing, m_prev_top=m_prev_top, m_prev_bottom=m_prev_bottom)
     if not physical:
         for e in effects:
             ctx = e.physical(ctx)
     for e in effects:
         ctx = e.geometry(ctx)
-    u = (ctx.x0 + ctx.x) * ctx.cos_alpha
-    ctx = _set(ctx, g_top=ctx.g0 - u, g_bottom=ctx.g0 + u)
+    g_top, g_bottom = pole_gaps(ctx.g0, ctx.x0, ctx.x, bearing.cos_alpha)
+    ctx = _set(ctx, g_top=g_top, g_bottom=g_bottom)
     for e in effects:
         ctx = e.gap(ctx)
     ctx = _set(ctx, m_top=ctx.i_top, m_bottom=ctx.i_bottom, k_top=ctx.k, k_bottom=ctx.k)
     for e in effects:
         ctx = e.coil(ctx)
-    force = ctx.k_top * ctx.m_top**2 / ctx.g_top**2 - ctx.k_bottom * ctx.m_bottom**2 / ctx.g_bottom**2
+    force = horseshoe_force(ctx.k_top, ctx.m_top, ctx.g_top, ctx.k_bottom, ctx.m_bottom, ctx.g_bottom)
     for e in effects:
         force = e.force(ctx, force)
     return force, ctx
@@ -267,26 +255,21 @@ def axis_force(params: BearingParams, readings: Readings, effects: Sequence[Effe
     return evaluate(params, readings, effects, **kw)[0]
 
 
-def ideal_force(g0, x0, k, i_top, i_bottom, x, alpha: float = ALPHA_DEFAULT):
-    """Eq. 4 for one axis on plain arrays: ``k (i_t^2/g_t^2 - i_b^2/g_b^2)`` [N]."""
-    u = (x0 + x) * jnp.cos(alpha)
-    return k * (i_top**2 / (g0 - u) ** 2 - i_bottom**2 / (g0 + u) ** 2)
+def pole_gaps(g0, x0, x, cos_alpha: float = PAPER_BEARING.cos_alpha):
+    """Pole gaps ``(g_top, g_bottom)`` [m] along the pole direction (contract section 1).
 
-
-def gaps(g0, x0, x, alpha: float = ALPHA_DEFAULT):
-    """Pole gaps ``(g_top, g_bottom)`` [m] along the pole direction (contract section 1)."""
-    u = (x0 + x) * jnp.cos(alpha)
+    Plain arithmetic: works on floats, numpy and JAX arrays.
+    """
+    u = (x0 + x) * cos_alpha
     return g0 - u, g0 + u
 
 
-def flux_density(i, g, turns: float):
-    """Ideal-circuit gap flux density ``MU_0 N i / (2 g)`` [T] for current ``i`` [A] and gap ``g`` [m]."""
-    return MU_0 * turns * i / (2.0 * g)
+def horseshoe_force(k_top, m_top, g_top, k_bottom, m_bottom, g_bottom):
+    """Eq. 3: ``k_t m_t^2 / g_t^2 - k_b m_b^2 / g_b^2`` [N], the one place the square law is written."""
+    return k_top * m_top**2 / g_top**2 - k_bottom * m_bottom**2 / g_bottom**2
 
 
-def force_constant(pole_area: float, turns: float, alpha: float = ALPHA_DEFAULT, lamination: float = 1.0) -> float:
-    """Eq. 3's constant ``0.25 MU_0 A N^2 cos(alpha) * lamination`` [N m^2/A^2].
-
-    ``pole_area`` is one pole face [m^2], ``turns`` the turns of one pole.
-    """
-    return 0.25 * MU_0 * pole_area * turns**2 * np.cos(alpha) * lamination
+def ideal_force(g0, x0, k, i_top, i_bottom, x, cos_alpha: float = PAPER_BEARING.cos_alpha):
+    """Eq. 4 for one axis on plain arrays: ``k (i_t^2/g_t^2 - i_b^2/g_b^2)`` [N] (numpy or JAX)."""
+    g_top, g_bottom = pole_gaps(g0, x0, x, cos_alpha)
+    return horseshoe_force(k, i_top, g_top, k, i_bottom, g_bottom)

@@ -15,11 +15,11 @@ import dataclasses
 
 import numpy as np
 
-from ambfit import protocol as P
+from ambfit.rig import protocol as P
 from ambfit import rig
-from ambfit.bayes import Prior, sample
+from ambfit.estimation.bayes import Prior, sample
 
-SBC_PRIOR = Prior(gap=762e-6, gap_log_sd=0.05, origin_sd=30e-6, k=rig.PAPER_RIG.force_constant, k_log_sd=0.2)
+SBC_PRIOR = Prior(gap=rig.PAPER_RIG.nominal_gap, gap_log_sd=0.05, origin_sd=30e-6, k=rig.PAPER_RIG.force_constant, k_log_sd=0.2)
 """The prior the calibration draws from and the sampler assumes (the paper's rig, nominal values)."""
 
 

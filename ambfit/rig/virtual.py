@@ -12,7 +12,7 @@ time-dependent ones (thermal drift) act as on a real rig.
 
 Example
 -------
->>> from ambfit import rig, protocol
+>>> from ambfit.rig import protocol, virtual as rig
 >>> sim = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(iterations=1), seed=1)
 >>> sorted(sim.data["axis"].unique().tolist())
 ['v', 'w']
@@ -30,9 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.effects import Effect
-from ambfit.model import ALPHA_DEFAULT, AXES, BearingParams, Readings, evaluate, force_constant
-from ambfit.protocol import Protocol
+from ambfit.physics.effects import Effect
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
+from ambfit.physics.model import BearingParams, Readings, evaluate
+from ambfit.rig.protocol import Protocol
 
 _BISECTION_STEPS = 110  # halves a 40 A bracket below one ulp of the current
 FORCE_TOLERANCE_N = 1e-9
@@ -45,26 +46,15 @@ class RigError(RuntimeError):
 
 @dataclasses.dataclass(frozen=True)
 class RigSpec:
-    """A bearing test rig: geometry, winding and the true effective parameters.
+    """A bearing test rig: the bearing as drawn, the amplifier, and the true effective parameters.
 
     Attributes
     ----------
-    name : str
-    bore_diameter : float
-        Stator inner diameter [m].
-    nominal_gap : float
-        Nominal radial air gap [m] (the drawing's value).
-    alpha : float
-        Pole angle [rad].
-    turns : float
-        Turns of one pole.
-    pole_width, pole_length : float
-        Pole face width and axial length [m].
+    bearing : Bearing
+        The bearing's facts (pole angle, turns, pole face, nominal gap, ...).
     lamination : float
-        Lamination (stacking) coefficient in Eq. 3 [-].
-    saturation_current : float
-        Coil current at which the iron saturates [A] (paper: 3.0 A).
-    max_current : float
+        True lamination (stacking) coefficient in Eq. 3 [-].
+    amplifier_limit : float
         Amplifier limit [A]: a step that needs more coil current than this fails.
     g0, x0 : tuple[float, float]
         True effective gaps and origins ``(v, w)`` [m] of the ideal-law description.
@@ -72,34 +62,31 @@ class RigSpec:
         True force constants [N m^2/A^2]; None derives them from the winding.
     """
 
-    name: str = "paper"
-    bore_diameter: float = 35e-3
-    nominal_gap: float = 762e-6
-    alpha: float = float(ALPHA_DEFAULT)
-    turns: float = 480.0
-    pole_width: float = 5.0e-3
-    pole_length: float = 10.0e-3
-    lamination: float = 0.95
-    saturation_current: float = 3.0
-    max_current: float = 5.0
+    bearing: Bearing = PAPER_BEARING
+    lamination: float = PAPER_BEARING.lamination
+    amplifier_limit: float = 5.0
     g0: tuple[float, float] = (775.0e-6, 763.0e-6)
     x0: tuple[float, float] = (33.3e-6, -11.3e-6)
     k: tuple[float, float] | None = None
 
     @property
-    def pole_area(self) -> float:
-        """Pole face area [m^2]."""
-        return self.pole_width * self.pole_length
+    def name(self) -> str:
+        return self.bearing.name
+
+    @property
+    def nominal_gap(self) -> float:
+        """Nominal radial air gap [m] (the drawing's value)."""
+        return self.bearing.nominal_gap
 
     @property
     def force_constant(self) -> float:
-        """Eq. 3's ``k`` from the winding and pole area [N m^2/A^2]."""
-        return force_constant(self.pole_area, self.turns, self.alpha, self.lamination)
+        """Eq. 3's ``k`` from the winding, pole area and true lamination [N m^2/A^2]."""
+        return self.bearing.force_constant(self.lamination)
 
     @property
     def load_capacity(self) -> float:
-        """Force at the saturation current on one coil, rotor centred at the nominal gap [N]."""
-        return self.force_constant * self.saturation_current**2 / self.nominal_gap**2
+        """Force at the coil current limit on one coil, rotor centred at the nominal gap [N]."""
+        return self.force_constant * self.bearing.max_current**2 / self.nominal_gap**2
 
     def params(self, origin_shift=(0.0, 0.0)) -> BearingParams:
         """The true effective parameters (optionally after a reassembly shift [m])."""
@@ -118,20 +105,9 @@ class RigSpec:
         return dataclasses.replace(self, **kw)
 
 
-def _paper_rig() -> RigSpec:
-    # Pole area chosen so that k matches the paper's 53.4 N load capacity at 3.0 A
-    # with 480 turns and a 0.95 lamination coefficient: k = 53.4 * g^2 / 3^2.
-    k_target = 53.4 * 762e-6**2 / 3.0**2
-    area = k_target / force_constant(1.0, 480.0, ALPHA_DEFAULT, 0.95)
-    width = 5.0e-3
-    return RigSpec(pole_width=width, pole_length=area / width)
-
-
-PAPER_RIG = _paper_rig()
-"""The seed paper's rig: 35 mm bore, 762 µm nominal gap, 8 poles (two horseshoes per
-axis), alpha 22.5°, 53.4 N load capacity at 3.0 A (k ≈ 3.45e-6 N m²/A²), 480 turns
-per pole on a 5 mm x 10.3 mm pole face; the true effective gaps and origins are the
-paper's identified values (775/763 µm, 33.3/-11.3 µm)."""
+PAPER_RIG = RigSpec()
+"""The seed paper's rig (:data:`ambfit.physics.bearing.PAPER_BEARING`); the true effective gaps
+and origins are the paper's identified values (775/763 µm, 33.3/-11.3 µm)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,7 +150,7 @@ class Simulation:
     physical_currents: np.ndarray  # array[n_steps, 2 axes, 2 coils] [A]
 
 
-def _solve_steps(params_by_step, readings_template, loads, effects, alpha, turns, max_current, m0):
+def _solve_steps(params_by_step, readings_template, loads, effects, bearing, max_current, m0):
     """Scan over steps; each step solves both axes' control currents by bisection."""
 
     def step(m_prev, inp):
@@ -186,7 +162,7 @@ def _solve_steps(params_by_step, readings_template, loads, effects, alpha, turns
             ib = jnp.maximum(bias - ic, 0.0)
             r = Readings(axis=jnp.arange(2), i_top=it, i_bottom=ib, x=x, y=y, bias=bias,
                          time=jnp.full(2, t), temperature=temp, dir_top=jnp.zeros(2), dir_bottom=jnp.zeros(2))
-            f, ctx = evaluate(params, r, effects, alpha=alpha, turns=turns, physical=True,
+            f, ctx = evaluate(params, r, effects, bearing=bearing, physical=True,
                               m_prev_top=m_prev[:, 0], m_prev_bottom=m_prev[:, 1])
             return f - load, ctx, it, ib
 
@@ -208,7 +184,7 @@ def _solve_steps(params_by_step, readings_template, loads, effects, alpha, turns
     return jax.lax.scan(step, m0, (*params_by_step, *readings_template, loads))
 
 
-_solve_jit = eqx.filter_jit(_solve_steps)
+_solve_jit = eqx.filter_jit(_solve_steps)  # the bearing is hashable: a static argument
 
 
 def _temperature(effects: Sequence[Effect], time_s: np.ndarray, ambient_C: float) -> np.ndarray:
@@ -278,7 +254,7 @@ def simulate(
     _, _, x_phys, y_phys = _unsense(effects, axis2[None, :], np.zeros((n, 2)), np.zeros((n, 2)),
                                     sets, sets[:, ::-1])
     x_phys, y_phys = np.asarray(x_phys), np.asarray(y_phys)
-    u = (x0 + x_phys) * np.cos(spec.alpha)
+    u = (x0 + x_phys) * spec.bearing.cos_alpha
     if np.any(np.abs(u) >= 0.95 * g0):
         bad = int(np.argmax(np.any(np.abs(u) >= 0.95 * g0, axis=1)))
         raise RigError(f"step {bad}: set-point ({sets[bad, 0] * 1e6:.1f}, {sets[bad, 1] * 1e6:.1f}) µm "
@@ -291,7 +267,7 @@ def simulate(
     m_end, (res, it, ib) = _solve_jit(
         (jnp.asarray(g0), jnp.asarray(x0), jnp.asarray(k)),
         (jnp.asarray(x_phys), jnp.asarray(y_phys), jnp.asarray(bias), jnp.asarray(tt), jnp.asarray(temps)),
-        jnp.asarray(load), effects, spec.alpha, spec.turns, spec.max_current, jnp.asarray(state.m, dtype=float),
+        jnp.asarray(load), effects, spec.bearing, spec.amplifier_limit, jnp.asarray(state.m, dtype=float),
     )
     res, it, ib = np.asarray(res), np.asarray(it), np.asarray(ib)
     worst = float(np.max(np.abs(res))) if n else 0.0
@@ -301,7 +277,7 @@ def simulate(
             f"step {s} (experiment {protocol.experiment[s]}, load {protocol.load_id[s]!r}, "
             f"bias {bias[s].tolist()} A): the bearing cannot balance the load to {FORCE_TOLERANCE_N:g} N "
             f"(residual {np.abs(res[s]).max():.3g} N) with coil currents within the amplifier limit of "
-            f"{spec.max_current:g} A; the load is beyond the capacity at this set-point"
+            f"{spec.amplifier_limit:g} A; the load is beyond the capacity at this set-point"
         )
 
     # What the sensors report: physical -> sensed, plus noise.

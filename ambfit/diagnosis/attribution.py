@@ -1,0 +1,306 @@
+"""Which unmodelled effect explains where the model fails, judged on held-out readings.
+
+For the baseline (the ideal law) and for each candidate effect, the model is fitted
+by :func:`ambfit.fit` with each fold held out (block cross-validation over
+operating regions) and scored on it: ``excess = sqrt(max(mean(z^2) - 1, 0))`` of the
+pooled held-out standardized residuals (contract section 3).  The verdict is the
+candidate that removes the structure; ``shrink = 1 - excess_after / excess_before``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+
+import numpy as np
+import pandas as pd
+
+from ambfit.data import Dataset, load_groups
+from ambfit.diagnosis.parameter_gap import parameter_gap
+from ambfit.diagnosis.residuals import NoiseFloor, Where, noise_floor, operating_variables, where
+from ambfit.estimation.fit import fit
+from ambfit.estimation.results import FitResult
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
+
+HEAD = ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+
+
+def folds(data: pd.DataFrame) -> tuple[str, list]:
+    """Block cross-validation folds over operating regions: leave one load out when there are three or more
+    load groups, else leave one bias out, else alternate iterations.  Returns (name, [bool test masks])."""
+    df = data.reset_index(drop=True)
+    if "load_id" in df and df["load_id"].nunique() >= 3:
+        return "leave-one-load-out", [(df["load_id"] == v).to_numpy() for v in df["load_id"].unique()]
+    b = np.round(df["bias_A"].to_numpy(float), 6)
+    if len(np.unique(b)) >= 3:
+        return "leave-one-bias-out", [b == v for v in np.unique(b)]
+    it = pd.to_numeric(df["iteration"], errors="coerce").fillna(0).to_numpy() if "iteration" in df else np.arange(len(df))
+    return "alternate iterations", [(it % 2) == 0, (it % 2) == 1]
+
+
+def excess(z) -> float:
+    """``sqrt(max(mean(z^2) - 1, 0))``: model error beyond the noise floor, in noise units (contract section 3)."""
+    return float(np.sqrt(max(np.mean(np.asarray(z) ** 2) - 1.0, 0.0)))
+
+
+def shrink(before: float, after: float) -> float:
+    """Fraction of the held-out excess that a model removes: ``1 - after / before`` (0 when there is none)."""
+    return 1.0 - after / before if before > 0 else 0.0
+
+
+def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray) -> np.ndarray:
+    """Standardized residuals of the ``test`` rows (bool mask) under a fit that held them out.
+
+    A nuisance load that no training row constrained is refitted on the test rows alone
+    (its weighted mean misfit is removed, one number per group): the held-out check is
+    about the shape of the force law, not about an unknown load the training data never saw.
+    """
+    z = fitted.residuals.copy()
+    groups = load_groups(data.reset_index(drop=True)).to_numpy()
+    known = data["load_N"].notna().to_numpy() if "load_N" in data else np.zeros(len(data), bool)
+    for g in np.unique(groups[test & ~known]):
+        m = groups == g
+        if not np.any(m & ~test):
+            zz = z[m & test]
+            z[m & test] = zz - zz.mean()
+    return z[test]
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One model's held-out score: the effects, the excess before and after, and its in-sample fit."""
+
+    effect: str
+    heldout_z: np.ndarray
+    before: float
+    fit: FitResult
+
+    @property
+    def after(self) -> float:
+        return excess(self.heldout_z)
+
+    @property
+    def shrink(self) -> float:
+        return shrink(self.before, self.after)
+
+    @property
+    def score(self) -> float:
+        """Mean squared held-out standardized residual (lower is better)."""
+        return float(np.mean(self.heldout_z**2))
+
+    def to_json(self, baseline: Candidate) -> dict:
+        head = {n: (self.fit.value(n), self.fit.error(n)) for n in self.fit.names if not n.startswith("load[")}
+        base = {n: baseline.fit.value(n) for n in baseline.fit.names}
+        z_in = self.fit.residuals
+        aic0 = float(np.sum(baseline.fit.residuals**2) + 2 * len(baseline.fit.names))
+        return {"effect": self.effect,
+                "heldout_rms_before": float(np.sqrt(np.mean(baseline.heldout_z**2))),
+                "heldout_rms_after": float(np.sqrt(self.score)), "heldout_excess_before": self.before,
+                "heldout_excess_after": self.after, "shrink": self.shrink, "score": self.score,
+                "insample_mean_z2": float(np.mean(z_in**2)),
+                # Akaike's criterion on the in-sample fit (chi2 + 2 p), relative to the ideal model
+                "delta_aic": float(np.sum(z_in**2) + 2 * len(self.fit.names) - aic0),
+                "converged": self.fit.converged,
+                "params": {k: v[0] for k, v in head.items() if "." in k},
+                "params_std": {k: v[1] for k, v in head.items() if "." in k},
+                "shift": {k: head[k][0] - base[k] for k in HEAD if k in head and k in base},
+                # standard error of the extended estimate (the shift's reference, the ideal fit on the
+                # same data, is strongly correlated with it; sqrt(var_ext - var_base) was negative here)
+                "shift_std": {k: head[k][1] for k in HEAD if k in head and k in base}}
+
+
+@dataclasses.dataclass(frozen=True)
+class Diagnosis:
+    """Where the ideal model fails, which effect explains it on held-out data, how far the gap shrinks.
+
+    Attributes
+    ----------
+    baseline : FitResult
+        The ideal law fitted to every row.
+    noise_floor, where :
+        What the residuals would be if the model were right, and where they are structured.
+    folds : str
+        The cross-validation scheme.
+    ideal : Candidate
+        The ideal law's held-out score (the ``before`` of every candidate).
+    ranking : list[Candidate]
+        Candidates, best (lowest held-out score) first; pairs follow when no single effect explains the data.
+    verdict : str
+        An effect name, ``a+b`` for a pair, ``none`` or ``unexplained``.
+    confounded_with : list[str]
+        Candidates whose held-out score is statistically indistinguishable from the verdict's.
+    shrink : float
+        Held-out shrink of the verdict (or of the best single candidate when ``unexplained``).
+    verdict_fit : FitResult or None
+        The verdict's model fitted to every row: its residuals are the "after" of the residual map.
+    operating : DataFrame
+        Per-row operating variables (flux densities, positions, ...) the residuals are mapped against.
+    parameter_gap : list[dict]
+        Identified parameters against the bearing description.
+    """
+
+    baseline: FitResult
+    noise_floor: NoiseFloor
+    where: Where
+    folds: str
+    ideal: Candidate
+    ranking: list
+    verdict: str
+    confounded_with: list
+    shrink: float
+    verdict_fit: FitResult | None
+    operating: pd.DataFrame
+    parameter_gap: list
+    best_pair: dict | None = None
+
+    @property
+    def residuals_before(self) -> np.ndarray:
+        return self.baseline.residuals
+
+    @property
+    def residuals_after(self) -> np.ndarray | None:
+        return None if self.verdict_fit is None else self.verdict_fit.residuals
+
+    @property
+    def heldout_excess_before(self) -> float:
+        return self.ideal.after
+
+    @property
+    def most_structured_variable(self) -> str:
+        return self.where.regions[0].variable if self.where.regions else "b_top_T"
+
+    def to_json(self) -> dict:
+        """The contract section 3 record."""
+        rec = {
+            "baseline": "ideal", "noise_floor": self.noise_floor.to_json(), "folds": self.folds,
+            "where": [r.to_json() for r in self.where.regions[:20]],
+            "ranking": [c.to_json(self.ideal) for c in self.ranking], "verdict": self.verdict,
+            "confounded_with": list(self.confounded_with), "shrink": self.shrink,
+            "heldout_excess_before": self.heldout_excess_before,
+            "parameters_baseline": {n: self.baseline.value(n) for n in self.baseline.names if not n.startswith("load[")},
+            "goodness_of_fit": self.baseline.goodness_of_fit(),
+            "parameter_gap": self.parameter_gap,
+        }
+        if self.best_pair is not None:
+            rec["best_pair"] = self.best_pair
+        return rec
+
+    def to_dataframe(self) -> pd.DataFrame:
+        """The ranking as a table: effect, held-out excess after, shrink, in-sample mean z²."""
+        return pd.DataFrame([{"effect": c.effect, "heldout_excess_after": c.after, "shrink": c.shrink,
+                              "insample_mean_z2": float(np.mean(c.fit.residuals**2)), "converged": c.fit.converged}
+                             for c in self.ranking])
+
+    def verdict_text(self) -> str:
+        text = (f"verdict: {self.verdict}; confounded with: {', '.join(self.confounded_with) or 'none'}; "
+                f"shrink {self.shrink:.3f}")
+        if self.best_pair is not None:
+            bp = self.best_pair
+            text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
+                     f"{bp['shrink']:.3f}{', explains the data' if bp['explains'] else ''})")
+        return text
+
+    def flagged_parameters(self) -> list[str]:
+        out = []
+        for e in self.parameter_gap:
+            if e["flagged"]:
+                why = "; ".join(f"{c['effect']} ({c['needs']})" for c in e.get("could_be", []))
+                out.append(f"{e['parameter']}: identified {e['identified']:.4g} vs nominal {e['nominal']:.4g} "
+                           f"({e['z']:+.1f} sd) - could be {why}")
+        return out
+
+    def summary(self) -> str:
+        nf = self.noise_floor
+        lines = [f"noise floor ({nf.source}): mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}); "
+                 f"held-out excess {self.heldout_excess_before:.2f} noise units; folds: {self.folds}"]
+        lines += [f"  where: {r.describe()} ({r.rows} rows, z {r.z:.1f})" for r in self.where.regions[:5]]
+        lines += [f"  {c.effect:<32} excess after {c.after:.2f}, shrink {c.shrink:.3f}" for c in self.ranking[:6]]
+        lines.append(self.verdict_text())
+        lines += self.flagged_parameters()
+        return "\n".join(lines)
+
+    __str__ = summary
+
+    def __repr__(self) -> str:
+        return f"Diagnosis(verdict={self.verdict!r}, shrink={self.shrink:.3f}, confounded_with={self.confounded_with})"
+
+    def _repr_html_(self) -> str:
+        rows = "".join(f"<tr><td>{html.escape(c.effect)}</td><td>{c.after:.2f}</td><td>{c.shrink:.3f}</td></tr>"
+                       for c in self.ranking)
+        return (f"<b>{html.escape(self.verdict_text())}</b><table><tr><th>effect</th><th>held-out excess after</th>"
+                f"<th>shrink</th></tr>{rows}</table>")
+
+
+def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing = PAPER_BEARING,
+             floor_tolerance: float = 1.0, min_shrink: float = 0.5, pairs: bool = True, pair_verdict: bool = False,
+             max_steps: int = 60, **noise) -> Diagnosis:
+    """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
+
+    Verdict: ``none`` when the baseline's held-out residuals sit on the noise floor
+    (excess below ``floor_tolerance`` and no structured region); otherwise the best
+    candidate (default: every effect in :data:`ambfit.physics.effects.EFFECTS`) if it
+    removes at least ``min_shrink`` of the excess *and* leaves the held-out residuals
+    within ``floor_tolerance`` of the floor; when no single effect does, the best single
+    plus each other candidate are tried the same way (``pairs=True``) and a pair can be
+    the verdict (``pair_verdict=True``, else it is reported as ``best_pair``); otherwise
+    ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit.
+    """
+    from ambfit.physics.effects import EFFECTS
+
+    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    base = fit(df, bearing=bearing, **noise)
+    fold_name, tests = folds(df)
+    cands = list(candidates) if candidates is not None else [cls() for cls in EFFECTS.values()]
+
+    def heldout(effects, before):
+        zs = []
+        for test in tests:
+            f = fit(df, effects, bearing=bearing, mask=(~test).astype(float), start_from=base, max_steps=max_steps,
+                    throw=False, **noise)
+            zs.append(heldout_residuals(f, df, test))
+        full = base if not effects else fit(df, effects, bearing=bearing, start_from=base, max_steps=max_steps,
+                                            throw=False, **noise)
+        name = "+".join(type(e).name for e in effects) or "ideal"
+        z = np.concatenate(zs)
+        return Candidate(name, z, excess(z) if before is None else before, full)
+
+    ideal = heldout((), None)
+    before = ideal.after
+    loc = where(df, base)
+    on_floor = before < floor_tolerance and not loc.regions
+
+    def explains(c):
+        return c.shrink >= min_shrink and c.after < floor_tolerance
+
+    ranking = sorted((heldout((e,), before) for e in cands), key=lambda c: c.score)
+    if not on_floor and ranking and not explains(ranking[0]) and pairs:
+        # no single effect removes the structure: forward selection, the best single plus each other candidate
+        first = ranking[0].effect
+        best_single = next(e for e in cands if type(e).name == first)
+        ranking += [heldout((best_single, e), before) for e in cands if type(e).name != first]
+        ranking.sort(key=lambda c: c.score)
+    pair_list = [c for c in ranking if "+" in c.effect]
+    singles = [c for c in ranking if "+" not in c.effect]
+    best = (ranking if pair_verdict else singles)[0] if (ranking if pair_verdict else singles) else None
+    if on_floor:
+        verdict, ref = "none", float(np.mean(ideal.heldout_z**2))
+    elif best is not None and explains(best):
+        verdict, ref = best.effect, best.score
+    else:
+        verdict, ref = "unexplained", None
+    # sd of a mean of n squared standard normals is sqrt(2 / n); scaled by the level when above the floor
+    se = np.sqrt(2.0 / len(ideal.heldout_z)) * max(ref, 1.0) if ref is not None else np.inf
+    confounded = [] if ref is None else [c.effect for c in ranking if c.effect != verdict and abs(c.score - ref) < 3 * se]
+    best_pair = None
+    if pair_list:
+        bp = pair_list[0]
+        best_pair = {"effect": bp.effect, "heldout_excess_after": bp.after, "shrink": bp.shrink,
+                     "explains": bool(explains(bp))}
+    verdict_fit = next((c.fit for c in ranking if c.effect == verdict), None)
+    return Diagnosis(
+        baseline=base, noise_floor=noise_floor(base), where=loc, folds=fold_name, ideal=ideal, ranking=ranking,
+        verdict=verdict, confounded_with=confounded,
+        # for "unexplained" this is the best candidate's partial shrink; for "none" there is nothing to shrink
+        shrink=0.0 if verdict == "none" or best is None else best.shrink,
+        verdict_fit=verdict_fit, operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing),
+        best_pair=best_pair)

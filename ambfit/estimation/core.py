@@ -1,0 +1,405 @@
+"""The one least-squares core: data arrays, the model (force law plus effects), residuals and the solve.
+
+Every fit in ambfit runs through here: :func:`ambfit.fit` (ideal or extended), the
+batch and bootstrap solves, the posterior's likelihood, the Fisher information, the
+design and the diagnosis.  The ideal model is the case ``Model.of(())``.
+
+Parameter vector (scaled, dimensionless)::
+
+    theta = [g_v0, g_w0, v0, w0, k_v, k_w, loads[m], q[n_effect_params]]
+
+with SI values ``theta * param_scale`` for the head and the loads, and
+``centre + width * q`` for each free effect parameter (a weak Gaussian prior
+``q ~ N(0, 1)`` enters as a residual, so an effect the data cannot see stays at its
+prior centre instead of wandering).
+
+Residual of a reading (effective variance, see :mod:`ambfit.estimation.fit`)::
+
+    r = mask * (F(measured; theta) - L) / s_eff,
+    s_eff^2 = (dF/di_t s_t)^2 + (dF/di_b s_b)^2 + (dF/dx s_x)^2
+
+with ``F`` from :func:`ambfit.physics.model.evaluate` and its derivatives with
+respect to the readings taken by forward-mode automatic differentiation (exact,
+so the ideal law needs no separate hand-written copy).  ``mask`` is 0 for rows
+held out of a fit (cross-validation keeps one compiled shape for every fold).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pandas as pd
+
+from ambfit.data import Dataset, load_groups, readings
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
+from ambfit.physics.effects import Effect
+from ambfit.physics.model import BearingParams, Readings, evaluate
+
+K_REFERENCE = PAPER_BEARING.force_constant()
+"""Force constant [N m^2/A^2] held on an axis without known loads (it cancels from gap and origin)."""
+
+# theta = (g_v0, g_w0) / 1 cm, (v0, w0) / 0.1 mm, (k_v, k_w) / 1e-4, loads / 100 N.  The units are coarse
+# on purpose: every column of the standardized Jacobian is then >= ~1e3, so Levenberg-Marquardt's
+# initial damping (lambda = 1) is negligible and it takes Gauss-Newton steps from a good seed, while
+# keeping its trust region for a poor one.  (With units near the parameters' size the weakest
+# eigenvalue of J^T J was ~10, and lambda = 1 cost ~8 extra steps per solve.)
+SCALE_HEAD = np.array([1e-2, 1e-2, 1e-4, 1e-4, 1e-4, 1e-4])
+SCALE_LOAD = 100.0
+HEAD_NAMES = ("g_v0", "g_w0", "v0", "w0", "k_v", "k_w")
+
+REWEIGHTINGS = 2
+"""Rounds of solving with the effective-variance weights held fixed, then re-evaluated at the estimate.
+
+Holding the weights fixed within a round gives Levenberg-Marquardt a consistent
+objective (its trust-region ratio test otherwise rejects steps when the weights
+move); a second round at the first round's estimate reproduces the fully
+reweighted solution to 9 digits on the rig designs (a third changes nothing)."""
+
+EDM_MAX = 1e-6
+"""Convergence: the estimated distance to the minimum, ``EDM = r^T J (J^T J)^-1 J^T r`` (the χ² a
+full Gauss-Newton step would still gain), must fall below this, i.e. every parameter is within
+about 1e-3 standard errors of the optimum (iminuit's criterion).  Optimistix's own test is
+reported too, but near the optimum its trust region rejects steps on round-off and it can
+stop late or never while the solution is already exact."""
+
+FIRST_STEPS = 3
+"""Levenberg-Marquardt steps per round of the first solve: enough for every one of 60 rig data sets
+(three designs, random gaps and origins, closed-form or grid starts) to reach ``EDM_MAX``; 2 left
+23 of them short.  Near the optimum further steps are mostly rejected on round-off, so a
+small fixed budget plus the EDM check is both faster and safer than waiting for
+optimistix's own termination.  A fit that is not there yet gets a second solve."""
+
+
+class FitError(RuntimeError):
+    """The fit did not converge or the design does not identify the parameters; the message says why."""
+
+
+def param_scale(n_loads: int) -> np.ndarray:
+    """SI value of one unit of each head and load entry of theta."""
+    return np.concatenate([SCALE_HEAD, np.full(n_loads, SCALE_LOAD)])
+
+
+def to_theta(g0, x0, k, loads=(), q=()) -> np.ndarray:
+    """The scaled parameter vector from SI values (pairs ``(v, w)``, nuisance loads [N], effect coordinates)."""
+    si = np.concatenate([np.broadcast_to(g0, (2,)), np.broadcast_to(x0, (2,)), np.broadcast_to(k, (2,)),
+                         np.asarray(loads, dtype=float)])
+    return np.concatenate([si / param_scale(len(loads)), np.asarray(q, dtype=float)])
+
+
+# --- the model: force law plus effects with free parameters ------------------------------------------------
+
+class Model(eqx.Module):
+    """What is fitted beyond gap, origin, k and loads: effects whose ``RANGES`` fields are free.
+
+    ``fields`` lists ``(effect index, field name)``; each free field is a ``(v, w)`` pair with
+    prior centre and width from the effect's ``RANGES`` (zero-centred for signed parameters).
+    """
+
+    effects: tuple
+    fields: tuple = eqx.field(static=True)
+    centre: jnp.ndarray
+    width: jnp.ndarray
+    bearing: Bearing = eqx.field(static=True)
+
+    @classmethod
+    def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING) -> Model:
+        fields, centre, width = [], [], []
+        for i, e in enumerate(effects):
+            for name, (lo, hi) in type(e).RANGES.items():
+                if lo == hi:
+                    continue
+                fields.append((i, name))
+                signed = name in type(e).SIGNED
+                c = 0.0 if signed else 0.5 * (lo + hi)
+                wd = hi if signed else max(hi - lo, 1e-12)
+                centre += [c, c]
+                width += [wd, wd]
+        return cls(tuple(effects), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
+                   jnp.asarray(width, dtype=float).reshape(-1), bearing)
+
+    @property
+    def n(self) -> int:
+        """Number of free effect parameters (entries of ``q``)."""
+        return int(self.centre.shape[0])
+
+    @property
+    def name(self) -> str:
+        """``ideal`` or the effect names joined with ``+`` (contract section 3)."""
+        return "+".join(type(e).name for e in self.effects) or "ideal"
+
+    def names(self) -> list[str]:
+        return [f"{type(self.effects[i]).name}.{f}[{ax}]" for i, f in self.fields for ax in ("v", "w")]
+
+    def build(self, q) -> tuple:
+        """Effects with their free fields set from the scaled vector ``q`` (value = centre + width * q)."""
+        vals = self.centre + self.width * q
+        effects = list(self.effects)
+        for j, (i, f) in enumerate(self.fields):
+            effects[i] = eqx.tree_at(lambda e, f=f: getattr(e, f), effects[i], vals[2 * j:2 * j + 2])
+        return tuple(effects)
+
+
+IDEAL = Model.of(())
+"""The paper's Eq. 4 with no effects, on the paper rig."""
+
+
+# --- data arrays --------------------------------------------------------------------------------------------
+
+class Problem(eqx.Module):
+    """Arrays of one data set, ready for the jitted residual (SI units, one entry per row).
+
+    ``k_free[a]`` is whether axis ``a`` has a known load (so ``k`` is identifiable);
+    ``gidx`` indexes the nuisance load of rows without a known load (-1 otherwise);
+    ``mask`` is 1 for rows the fit uses, 0 for held-out rows.
+    """
+
+    readings: Readings
+    s_top: jnp.ndarray
+    s_bottom: jnp.ndarray
+    s_x: jnp.ndarray
+    load: jnp.ndarray
+    known: jnp.ndarray
+    gidx: jnp.ndarray
+    k_free: jnp.ndarray
+    mask: jnp.ndarray
+
+    ax = property(lambda self: self.readings.axis)
+    x = property(lambda self: self.readings.x)
+    i_top = property(lambda self: self.readings.i_top)
+    i_bottom = property(lambda self: self.readings.i_bottom)
+    bias = property(lambda self: self.readings.bias)
+
+    @property
+    def n_loads(self) -> int:
+        return int(np.max(np.asarray(self.gidx), initial=-1)) + 1
+
+    def with_readings(self, i_top, i_bottom, x) -> Problem:
+        """The same problem with other current and position readings (bootstrap, design)."""
+        return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))
+
+
+@dataclasses.dataclass(frozen=True)
+class Meta:
+    """What :func:`build_problem` decided about a data set."""
+
+    load_groups: list
+    k_free: tuple
+    axes_present: tuple
+    noise_source: str
+    n_rows: int
+
+    @property
+    def noise_estimated(self) -> bool:
+        return "estimated" in self.noise_source
+
+
+def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
+    n = len(df)
+
+    def column(name):
+        return df[name].to_numpy(float) if name in df else np.full(n, np.nan)
+
+    st, sb = column("i_top_std_A"), column("i_bottom_std_A")
+    sx = np.where(ax == 0, column("v_std_um"), column("w_std_um")) * 1e-6
+    sources = []
+    if sigma_i is not None:
+        st, sb = np.full(n, float(sigma_i)), np.full(n, float(sigma_i))
+        sources.append(f"current {sigma_i * 1e3:g} mA declared")
+    elif np.isnan(st).any() or np.isnan(sb).any():
+        st, sb = np.full(n, 1e-3), np.full(n, 1e-3)
+        sources.append("current estimated from the residuals")
+    else:
+        sources.append("current from the std columns")
+    if sigma_x is not None:
+        sx = np.full(n, float(sigma_x))
+        sources.append(f"position {sigma_x * 1e6:g} µm declared")
+    elif np.isnan(sx).any():
+        sx = np.zeros(n)
+        sources.append("position noise taken as 0 (no std column)")
+    else:
+        sources.append("position from the std columns")
+    return st, sb, sx, "; ".join(sources)
+
+
+def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: float | None = None,
+                  mask=None) -> tuple[Problem, Meta]:
+    """Arrays for :func:`residuals` from a contract table.
+
+    ``sigma_i`` [A] and ``sigma_x`` [m] override the std columns; with neither
+    columns nor declared levels the noise is marked for estimation (unit current
+    weight of 1 mA, no position noise, rescaled by the fit's reduced χ²).
+    ``mask``: 1 for rows to fit, 0 for rows held out (default all 1).
+    """
+    df = data.frame if isinstance(data, Dataset) else data
+    r = readings(df)
+    ax = np.asarray(r.axis)
+    st, sb, sx, source = _noise(df, ax, sigma_i, sigma_x)
+    load = df["load_N"].to_numpy(float) if "load_N" in df else np.full(len(df), np.nan)
+    groups = load_groups(df).to_numpy()
+    unknown = list(dict.fromkeys(g for g, l in zip(groups, load) if np.isnan(l)))
+    position = {g: j for j, g in enumerate(unknown)}
+    gidx = np.array([position.get(g, -1) for g in groups], dtype=int)
+    known = np.isfinite(load)
+    k_free = tuple(bool(known[ax == a].any()) for a in range(2))
+    present = tuple(bool((ax == a).any()) for a in range(2))
+    m = np.ones(len(df)) if mask is None else np.asarray(mask, dtype=float)
+    prob = Problem(readings=r, s_top=jnp.asarray(st), s_bottom=jnp.asarray(sb), s_x=jnp.asarray(sx),
+                   load=jnp.asarray(np.nan_to_num(load)), known=jnp.asarray(known), gidx=jnp.asarray(gidx),
+                   k_free=jnp.asarray(k_free), mask=jnp.asarray(m))
+    return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
+
+
+# --- parameters, force, residuals --------------------------------------------------------------------------
+
+class Unpacked(NamedTuple):
+    """Theta in SI units: the bearing parameters, the nuisance loads [N] and the effects at their values."""
+
+    params: BearingParams
+    loads: jnp.ndarray
+    effects: tuple
+    q: jnp.ndarray
+
+
+def unpack(theta, prob: Problem, model: Model = IDEAL) -> Unpacked:
+    """Split the scaled parameter vector (see the module docstring); held ``k`` is ``K_REFERENCE``."""
+    n_head = theta.shape[0] - model.n
+    g0 = theta[0:2] * SCALE_HEAD[0]
+    x0 = theta[2:4] * SCALE_HEAD[2]
+    k = jnp.where(prob.k_free, theta[4:6] * SCALE_HEAD[4], K_REFERENCE)
+    q = theta[n_head:]
+    return Unpacked(BearingParams(g0, x0, k), theta[6:n_head] * SCALE_LOAD, model.build(q), q)
+
+
+def target(prob: Problem, loads) -> jnp.ndarray:
+    """The load each row's force must equal: the known load, else its group's nuisance load [N]."""
+    nuisance = loads[jnp.maximum(prob.gidx, 0)] if loads.shape[0] else jnp.zeros(prob.x.shape)
+    return jnp.where(prob.known, prob.load, nuisance)
+
+
+def misfit(theta, prob: Problem, model: Model = IDEAL):
+    """Force misfit ``F - L`` [N] of every row and its effective noise std ``s_eff`` [N]."""
+    p = unpack(theta, prob, model)
+    r = prob.readings
+
+    def force(it, ib, x):
+        rr = eqx.tree_at(lambda z: (z.i_top, z.i_bottom, z.x), r, (it, ib, x))
+        return evaluate(p.params, rr, p.effects, bearing=model.bearing)[0]
+
+    primals = (r.i_top, r.i_bottom, r.x)
+    ones, zeros = jnp.ones_like(r.x), jnp.zeros_like(r.x)
+    f, dt = jax.jvp(force, primals, (ones, zeros, zeros))
+    db = jax.jvp(force, primals, (zeros, ones, zeros))[1]
+    dx = jax.jvp(force, primals, (zeros, zeros, ones))[1]
+    s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
+    return f - target(prob, p.loads), s
+
+
+def _weighted(theta, args):
+    prob, model, s = args
+    f = misfit(theta, prob, model)[0]
+    return jnp.concatenate([prob.mask * f / s, theta[theta.shape[0] - model.n:]])   # prior residuals: q ~ N(0, 1)
+
+
+def residuals(theta, prob: Problem, model: Model = IDEAL):
+    """Standardized residuals of every row (held-out rows masked to 0), then the effect priors' residuals."""
+    s = jax.lax.stop_gradient(misfit(theta, prob, model)[1])
+    return _weighted(theta, (prob, model, s))
+
+
+def standardized(theta, prob: Problem, model: Model = IDEAL):
+    """``(F - L) / s_eff`` of every row, held-out rows included (dimensionless)."""
+    f, s = misfit(theta, prob, model)
+    return f / s
+
+
+def _edm(theta, prob, model):
+    j = jax.jacfwd(residuals)(theta, prob, model)
+    g = j.T @ residuals(theta, prob, model)
+    h = j.T @ j
+    # Held parameters (k without a known load, loads of held-out groups) have zero columns: unit diagonal,
+    # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
+    # the identifiability checks then say why.
+    h = h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0))
+    return g @ jnp.linalg.solve(h, g)
+
+
+@eqx.filter_jit
+def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS, rtol: float = 1e-8,
+          atol: float = 1e-8):
+    """Levenberg-Marquardt from ``theta0``; returns ``(theta, result, num_steps, edm)`` (jit- and vmap-safe).
+
+    ``REWEIGHTINGS`` rounds with the effective-variance weights held fixed; ``num_steps`` counts
+    the steps of all rounds; ``result`` is the last round's optimistix result; ``edm`` decides
+    convergence (see ``EDM_MAX``).
+    """
+    def round_(_, carry):
+        theta, steps, _ = carry
+        s = misfit(theta, prob, model)[1]
+        sol = optx.least_squares(_weighted, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta,
+                                 args=(prob, model, s), max_steps=max_steps, throw=False)
+        return sol.value, steps + sol.stats["num_steps"], sol.result
+
+    # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
+    theta, steps, result = jax.lax.fori_loop(
+        0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
+    return theta, result, steps, _edm(theta, prob, model)
+
+
+@eqx.filter_jit
+def jacobian(theta, prob: Problem, model: Model = IDEAL):
+    """Jacobian ``d r / d theta`` of :func:`residuals` [rows + effect priors, params] (scaled parameters)."""
+    return jax.jacfwd(residuals)(theta, prob, model)
+
+
+@eqx.filter_jit
+def _unit_force(theta, prob: Problem, model: Model):
+    """The model's force with k = 1 on every row."""
+    p = unpack(theta, prob, model)
+    ones = BearingParams(p.params.g0, p.params.x0, jnp.ones(2))
+    return evaluate(ones, prob.readings, p.effects, bearing=model.bearing)[0]
+
+
+def seed_loads_and_k(theta, prob: Problem, model: Model = IDEAL):
+    """``theta`` with k (from the known loads) and the nuisance loads set to their best values at its gap and origin."""
+    a = np.asarray(prob.ax)
+    unit = np.asarray(_unit_force(jnp.asarray(theta), prob, model))
+    known, load, gidx = np.asarray(prob.known), np.asarray(prob.load), np.asarray(prob.gidx)
+    mask = np.asarray(prob.mask) > 0
+    theta = np.array(theta)
+    for ax in range(2):
+        sel = known & (a == ax) & mask
+        if sel.any() and np.sum(unit[sel] ** 2) > 0:
+            theta[4 + ax] = np.sum(load[sel] * unit[sel]) / np.sum(unit[sel] ** 2) / SCALE_HEAD[4]
+    k_used = np.where(np.asarray(prob.k_free), theta[4:6] * SCALE_HEAD[4], K_REFERENCE)
+    for j in range(prob.n_loads):
+        sel = gidx == j
+        theta[6 + j] = float(np.mean(k_used[a[sel]] * unit[sel])) / SCALE_LOAD
+    return theta
+
+
+def free_mask(prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
+    """Which entries of theta are estimated: gap/origin of present axes, k where loads are known, loads, effects."""
+    p = meta.axes_present
+    return np.array([p[0], p[1], p[0], p[1], meta.k_free[0] and p[0], meta.k_free[1] and p[1]]
+                    + [True] * (prob.n_loads + model.n))
+
+
+def free_names(meta: Meta, free: np.ndarray, model: Model = IDEAL) -> list[str]:
+    """Names of the estimated entries of theta: head parameters, ``load[<group>]``, then ``effect.field[axis]``."""
+    every = list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups] + model.names()
+    return [n for n, f in zip(every, free) if f]
+
+
+def si_scale(prob: Problem, model: Model = IDEAL) -> tuple[np.ndarray, np.ndarray]:
+    """``(scale, offset)`` so that SI values are ``offset + scale * theta`` for every entry."""
+    n_loads = prob.n_loads
+    scale = np.concatenate([param_scale(n_loads), np.asarray(model.width)])
+    offset = np.concatenate([np.zeros(6 + n_loads), np.asarray(model.centre)])
+    return scale, offset

@@ -1,0 +1,279 @@
+"""The least-squares result: estimates in SI units, health as named properties, and its faces.
+
+Health follows iminuit's ``FMin``: each property is a yes/no answer and
+:meth:`FitResult.health` gives the cause and the fix in words.
+
+``converged``
+    The estimated distance to the minimum is below ``EDM_MAX``.
+``well_conditioned``
+    The column-scaled Jacobian's condition number is below the threshold and every
+    gap is known to better than the relative threshold.
+``k_identified``
+    Each present axis has a known load, so its force constant is calibrated.
+``adequate``
+    χ² is consistent with the noise levels (p-value at least ``p_min``); ``None`` when
+    the noise was estimated from the residuals, which makes χ²/dof 1 by construction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+from collections.abc import Sequence
+
+import numpy as np
+
+from ambfit.physics.bearing import AXES, Bearing
+
+CONTRACT_PARAMS = (("g_v0", "g_v0_um", 1e6), ("v0", "v0_um", 1e6), ("g_w0", "g_w0_um", 1e6), ("w0", "w0_um", 1e6),
+                   ("k_v", "k_v_Nm2_per_A2", 1.0), ("k_w", "k_w_Nm2_per_A2", 1.0))
+"""Internal name, contract key (section 2) and the factor from SI to the contract's unit."""
+
+DISPLAY = {"g_v0": ("µm", 1e6, ".2f"), "g_w0": ("µm", 1e6, ".2f"), "v0": ("µm", 1e6, ".2f"), "w0": ("µm", 1e6, ".2f"),
+           "k_v": ("N·m²/A²", 1.0, ".4e"), "k_w": ("N·m²/A²", 1.0, ".4e")}
+
+
+@dataclasses.dataclass(frozen=True)
+class Thresholds:
+    """What counts as healthy (the keyword arguments of :func:`ambfit.fit`)."""
+
+    max_condition: float = 1e8
+    max_relative_gap_std: float = 0.1
+    p_min: float = 1e-3
+    max_steps: int = 200
+
+
+def describe_weakness(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> str:
+    """The least-determined direction in words: the most correlated pair and the weakest singular vector."""
+    p = len(names)
+    text = []
+    if p > 1:
+        c = np.nan_to_num(np.abs(np.asarray(corr)), nan=0.0) - np.eye(p)
+        i, j = np.unravel_index(np.argmax(c), c.shape)
+        if np.isfinite(corr[i, j]) and abs(corr[i, j]) <= 1.0 + 1e-9:
+            text.append(f"{names[i]} and {names[j]} are {100 * abs(corr[i, j]):.1f} % "
+                        f"{'anti-' if corr[i, j] < 0 else ''}correlated")
+    top = np.argsort(-np.abs(vt_last))[:2]
+    text.append("weakest direction mostly " + " and ".join(names[t] for t in top))
+    return "; ".join(text)
+
+
+def display(name: str, value: float) -> tuple[float, str]:
+    """A parameter in its display unit: ``(value, unit)`` (µm for gaps and origins, SI otherwise)."""
+    unit, factor, _ = DISPLAY.get(name, ("", 1.0, ".4g"))
+    return value * factor, unit
+
+
+def pm(value: float, std: float, fmt: str = ".4g") -> str:
+    """``value ± std`` (just the value when the std is not finite)."""
+    return f"{value:{fmt}} ± {std:{fmt}}" if np.isfinite(std) else f"{value:{fmt}}"
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Least-squares estimates with uncertainties and fit health (SI units).
+
+    Attributes
+    ----------
+    names : list[str]
+        Estimated parameters: ``g_v0``, ``g_w0``, ``v0``, ``w0``, ``k_v``/``k_w`` where
+        known loads make them identifiable, ``load[<group>]`` nuisances [N], then the
+        effect parameters ``effect.field[axis]``.
+    values, std : array[p]
+    cov, corr : array[p, p]
+    chi2, dof :
+        Sum of squared standardized residuals of the fitted rows and its degrees of freedom.
+    residuals : array[n]
+        Standardized residuals ``(F - L) / s_eff`` of every row, in file order (held-out rows too).
+    edm : float
+        Estimated distance to the minimum at the estimate.
+    condition : float
+        Condition number of the column-scaled Jacobian.
+    weak_direction : str
+        The least determined combination, in words.
+    noise_source : str
+        Where the noise levels came from; when estimated, ``cov`` is scaled by the reduced χ².
+    effects : tuple of Effect
+        The model's effects at their fitted values (empty for the ideal law).
+    model : str
+        ``ideal`` or the effect names joined by ``+``.
+    theta : array
+        The scaled parameter vector (:mod:`ambfit.estimation.core`).
+    """
+
+    names: list
+    values: np.ndarray
+    std: np.ndarray
+    cov: np.ndarray
+    corr: np.ndarray
+    chi2: float
+    dof: int
+    residuals: np.ndarray
+    edm: float
+    optimistix: str
+    num_steps: int
+    condition: float
+    weak_direction: str
+    noise_source: str
+    noise_estimated: bool
+    start: str
+    k_free: tuple
+    n_rows: int
+    n_fit_rows: int
+    effects: tuple
+    model: str
+    bearing: Bearing
+    theta: np.ndarray
+    thresholds: Thresholds = Thresholds()
+    bias_correction: dict | None = None
+
+    # --- values ---------------------------------------------------------------------------------------------
+
+    def value(self, name: str) -> float:
+        """Estimate of ``name`` [SI]."""
+        return float(self.values[self.names.index(name)])
+
+    def error(self, name: str) -> float:
+        """Standard error of ``name`` [SI]."""
+        return float(self.std[self.names.index(name)])
+
+    @property
+    def reduced_chi2(self) -> float:
+        return self.chi2 / max(self.dof, 1)
+
+    @property
+    def p_value(self) -> float:
+        """Probability of a χ² at least this large if the model and the noise levels were right."""
+        from scipy.special import chdtrc
+
+        return float(chdtrc(self.dof, self.chi2))
+
+    # --- health ---------------------------------------------------------------------------------------------
+
+    @property
+    def converged(self) -> bool:
+        from ambfit.estimation.core import EDM_MAX
+
+        return bool(self.edm < EDM_MAX)
+
+    @property
+    def relative_gap_std(self) -> float:
+        rel = [self.error(n) / self.value(n) for n in ("g_v0", "g_w0") if n in self.names]
+        return max(rel) if rel else 0.0
+
+    @property
+    def well_conditioned(self) -> bool:
+        t = self.thresholds
+        return bool(self.condition < t.max_condition and self.relative_gap_std < t.max_relative_gap_std)
+
+    @property
+    def k_identified(self) -> dict:
+        """``{"v": bool, "w": bool}``: whether each axis' force constant is calibrated by known loads."""
+        return {ax: bool(self.k_free[a]) for a, ax in enumerate(AXES)}
+
+    @property
+    def adequate(self) -> bool | None:
+        """χ² consistent with the noise (p-value >= ``p_min``); None when the noise was estimated."""
+        if self.noise_estimated:
+            return None
+        return bool(self.p_value >= self.thresholds.p_min)
+
+    def health(self) -> list[str]:
+        """Every failed health check as a sentence with its likely cause and the fix (empty when healthy)."""
+        from ambfit.estimation.core import EDM_MAX
+
+        out = []
+        if not self.well_conditioned:
+            rel = self.relative_gap_std
+            why = (f"condition number {self.condition:.3g} of the scaled Jacobian" if not
+                   self.condition < self.thresholds.max_condition else f"a gap has a relative standard error of {rel:.2g}")
+            out.append(f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more "
+                       "positions (the paper's symmetric pairs) and two or more biases")
+        if not self.converged:
+            out.append(f"least squares did not converge within {self.thresholds.max_steps} steps (EDM {self.edm:.2g}, "
+                       f"limit {EDM_MAX:g}; optimistix: {self.optimistix}); check the data for outliers or a wrong "
+                       "unit, or give a better start")
+        if self.adequate is False:
+            law = "the ideal law" if self.model == "ideal" else f"the model ({self.model})"
+            out.append(f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
+                       f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose")
+        return out
+
+    def raise_for_health(self) -> None:
+        """Raise :class:`ambfit.FitError` when the fit is not converged or not identifiable (adequacy is reported,
+        not raised: an inadequate model still has estimates worth reading)."""
+        from ambfit.estimation.core import FitError
+
+        failed = [h for h in self.health() if not h.startswith(("the ideal law", "the model ("))]
+        if failed:
+            raise FitError(failed[0])
+
+    def goodness_of_fit(self) -> dict:
+        """Contract section 2's ``goodness_of_fit`` record."""
+        return {"reduced_chi2": self.reduced_chi2, "dof": self.dof, "p_value": self.p_value,
+                "adequate": self.adequate, "p_min": self.thresholds.p_min}
+
+    # --- faces ----------------------------------------------------------------------------------------------
+
+    def contract_params(self) -> dict:
+        """Contract section 2 parameter block (µm, N m²/A²)."""
+        return {key: {"value": self.value(name) * f, "std": self.error(name) * f}
+                for name, key, f in CONTRACT_PARAMS if name in self.names}
+
+    def to_json(self) -> dict:
+        """The contract record (section 2) plus fit health."""
+        head = [n for n in self.names if not n.startswith("load[")]
+        with np.errstate(invalid="ignore"):
+            corr = {f"{a}|{b}": float(self.corr[self.names.index(a), self.names.index(b)])
+                    for i, a in enumerate(head) for b in head[i + 1:]}
+        return {
+            "method": "least_squares", "model": self.model, "params": self.contract_params(),
+            "converged": self.converged, "n_rows": self.n_rows, "goodness_of_fit": self.goodness_of_fit(),
+            "well_conditioned": self.well_conditioned, "health": self.health(),
+            "reduced_chi2": self.reduced_chi2, "dof": self.dof, "condition": self.condition,
+            "weak_direction": self.weak_direction, "noise_source": self.noise_source, "start": self.start,
+            "k_identified": self.k_identified, "correlations": corr,
+            "effect_params": {n: {"value": self.value(n), "std": self.error(n)} for n in self.names if "." in n},
+            "nuisance_loads_N": {n[5:-1]: {"value": self.value(n), "std": self.error(n)}
+                                 for n in self.names if n.startswith("load[")},
+            "bias_correction": self.bias_correction,
+        }
+
+    def to_dataframe(self):
+        """One row per estimated parameter: name, value and std in SI and in the display unit."""
+        import pandas as pd
+
+        rows = []
+        for n, v, s in zip(self.names, self.values, self.std):
+            dv, unit = display(n, v)
+            rows.append({"parameter": n, "value": v, "std": s, "display_value": dv,
+                         "display_std": display(n, s)[0], "display_unit": unit})
+        return pd.DataFrame(rows)
+
+    def _rows(self):
+        for n in self.names:
+            if n.startswith("load["):
+                continue
+            unit, factor, fmt = DISPLAY.get(n, ("", 1.0, ".4g"))
+            yield n, pm(self.value(n) * factor, self.error(n) * factor, fmt), unit
+
+    def summary(self) -> str:
+        """A short text summary: estimates in display units, χ², health."""
+        lines = [f"least squares ({self.model}), {self.n_rows} rows, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof"]
+        lines += [f"  {n:<24} {v} {u}" for n, v, u in self._rows()]
+        lines += [f"  ! {h}" for h in self.health()]
+        return "\n".join(lines)
+
+    __str__ = summary
+
+    def __repr__(self) -> str:
+        est = ", ".join(f"{n}={v}" for n, v, _ in list(self._rows())[:4])
+        return f"FitResult(model={self.model!r}, {est}, converged={self.converged})"
+
+    def _repr_html_(self) -> str:
+        rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{html.escape(v)}</td><td>{html.escape(u)}</td></tr>"
+                       for n, v, u in self._rows())
+        health = "".join(f"<li>{html.escape(h)}</li>" for h in self.health()) or "<li>healthy</li>"
+        return (f"<b>least squares ({html.escape(self.model)})</b>, {self.n_rows} rows, "
+                f"χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof"
+                f"<table><tr><th>parameter</th><th>estimate</th><th>unit</th></tr>{rows}</table><ul>{health}</ul>")

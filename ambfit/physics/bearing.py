@@ -1,0 +1,234 @@
+"""The bearing description: what a user knows of a bearing from its drawings and datasheets.
+
+One immutable :class:`Bearing` holds the facts every other part reads (pole angle,
+turns, pole face, nominal gap, back-up clearance, current limit, polarity, iron
+path, calibration tolerances, the lamination's B-H curve).  The force model, the
+effects, the virtual rig, the design and the diagnosis take it from here; no other
+module types these numbers.  :data:`PAPER_BEARING` is the seed paper's rig and the
+default everywhere.  Files follow ``DATA-CONTRACT.md`` section 4 (TOML, read by
+:meth:`Bearing.from_toml`).
+
+Conventions (contract section 1 and 4): ``turns_per_pole`` is ``N`` of one pole
+coil, a horseshoe carries ``2 N``; the ideal horseshoe circuit (two gaps in series,
+iron ignored) gives the gap flux density ``B = MU_0 (2 N) i / (2 g)`` and Eq. 3's
+constant ``k = 0.25 MU_0 A (2 N)^2 cos(alpha) * lamination`` [N m^2/A^2]
+(Schweitzer & Maslen (eds.), *Magnetic Bearings*, Springer 2009, eq. 4.13, p. 85).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from pathlib import Path
+
+MU_0 = 4e-7 * math.pi
+"""Magnetic permeability of vacuum (air) [H/m]."""
+
+AXES = ("v", "w")
+"""Axis names in index order: rows with ``axis == AXES[j]`` use parameter ``j``."""
+
+POLARITIES = ("NNSS", "NSNS")
+
+
+class BearingError(ValueError):
+    """A bearing description that cannot be used; the message names the file and key."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Bearing:
+    """An 8-pole heteropolar radial bearing as drawn (SI units).
+
+    Attributes
+    ----------
+    name : str
+    pole_angle : float
+        ``alpha``, pole axis to horseshoe axis [rad] (the paper's 22.5 deg).
+    turns_per_pole : float
+        Turns ``N`` of one pole coil; a horseshoe has ``2 N``.
+    pole_area : float
+        One pole face, width x stack length [m^2].
+    pole_width : float
+        Pole face width [m] (the fringing estimate needs width and length; the length is
+        ``pole_area / pole_width``).
+    nominal_gap : float
+        Radial air gap as drawn [m].
+    backup_clearance : float
+        Radial distance rotor to back-up bearing with the rotor centred [m].
+    max_current : float
+        Coil current limit [A].
+    polarity : str
+        Pole polarities around the stator, ``"NNSS"`` or ``"NSNS"``.
+    iron_path : float
+        Mean iron path of one horseshoe circuit [m] (the paper's ``b_th``).
+    lamination : float
+        Nominal lamination (stacking) coefficient in Eq. 3 [-].
+    position_gain_tolerance, current_gain_tolerance : float
+        Relative calibration tolerances of the position sensors and current channels.
+    bore_diameter : float
+        Stator bore [m].
+    b_curve, h_curve : tuple of float
+        Lamination B-H curve, B ascending [T] and H [A/m]; empty when unknown.
+
+    Examples
+    --------
+    >>> b = PAPER_BEARING
+    >>> round(b.force_constant() * 1e6, 4)     # k of Eq. 3 [N m^2/A^2] x 1e6
+    3.4452
+    >>> round(b.flux_density(3.0, b.nominal_gap), 2)   # ideal-circuit B at 3 A, centred [T]
+    1.19
+    """
+
+    name: str = "paper rig"
+    pole_angle: float = math.radians(22.5)
+    turns_per_pole: float = 240.0
+    pole_area: float = 54.2e-6
+    pole_width: float = 5.0e-3
+    nominal_gap: float = 762e-6
+    backup_clearance: float = 60e-6
+    max_current: float = 3.0
+    polarity: str = "NNSS"
+    iron_path: float = 0.08
+    lamination: float = 0.95
+    position_gain_tolerance: float = 0.0025
+    current_gain_tolerance: float = 0.001
+    bore_diameter: float = 35e-3
+    b_curve: tuple = ()
+    h_curve: tuple = ()
+
+    def __post_init__(self):
+        if self.polarity not in POLARITIES:
+            raise BearingError(f"polarity must be one of {', '.join(POLARITIES)}, got {self.polarity!r}")
+        for name in ("pole_angle", "turns_per_pole", "pole_area", "pole_width", "nominal_gap", "max_current",
+                     "iron_path", "lamination"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise BearingError(f"{name} must be a positive number, got {value!r}")
+
+    # --- derived quantities -------------------------------------------------------------------------------
+
+    @property
+    def cos_alpha(self) -> float:
+        return math.cos(self.pole_angle)
+
+    @property
+    def sin_alpha(self) -> float:
+        return math.sin(self.pole_angle)
+
+    @property
+    def horseshoe_turns(self) -> float:
+        """Turns of one horseshoe's coils in series, ``2 N``."""
+        return 2.0 * self.turns_per_pole
+
+    @property
+    def pole_length(self) -> float:
+        """Axial stack length of a pole face [m]."""
+        return self.pole_area / self.pole_width
+
+    def force_constant(self, lamination: float | None = None) -> float:
+        """Eq. 3's ``k = 0.25 MU_0 A (2 N)^2 cos(alpha) * lamination`` [N m^2/A^2] (default: the nominal lamination)."""
+        lam = self.lamination if lamination is None else lamination
+        return 0.25 * MU_0 * self.pole_area * self.horseshoe_turns**2 * self.cos_alpha * lam
+
+    def flux_density(self, i, g):
+        """Ideal-circuit gap flux density ``MU_0 (2 N) i / (2 g)`` [T] for current ``i`` [A] and gap ``g`` [m].
+
+        Works on floats, numpy and JAX arrays alike.
+        """
+        return MU_0 * self.horseshoe_turns * i / (2.0 * g)
+
+    def load_capacity(self, current: float | None = None) -> float:
+        """Force of one coil at ``current`` (default the current limit), rotor centred at the nominal gap [N]."""
+        i = self.max_current if current is None else current
+        return self.force_constant() * i**2 / self.nominal_gap**2
+
+    def with_(self, **changes) -> Bearing:
+        """A copy with some facts changed (SI units)."""
+        return dataclasses.replace(self, **changes)
+
+    # --- files --------------------------------------------------------------------------------------------
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Bearing:
+        """Read a bearing description (contract section 4); missing keys take the paper rig's values.
+
+        Raises
+        ------
+        BearingError
+            Unreadable file, unknown key or a value of the wrong kind; the message names the file and key.
+        """
+        path = Path(path)
+        try:
+            with open(path, "rb") as f:
+                d = tomllib.load(f)
+        except IsADirectoryError:
+            raise BearingError(f"{path}: is a directory, not a bearing description (TOML)") from None
+        except OSError as exc:
+            raise BearingError(f"{path}: cannot read the bearing description ({exc.strerror})") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise BearingError(f"{path}: not valid TOML ({exc})") from None
+        return cls.from_dict(d, source=str(path))
+
+    @classmethod
+    def from_dict(cls, d: dict, *, source: str = "bearing description") -> Bearing:
+        """A bearing from the contract's keys (units as in their names)."""
+        d = dict(d)
+        scale = {"pole_angle_deg": ("pole_angle", math.radians), "turns_per_pole": ("turns_per_pole", float),
+                 "pole_area_mm2": ("pole_area", lambda v: v * 1e-6),
+                 "pole_width_mm": ("pole_width", lambda v: v * 1e-3),
+                 "nominal_gap_um": ("nominal_gap", lambda v: v * 1e-6),
+                 "backup_clearance_um": ("backup_clearance", lambda v: v * 1e-6),
+                 "max_current_A": ("max_current", float), "iron_path_mm": ("iron_path", lambda v: v * 1e-3),
+                 "lamination": ("lamination", float), "position_gain_tolerance": ("position_gain_tolerance", float),
+                 "current_gain_tolerance": ("current_gain_tolerance", float),
+                 "bore_diameter_mm": ("bore_diameter", lambda v: v * 1e-3)}
+        kw = {}
+        if "name" in d:
+            kw["name"] = str(d.pop("name"))
+        if "polarity" in d:
+            kw["polarity"] = str(d.pop("polarity")).upper()
+        material = d.pop("material", None)
+        for key in list(d):
+            if key not in scale:
+                continue  # the contract allows more keys
+            field, conv = scale[key]
+            value = d.pop(key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise BearingError(f"{source}: {key} must be a number, got {value!r}")
+            kw[field] = conv(value)
+        if "pole_area" in kw and "pole_width" not in kw:
+            kw["pole_width"] = math.sqrt(kw["pole_area"])   # no width given: a square face
+        if material is not None:
+            kw.update(_material(material, source))
+        try:
+            return cls(**kw)
+        except BearingError as exc:
+            raise BearingError(f"{source}: {exc}") from None
+
+
+def _material(material, source: str) -> dict:
+    try:
+        b = tuple(float(v) for v in material["B_T"])
+        h = tuple(float(v) for v in material["H_A_per_m"])
+    except (KeyError, TypeError, ValueError):
+        raise BearingError(f"{source}: [material] needs numeric lists B_T and H_A_per_m") from None
+    if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
+        raise BearingError(f"{source}: [material] B_T must ascend and match H_A_per_m in length")
+    return {"b_curve": b, "h_curve": h}
+
+
+def _paper_bearing() -> Bearing:
+    # The paper prints the load capacity (53.4 N at the 3.0 A saturation current, rotor centred), not the
+    # winding: the pole face is the one that gives that capacity with 2 x 240 turns and lamination 0.95.
+    k = 53.4 * Bearing.nominal_gap**2 / Bearing.max_current**2
+    unit = Bearing().with_(pole_area=1.0).force_constant()
+    return Bearing(pole_area=k / unit)
+
+
+PAPER_BEARING = _paper_bearing()
+"""The seed paper's rig (its "Test Apparatus" section): 35 mm bore, 762 µm nominal radial gap,
+poles at 22.5 deg, a 60 µm back-up clearance (the ±20 µm pairs are "one third" of it), 3.0 A
+saturation current and 53.4 N load capacity there, i.e. ``k`` = 3.445e-6 N m²/A².  Turns and
+pole face are not printed; 2 x 240 turns per horseshoe on a 5 mm x 10.84 mm face with a 0.95
+lamination coefficient give that ``k`` and about 1.2 T at 3.0 A.  The 80 mm iron path is an
+assumption (stator yoke plus rotor path of a 35 mm bore)."""

@@ -1,0 +1,1 @@
+"""Studies built on the core: the seed paper reproduced, simulation-based calibration."""
