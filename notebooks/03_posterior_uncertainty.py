@@ -35,7 +35,7 @@ ds = read_csv(ROOT / "data" / "paper_table2.csv")
 ls = fit.fit(ds)
 res = bayes.sample(ds, n_ensembles=2 if FAST else 4, n_steps=1500 if FAST else 4000, seed=1, ls=ls)
 print(res.message)
-res.summary()
+res.to_dataframe()
 
 # %% [markdown]
 # Posterior against least squares: means within a small fraction of a standard error and sds

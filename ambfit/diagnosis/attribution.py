@@ -191,6 +191,21 @@ class Diagnosis:
                               "insample_mean_z2": float(np.mean(c.fit.residuals**2)), "converged": c.fit.converged}
                              for c in self.ranking])
 
+    def ranking_rows(self) -> list[dict]:
+        """The ranking as ``{column: text}`` rows (best first)."""
+        return [{"effect": r.effect, "held-out excess after": f"{r.heldout_excess_after:.2f}",
+                 "shrink": f"{r.shrink:.3f}", "in-sample mean z²": f"{r.insample_mean_z2:.2f}"}
+                for r in self.to_dataframe().itertuples()]
+
+    def where_rows(self, n: int = 8) -> list[dict]:
+        """The largest structured regions as ``{column: text}`` rows."""
+        return [{"region": w.describe(), "rows": str(w.rows), "z": f"{w.z:.1f}"} for w in self.where.regions[:n]]
+
+    def floor_text(self) -> str:
+        nf = self.noise_floor
+        return (f"noise floor ({nf.source}): mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}); "
+                f"held-out excess {self.heldout_excess_before:.2f} noise units; folds: {self.folds}")
+
     def verdict_text(self) -> str:
         text = (f"verdict: {self.verdict}; confounded with: {', '.join(self.confounded_with) or 'none'}; "
                 f"shrink {self.shrink:.3f}")
@@ -210,9 +225,7 @@ class Diagnosis:
         return out
 
     def summary(self) -> str:
-        nf = self.noise_floor
-        lines = [f"noise floor ({nf.source}): mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}); "
-                 f"held-out excess {self.heldout_excess_before:.2f} noise units; folds: {self.folds}"]
+        lines = [self.floor_text()]
         lines += [f"  where: {r.describe()} ({r.rows} rows, z {r.z:.1f})" for r in self.where.regions[:5]]
         lines += [f"  {c.effect:<32} excess after {c.after:.2f}, shrink {c.shrink:.3f}" for c in self.ranking[:6]]
         lines.append(self.verdict_text())

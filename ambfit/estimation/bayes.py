@@ -30,6 +30,7 @@ import pandas as pd
 
 from ambfit.data import Dataset
 from ambfit.estimation.fit import FitResult, fit
+from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, pm
 from ambfit.estimation.core import (
     IDEAL, K_REFERENCE, Model, Problem, build_problem, free_mask, free_names, misfit, param_scale, to_theta, unpack,
 )
@@ -151,11 +152,50 @@ class Posterior:
     ls: FitResult
     acceptance: np.ndarray
 
-    def summary(self, ci_prob: float = 0.94, round_to="auto"):
-        """ArviZ summary (mean, sd, HDI, ESS, R-hat across ensembles), in the reported units."""
+    def to_dataframe(self, ci_prob: float = 0.94):
+        """ArviZ summary (mean, sd, HDI, ESS, R-hat across ensembles) in the reported units, unrounded."""
         import arviz as az
 
-        return az.summary(self.datatree, ci_prob=ci_prob, ci_kind="hdi", round_to=round_to)
+        return az.summary(self.datatree, ci_prob=ci_prob, ci_kind="hdi", round_to="none")
+
+    @property
+    def converged(self) -> bool:
+        """Long enough for its autocorrelation time and R-hat below 1.01 across the ensembles on every parameter."""
+        return bool(self.to_json()["converged"])
+
+    def _lines(self, ci_prob: float = 0.94) -> list[tuple[str, str, str, str]]:
+        """``(name, mean ± sd, HDI, diagnostics)`` per head parameter, to the precision the sd justifies."""
+        rec = self.to_json(ci_prob)["params"]
+        out = []
+        for name, key, _ in CONTRACT_PARAMS:
+            if key not in rec:
+                continue
+            p = rec[key]
+            text = pm(p["value"], p["std"])
+            decimals = text.split(" ± ")[0]
+            hdi = _same_precision(decimals, p["hdi_low"]) + " … " + _same_precision(decimals, p["hdi_high"])
+            out.append((f"{name} [{DISPLAY[name][0]}]", text, hdi,
+                        f"R-hat {p['r_hat']:.3f}, ESS {p['ess_bulk']:.0f}"))
+        return out
+
+    def summary(self, ci_prob: float = 0.94) -> str:
+        """A short text summary: posterior mean ± sd, HDI, R-hat and ESS per parameter, and the run's verdict."""
+        head = f"posterior ({self.draws.shape[0]} ensembles x {self.n_walkers} walkers x {self.n_steps} steps)"
+        rows = [f"  {n:<22} {v:<22} {int(ci_prob * 100)} % HDI {h:<26} {d}" for n, v, h, d in self._lines(ci_prob)]
+        return "\n".join([head, *rows, self.message])
+
+    __str__ = summary
+
+    def __repr__(self) -> str:
+        return f"Posterior(names={self.names}, n_steps={self.n_steps}, too_short={self.too_short})"
+
+    def _repr_html_(self) -> str:
+        import html
+
+        rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{html.escape(v)}</td><td>{html.escape(h)}</td>"
+                       f"<td>{html.escape(d)}</td></tr>" for n, v, h, d in self._lines())
+        return (f"<b>posterior</b><table><tr><th>parameter</th><th>mean ± sd</th><th>94 % HDI</th>"
+                f"<th>diagnostics</th></tr>{rows}</table><p>{html.escape(self.message)}</p>")
 
     def to_json(self, ci_prob: float = 0.94) -> dict:
         """Contract section 2 record with ``"method": "bayes"`` (µm, N m²/A²)."""
@@ -165,10 +205,8 @@ class Posterior:
         hdi = az.hdi(self.datatree, prob=ci_prob)
         ess = az.ess(self.datatree, method="bulk")
         rhat = az.rhat(self.datatree)
-        keys = {"g_v0": "g_v0_um", "v0": "v0_um", "g_w0": "g_w0_um", "w0": "w0_um", "k_v": "k_v_Nm2_per_A2",
-                "k_w": "k_w_Nm2_per_A2"}
         params = {}
-        for name, key in keys.items():
+        for name, key, _ in CONTRACT_PARAMS:
             if name in post:
                 v = np.asarray(post[name])
                 lo, hi = (float(a) for a in np.asarray(hdi[name]).ravel()[:2])
@@ -179,6 +217,13 @@ class Posterior:
             "n_ensembles": int(self.draws.shape[0]), "n_walkers": self.n_walkers, "n_steps": self.n_steps,
             "burn": self.burn, "thin": self.thin, "tau_max": float(np.max(self.tau)), "message": self.message,
             "hdi_prob": ci_prob}
+
+
+def _same_precision(reference: str, value: float) -> str:
+    """``value`` printed with as many decimals (or the same exponent style) as ``reference``."""
+    if "e" in reference:
+        return f"{value:.{len(reference.split('e')[0].split('.')[-1]) if '.' in reference else 0}e}"
+    return f"{value:.{len(reference.split('.')[-1]) if '.' in reference else 0}f}"
 
 
 def _display_scale(name: str) -> float:

@@ -257,6 +257,36 @@ class ClosedFormResult:
                 out[kn] = {"value": est.k, "std": _none(est.k_sem)}
         return out
 
+    def display_rows(self) -> list[dict]:
+        """One ``{column: text}`` row per (experiment, axis): mean ± standard error over iterations."""
+        from ambfit.estimation.results import pm
+
+        return [{"experiment": exp, "axis": ax, "iterations": str(e.n), "gap [µm]": pm(e.g0 * 1e6, e.g0_sem * 1e6),
+                 "origin [µm]": pm(e.x0 * 1e6, e.x0_sem * 1e6),
+                 "k [N·m²/A²]": pm(e.k, e.k_sem) if np.isfinite(e.k) else "–", "rejected": str(len(e.rejected))}
+                for (exp, ax), e in self.estimates.items()]
+
+    def rejections(self) -> list[str]:
+        """Each rejected iteration and why."""
+        return [f"rejected {exp}/{ax} iteration {it}: {why}" for (exp, ax), e in self.estimates.items()
+                for it, why in e.rejected.items()]
+
+    def to_dataframe(self) -> pd.DataFrame:
+        """One row per (experiment, axis) in SI units: n, g0, x0, k and their standard errors."""
+        return pd.DataFrame([{"experiment": exp, "axis": ax, "n": e.n, "g0": e.g0, "g0_sem": e.g0_sem, "x0": e.x0,
+                              "x0_sem": e.x0_sem, "k": e.k, "k_sem": e.k_sem, "rejected": len(e.rejected)}
+                             for (exp, ax), e in self.estimates.items()])
+
+    def summary(self) -> str:
+        lines = [f"closed form (Eq. 5-7), {self.n_rows} rows"]
+        lines += ["  " + ", ".join(f"{k} {v}" for k, v in r.items()) for r in self.display_rows()]
+        return "\n".join(lines + ["  " + r for r in self.rejections()])
+
+    __str__ = summary
+
+    def _repr_html_(self) -> str:
+        return self.to_dataframe().to_html(index=False)
+
     def to_json(self) -> dict:
         """The contract section 2 record (plus per-axis detail)."""
         keys = sorted({e for e, _ in self.estimates})

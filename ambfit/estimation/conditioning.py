@@ -56,6 +56,13 @@ class SolutionSpace:
     def delta_chi2(self) -> np.ndarray:
         return self.chi2 - np.nanmin(self.chi2)
 
+    def summary(self) -> str:
+        gm, xm = self.minimum
+        return (f"grid {self.chi2.shape[0]} x {self.chi2.shape[1]} (axis {self.axis}, {self.n_rows} rows); minimum at "
+                f"gap {gm * 1e6:.1f} µm, origin {xm * 1e6:.1f} µm")
+
+    __str__ = summary
+
 
 @functools.partial(jax.jit, static_argnames="cos_alpha")
 def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, cos_alpha):

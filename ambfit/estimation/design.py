@@ -38,6 +38,34 @@ class Recommendation:
     std_now: float
     criterion: str
 
+    def _unit(self) -> tuple[float, str]:
+        return (1e6, "µm") if self.target[0] in "gvw" else (1.0, "N·m²/A²")
+
+    @property
+    def title(self) -> str:
+        f, unit = self._unit()
+        return f"next steps ({self.criterion}-optimal for {self.target}); now ± {self.std_now * f:.3g} {unit}"
+
+    def display_rows(self) -> list[dict]:
+        """One ``{column: text}`` row per recommended step."""
+        f, unit = self._unit()
+        return [{"#": str(i), "v set [µm]": f"{r.v_set_um:.0f}", "w set [µm]": f"{r.w_set_um:.0f}",
+                 "bias [A]": f"{r.bias_A:.2f}", f"{self.target} std after [{unit}]": f"{r.predicted_std_after * f:.3g}"}
+                for i, r in enumerate(self.steps.itertuples(), 1)]
+
+    def to_json(self) -> dict:
+        return {"target": self.target, "criterion": self.criterion, "std_now": self.std_now,
+                "steps": self.steps.to_dict(orient="records")}
+
+    def to_dataframe(self) -> pd.DataFrame:
+        return self.steps.copy()
+
+    def summary(self) -> str:
+        return "\n".join([self.title] + ["  " + ", ".join(f"{k} {v}" for k, v in r.items())
+                                          for r in self.display_rows()])
+
+    __str__ = summary
+
 
 def candidate_steps(center_um=(0.0, 0.0), offsets_um: Sequence[float] = tuple(range(-50, 51, 10)),
                     biases_A: Sequence[float] = (0.8, 1.0, 1.2, 1.4, 1.6, 1.8)) -> pd.DataFrame:

@@ -29,8 +29,9 @@ CONTRACT_PARAMS = (("g_v0", "g_v0_um", 1e6), ("v0", "v0_um", 1e6), ("g_w0", "g_w
                    ("k_v", "k_v_Nm2_per_A2", 1.0), ("k_w", "k_w_Nm2_per_A2", 1.0))
 """Internal name, contract key (section 2) and the factor from SI to the contract's unit."""
 
-DISPLAY = {"g_v0": ("µm", 1e6, ".2f"), "g_w0": ("µm", 1e6, ".2f"), "v0": ("µm", 1e6, ".2f"), "w0": ("µm", 1e6, ".2f"),
-           "k_v": ("N·m²/A²", 1.0, ".4e"), "k_w": ("N·m²/A²", 1.0, ".4e")}
+DISPLAY = {"g_v0": ("µm", 1e6), "g_w0": ("µm", 1e6), "v0": ("µm", 1e6), "w0": ("µm", 1e6),
+           "k_v": ("N·m²/A²", 1.0), "k_w": ("N·m²/A²", 1.0)}
+"""Display unit and the factor from SI of the head parameters (loads are in N, effect parameters in SI)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,13 +61,30 @@ def describe_weakness(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarra
 
 def display(name: str, value: float) -> tuple[float, str]:
     """A parameter in its display unit: ``(value, unit)`` (µm for gaps and origins, SI otherwise)."""
-    unit, factor, _ = DISPLAY.get(name, ("", 1.0, ".4g"))
+    unit, factor = DISPLAY.get(name, ("N" if name.startswith("load[") else "SI", 1.0))
     return value * factor, unit
 
 
-def pm(value: float, std: float, fmt: str = ".4g") -> str:
-    """``value ± std`` (just the value when the std is not finite)."""
-    return f"{value:{fmt}} ± {std:{fmt}}" if np.isfinite(std) else f"{value:{fmt}}"
+def pm(value: float, std: float, digits: int = 2) -> str:
+    """``value ± std`` to the precision the error justifies: ``digits`` significant digits of the std.
+
+    >>> pm(774.49876, 1.40568), pm(32.7831, 0.3163), pm(3.45725e-06, 1.5095e-08)
+    ('774.5 ± 1.4', '32.78 ± 0.32', '3.457e-06 ± 1.5e-08')
+    >>> pm(1.5, float("nan"))
+    '1.5'
+    """
+    if not np.isfinite(value):
+        return str(value)
+    if not (np.isfinite(std) and std > 0):
+        return f"{value:.6g}"
+    lead = int(np.floor(np.log10(std))) - (digits - 1)      # decimal position of the last shown digit
+    scale = abs(value) if value != 0 else std
+    if abs(scale) >= 1e-3 and abs(scale) < 1e5:
+        decimals = max(0, -lead)
+        return f"{value:.{decimals}f} ± {std:.{decimals}f}"
+    exponent = int(np.floor(np.log10(abs(scale))))
+    mantissa_decimals = max(0, exponent - lead)
+    return f"{value:.{mantissa_decimals}e} ± {std:.{digits - 1}e}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,8 +272,29 @@ class FitResult:
         for n in self.names:
             if n.startswith("load["):
                 continue
-            unit, factor, fmt = DISPLAY.get(n, ("", 1.0, ".4g"))
-            yield n, pm(self.value(n) * factor, self.error(n) * factor, fmt), unit
+            v, unit = display(n, self.value(n))
+            yield n, pm(v, display(n, self.error(n))[0]), unit
+
+    def display_row(self) -> dict:
+        """The head parameters as ``{"g_v0 [µm]": "774.5 ± 1.4", ...}`` plus χ²/dof (one table row)."""
+        row = {}
+        for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w"):
+            unit = DISPLAY[n][0]
+            row[f"{n} [{unit}]"] = next((v for m, v, _ in self._rows() if m == n), "–")
+        row["χ²/dof"] = f"{self.reduced_chi2:.2f}"
+        return row
+
+    def notes(self) -> list[str]:
+        """What a reader of the estimates should know besides the numbers: noise, start, conditioning, k."""
+        out = [f"noise: {self.noise_source}; start: {self.start}; condition {self.condition:.3g}; {self.weak_direction}"]
+        if self.bias_correction:
+            bc = self.bias_correction
+            out.append("bias correction subtracted (µm): " + ", ".join(
+                f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in ("g_v0", "v0", "g_w0", "w0")
+                if n in bc) + f" ({bc['n']} synthetic sets)")
+        out += [f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)"
+                for ax, ok in self.k_identified.items() if not ok]
+        return out
 
     def summary(self) -> str:
         """A short text summary: estimates in display units, χ², health."""

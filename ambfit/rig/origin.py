@@ -62,6 +62,22 @@ class OriginSearch:
     def n_iterations(self) -> int:
         return len(self.centers)
 
+    @property
+    def title(self) -> str:
+        state = f"converged at iteration {self.converged_at}" if self.converged else "not converged"
+        return f"effective-origin search ({state})"
+
+    def display_rows(self) -> list[dict]:
+        """One ``{column: text}`` row per iteration: set-point centre, effective offset and gap per axis [µm]."""
+        rows = []
+        for j in range(self.n_iterations):
+            row = {"it": str(j + 1)}
+            for a, ax in enumerate(("v", "w")):
+                row |= {f"{ax} centre [µm]": f"{self.centers[j, a] * 1e6:.2f}",
+                        f"{ax} offset [µm]": f"{self.offsets[j, a] * 1e6:.2f}", f"g_{ax}0 [µm]": f"{self.g0[j, a] * 1e6:.2f}"}
+            rows.append(row)
+        return rows
+
     def to_json(self) -> dict:
         """Trajectory in µm for the command line's JSON output."""
         out = {"converged": self.converged, "converged_at": self.converged_at, "tolerance_um": self.tolerance * 1e6, "iterations": []}

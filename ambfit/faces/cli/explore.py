@@ -1,0 +1,141 @@
+"""``ambfit solution-space``, ``design`` and ``diagnose``: the paper's Fig. 2, what to measure next, the sim-to-real gap."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ambfit.faces.cli.app import (
+    BearingOption, app, bearing_of, check_output, console, enable_compilation_cache, fail, note, pair, show_table,
+    warn, write_json,
+)
+
+
+class Axis(str, Enum):
+    v = "v"
+    w = "w"
+
+
+class Target(str, Enum):
+    g_v0 = "g_v0"
+    g_w0 = "g_w0"
+    v0 = "v0"
+    w0 = "w0"
+    k_v = "k_v"
+    k_w = "k_w"
+
+
+class Criterion(str, Enum):
+    A = "A"
+    D = "D"
+
+
+@app.command("solution-space")
+def solution_space_cmd(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    png: Annotated[Path, typer.Option(help="Write the map here (PNG).")],
+    axis: Annotated[Axis, typer.Option(help="Axis: v or w.")] = Axis.v,
+    gap_um: Annotated[str, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
+    origin_um: Annotated[str, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
+    step_um: Annotated[float, typer.Option(help="Grid step [µm].")] = 1.0,
+    bearing: BearingOption = None,
+):
+    """Map the misfit over a (gap, origin) grid (the paper's Fig. 2), with the least-squares ellipse
+    and the weakest Fisher direction drawn on it."""
+    from ambfit.data import DataError, read_csv
+    from ambfit.estimation import conditioning, fit
+    from ambfit.faces import plots
+
+    check_output(png)
+    desc = bearing_of(bearing)
+    try:
+        ds = read_csv(data)
+        sub = ds.frame[ds.frame["axis"] == axis.value]
+        try:
+            res = fit.fit(sub, bearing=desc)
+        except fit.FitError as exc:
+            warn(f"least squares not shown: {exc}")
+            res = None
+        space = conditioning.solution_space(ds, axis.value, gap=pair(gap_um, 1e-6), origin=pair(origin_um, 1e-6),
+                                            step=step_um * 1e-6, weights_at=res, bearing=desc)
+    except (DataError, ValueError) as exc:
+        fail(str(exc))
+    plots.save(plots.plot_solution_space(space, result=res), png)
+    note(f"{space.summary()}; wrote {png}")
+
+
+@app.command()
+def design(
+    data: Annotated[Path, typer.Argument(help="Perturbation data so far, contract CSV.")],
+    steps: Annotated[int, typer.Option(help="How many next steps to recommend.")] = 8,
+    target: Annotated[Target, typer.Option(help="Parameter whose variance to minimise (A-optimal).")] = Target.g_v0,
+    criterion: Annotated[Criterion, typer.Option(help="'A' (variance of the target) or 'D' (log det of gap and "
+                                                 "origin covariance).")] = Criterion.A,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
+    max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
+                                                        "sensor origin [µm] (back-up bearing clearance "
+                                                        "less a margin; the paper's rig: 60 µm).")] = None,
+):
+    """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
+    from ambfit.data import DataError, read_csv
+    from ambfit.estimation import design as design_mod
+    from ambfit.estimation import fit
+
+    check_output(json_out)
+    try:
+        rec = design_mod.recommend(read_csv(data), n_steps=steps, target=target.value, criterion=criterion.value,
+                                   max_radius_um=max_radius_um)
+    except DataError as exc:
+        fail(str(exc))
+    except (fit.FitError, ValueError) as exc:
+        fail(str(exc), 3)
+    show_table(rec.display_rows(), rec.title)
+    if json_out is not None:
+        write_json(rec.to_json(), json_out)
+
+
+@app.command()
+def diagnose(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
+    bearing: BearingOption = None,
+    pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
+                                               "explains the data (off: the pair is reported as best_pair).")] = False,
+    report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
+                                                "(residuals against the most structured variable, before and "
+                                                "after adding the verdict effect).")] = None,
+):
+    """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
+    data, how far the gap shrinks, and how the identified parameters differ from the bearing as drawn."""
+    from ambfit.data import DataError, read_csv
+    from ambfit.diagnosis import diagnose as run_diagnosis
+    from ambfit.estimation.core import FitError
+
+    check_output(json_out)
+    check_output(report, folder=True)
+    enable_compilation_cache()
+    desc = bearing_of(bearing)
+    try:
+        dg = run_diagnosis(read_csv(data), bearing=desc, pair_verdict=pair_verdict)
+    except (DataError, ValueError, OSError) as exc:
+        fail(str(exc))
+    except FitError as exc:
+        fail(str(exc), 3)
+    note(dg.floor_text())
+    show_table(dg.where_rows(), "where the model fails (largest first)", left=("region",))
+    show_table(dg.ranking_rows(), "candidate effects, held-out (best first)", left=("effect",))
+    note(dg.verdict_text())
+    for line in dg.flagged_parameters():
+        note(line)
+    if json_out is not None:
+        write_json(dg.to_json(), json_out)
+    if report is not None:
+        from ambfit.faces import plots
+
+        report.mkdir(parents=True, exist_ok=True)
+        plots.save(plots.plot_ranking(dg), report / "ranking.png")
+        plots.save(plots.plot_diagnosis_residuals(dg), report / "residuals.png")
+        console.print(f"wrote {report / 'ranking.png'} and {report / 'residuals.png'}")

@@ -1,0 +1,172 @@
+"""``ambfit identify`` and ``ambfit sample``: least squares, the paper's closed form, the posterior."""
+
+from __future__ import annotations
+
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ambfit.faces.cli.app import (
+    BearingOption, app, bearing_of, check_output, console, enable_compilation_cache, fail, note, show_table, warn,
+    write_json,
+)
+
+
+class Method(str, Enum):
+    least_squares = "least-squares"
+    closed_form = "closed-form"
+
+
+class By(str, Enum):
+    none = "none"
+    experiment = "experiment"
+
+
+@app.command()
+def identify(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    method: Annotated[Method, typer.Option(help="Estimator: 'least-squares' (all readings, weighted by their "
+                                           "propagated noise; k from known loads) or 'closed-form' (the "
+                                           "paper's Eq. 5-7 per iteration, averaged).")] = Method.least_squares,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON here.")] = None,
+    by: Annotated[By, typer.Option(help="'experiment': one estimate per experiment (like the paper's "
+                                   "tables); 'none': one estimate from all rows.")] = By.none,
+    current_noise_ma: Annotated[float | None, typer.Option(
+        "--current-noise-ma", help="Declared current noise std [mA] (default: the std columns, else "
+                                   "estimated from the residuals).")] = None,
+    position_noise_um: Annotated[float | None, typer.Option(
+        help="Declared position noise std [µm] (default: the std columns, else 0).")] = None,
+    require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
+                                            "(needs known loads).")] = False,
+    debias: Annotated[int, typer.Option(help="Subtract the estimator's second-order bias, estimated from this "
+                                        "many synthetic data sets of the fitted model (0: off; 2000 is "
+                                        "plenty).")] = 0,
+    max_position_um: Annotated[float, typer.Option(help="Reject positions at least this large [µm] "
+                                                   "(unit check).")] = 762.0,
+    bearing: BearingOption = None,
+):
+    """Identify effective gap, origin (and k when loads are known) for each axis.
+
+    least-squares: value ± standard error from the fit's covariance; exits 3 with the
+    reason when the fit does not converge or the design does not identify the
+    parameters.  closed-form: mean over iterations ± standard error of that mean.
+    """
+    from ambfit.data import DataError, read_csv
+
+    check_output(json_out)
+    enable_compilation_cache()
+    desc = bearing_of(bearing)
+    try:
+        ds = read_csv(data, max_position_um=max_position_um)
+    except DataError as exc:
+        fail(str(exc))
+    if method is Method.closed_form:
+        record = _identify_closed_form(ds, data.name, by, desc)
+    else:
+        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias, desc)
+    if json_out is not None:
+        write_json(record, json_out)
+    if not record["converged"]:
+        raise typer.Exit(3)
+
+
+def _identify_closed_form(ds, name, by, bearing) -> dict:
+    from ambfit.estimation import closed_form
+
+    try:
+        result = closed_form.identify(ds, by_experiment=by is By.experiment, bearing=bearing)
+    except closed_form.ClosedFormError as exc:
+        fail(str(exc), 3)
+    show_table(result.display_rows(), f"closed form (Eq. 5-7), {name}, {result.n_rows} rows",
+               left=("experiment", "axis"))
+    for line in result.rejections():
+        warn(line)
+    return result.to_json()
+
+
+def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias, bearing) -> dict:
+    from ambfit.estimation import fit
+
+    kw = dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
+              sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k,
+              debias=debias, bearing=bearing)
+    try:
+        pooled = fit.fit(ds, **kw)
+    except fit.FitError as exc:
+        if by is By.none:
+            fail(str(exc), 3)
+        pooled = exc
+    results = fit.fit_by(ds, "experiment", **kw) if by is By.experiment else {"all": pooled}
+    show_table([{"experiment": key, **(r.display_row() if not isinstance(r, fit.FitError) else {"g_v0 [µm]": f"failed: {r}"})}
+                for key, r in results.items()], f"least squares, {name}, {len(ds)} rows", left=("experiment",))
+    if isinstance(pooled, fit.FitError):
+        record = {"method": "least_squares", "params": {}, "converged": False, "n_rows": len(ds), "error": str(pooled)}
+    else:
+        for line in pooled.notes():
+            note(line)
+        for problem in pooled.health():
+            warn(problem)
+        record = pooled.to_json()
+    if by is By.experiment:
+        record["experiments"] = {k: (r.to_json() if not isinstance(r, fit.FitError) else
+                                     {"converged": False, "error": str(r)}) for k, r in results.items()}
+        record["converged"] = record["converged"] and all(not isinstance(r, fit.FitError) for r in results.values())
+    return record
+
+
+@app.command()
+def sample(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    out: Annotated[Path | None, typer.Option(help="Write the ArviZ DataTree (posterior, log_likelihood, "
+                                             "sample_stats, observed_data) as NetCDF here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
+                                                  "94 % HDI, R-hat, ESS) here.")] = None,
+    pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
+    steps: Annotated[int, typer.Option(help="Steps per ensemble (at least 50 autocorrelation times).")] = 3000,
+    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat compares them).")] = 4,
+    walkers: Annotated[int | None, typer.Option(help="Walkers per ensemble (default max(32, 4 x parameters)).")] = None,
+    nominal_gap_um: Annotated[float | None, typer.Option(help="Centre the gap prior on this nominal gap [µm] "
+                                                          "(log-sd --gap-prior-log-sd).")] = None,
+    gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
+    seed: Annotated[int, typer.Option(help="Seed.")] = 0,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    bearing: BearingOption = None,
+):
+    """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
+
+    Exits 3 when the run is too short for its autocorrelation time (and says how long it
+    should be) or R-hat across the ensembles exceeds 1.01.
+    """
+    from ambfit.data import DataError, read_csv
+    from ambfit.estimation import bayes, fit
+
+    check_output(out, json_out, pair_png)
+    enable_compilation_cache()
+    desc = bearing_of(bearing)
+    try:
+        ds = read_csv(data)
+        prior = bayes.Prior(gap=nominal_gap_um * 1e-6 if nominal_gap_um else desc.nominal_gap,
+                            gap_log_sd=gap_prior_log_sd)
+        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps, seed=seed,
+                           progress=progress and sys.stderr.isatty(), bearing=desc)
+    except DataError as exc:
+        fail(str(exc))
+    except fit.FitError as exc:
+        fail(str(exc), 3)
+    note(res.summary())
+    record = res.to_json()
+    if out is not None:
+        res.datatree.to_netcdf(out, engine="h5netcdf")
+        console.print(f"wrote {out}")
+    if json_out is not None:
+        write_json(record, json_out)
+    if pair_png is not None:
+        from ambfit.faces import plots
+
+        plots.save(plots.plot_pair(res), pair_png)
+        console.print(f"wrote {pair_png}")
+    if not record["converged"]:
+        raise typer.Exit(3)
