@@ -22,11 +22,11 @@ with ``F`` from :func:`ambfit.physics.model.evaluate` and its derivatives with
 respect to the readings taken by forward-mode automatic differentiation (exact,
 so the ideal law needs no separate hand-written copy).  ``mask`` is 0 for rows
 held out of a fit (cross-validation keeps one compiled shape for every fold).
+The data arrays themselves come from :mod:`ambfit.estimation.problem`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -35,12 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-import pandas as pd
 
-from ambfit.data import Dataset, load_groups, readings
+from ambfit.estimation.problem import Meta, Problem, build_problem  # noqa: F401  (build_problem: the core's entry)
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
-from ambfit.physics.model import BearingParams, Readings, evaluate
+from ambfit.physics.model import BearingParams, evaluate
 
 K_REFERENCE = PAPER_BEARING.force_constant()
 """Force constant [N m^2/A^2] held on an axis without known loads (it cancels from gap and origin)."""
@@ -148,112 +147,6 @@ class Model(eqx.Module):
 
 IDEAL = Model.of(())
 """The paper's Eq. 4 with no effects, on the paper rig."""
-
-
-# --- data arrays --------------------------------------------------------------------------------------------
-
-class Problem(eqx.Module):
-    """Arrays of one data set, ready for the jitted residual (SI units, one entry per row).
-
-    ``k_free[a]`` is whether axis ``a`` has a known load (so ``k`` is identifiable);
-    ``gidx`` indexes the nuisance load of rows without a known load (-1 otherwise);
-    ``mask`` is 1 for rows the fit uses, 0 for held-out rows.
-    """
-
-    readings: Readings
-    s_top: jnp.ndarray
-    s_bottom: jnp.ndarray
-    s_x: jnp.ndarray
-    load: jnp.ndarray
-    known: jnp.ndarray
-    gidx: jnp.ndarray
-    k_free: jnp.ndarray
-    mask: jnp.ndarray
-
-    ax = property(lambda self: self.readings.axis)
-    x = property(lambda self: self.readings.x)
-    i_top = property(lambda self: self.readings.i_top)
-    i_bottom = property(lambda self: self.readings.i_bottom)
-    bias = property(lambda self: self.readings.bias)
-
-    @property
-    def n_loads(self) -> int:
-        return int(np.max(np.asarray(self.gidx), initial=-1)) + 1
-
-    def with_readings(self, i_top, i_bottom, x) -> Problem:
-        """The same problem with other current and position readings (bootstrap, design)."""
-        return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))
-
-
-@dataclasses.dataclass(frozen=True)
-class Meta:
-    """What :func:`build_problem` decided about a data set."""
-
-    load_groups: list
-    k_free: tuple
-    axes_present: tuple
-    noise_source: str
-    n_rows: int
-
-    @property
-    def noise_estimated(self) -> bool:
-        return "estimated" in self.noise_source
-
-
-def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
-    n = len(df)
-
-    def column(name):
-        return df[name].to_numpy(float) if name in df else np.full(n, np.nan)
-
-    st, sb = column("i_top_std_A"), column("i_bottom_std_A")
-    sx = np.where(ax == 0, column("v_std_um"), column("w_std_um")) * 1e-6
-    sources = []
-    if sigma_i is not None:
-        st, sb = np.full(n, float(sigma_i)), np.full(n, float(sigma_i))
-        sources.append(f"current {sigma_i * 1e3:g} mA declared")
-    elif np.isnan(st).any() or np.isnan(sb).any():
-        st, sb = np.full(n, 1e-3), np.full(n, 1e-3)
-        sources.append("current estimated from the residuals")
-    else:
-        sources.append("current from the std columns")
-    if sigma_x is not None:
-        sx = np.full(n, float(sigma_x))
-        sources.append(f"position {sigma_x * 1e6:g} µm declared")
-    elif np.isnan(sx).any():
-        sx = np.zeros(n)
-        sources.append("position noise taken as 0 (no std column)")
-    else:
-        sources.append("position from the std columns")
-    return st, sb, sx, "; ".join(sources)
-
-
-def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: float | None = None,
-                  mask=None) -> tuple[Problem, Meta]:
-    """Arrays for :func:`residuals` from a contract table.
-
-    ``sigma_i`` [A] and ``sigma_x`` [m] override the std columns; with neither
-    columns nor declared levels the noise is marked for estimation (unit current
-    weight of 1 mA, no position noise, rescaled by the fit's reduced χ²).
-    ``mask``: 1 for rows to fit, 0 for rows held out (default all 1).
-    """
-    df = data.frame if isinstance(data, Dataset) else data
-    r = readings(df)
-    ax = np.asarray(r.axis)
-    st, sb, sx, source = _noise(df, ax, sigma_i, sigma_x)
-    load = df["load_N"].to_numpy(float) if "load_N" in df else np.full(len(df), np.nan)
-    groups = load_groups(df).to_numpy()
-    unknown = list(dict.fromkeys(g for g, l in zip(groups, load) if np.isnan(l)))
-    position = {g: j for j, g in enumerate(unknown)}
-    gidx = np.array([position.get(g, -1) for g in groups], dtype=int)
-    known = np.isfinite(load)
-    k_free = tuple(bool(known[ax == a].any()) for a in range(2))
-    present = tuple(bool((ax == a).any()) for a in range(2))
-    m = np.ones(len(df)) if mask is None else np.asarray(mask, dtype=float)
-    prob = Problem(readings=r, s_top=jnp.asarray(st), s_bottom=jnp.asarray(sb), s_x=jnp.asarray(sx),
-                   load=jnp.asarray(np.nan_to_num(load)), known=jnp.asarray(known), gidx=jnp.asarray(gidx),
-                   k_free=jnp.asarray(k_free), mask=jnp.asarray(m))
-    return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
 
 
 # --- parameters, force, residuals --------------------------------------------------------------------------

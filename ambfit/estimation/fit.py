@@ -179,11 +179,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         raise ValueError("the bootstrap bias correction (debias) is implemented for the ideal law only")
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask)
     if require_k:
-        missing = [ax for a, ax in enumerate(AXES) if meta.axes_present[a] and not meta.k_free[a]]
-        if missing:
-            raise FitError(f"k is not identifiable on axis {', '.join(missing)}: no row of that axis has a known "
-                           "load (load_N). Hang known masses (or give the rotor weight share) to calibrate it; "
-                           "the gap and origin do not need it")
+        _require_k(meta)
     if start_from is None and model.n:
         start_from = fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask, max_steps=max_steps,
                          throw=False)
@@ -207,15 +203,28 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
                             max_steps=max_steps)
     res = _finish(theta, float(edm), lm, int(steps), prob, meta, model, how, thresholds)
     if correction is not None:
-        free = free_mask(prob, meta)
-        scale = si_scale(prob)[0][free]
-        res = dataclasses.replace(res, bias_correction={
-            "n": correction.n, "converged_fraction": correction.converged_fraction,
-            **{n: {"subtracted": float(b), "mc_error": float(e)}
-               for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
+        res = _with_correction(res, correction, prob, meta)
     if throw:
         res.raise_for_health()
     return res
+
+
+def _require_k(meta: Meta):
+    missing = [ax for a, ax in enumerate(AXES) if meta.axes_present[a] and not meta.k_free[a]]
+    if missing:
+        raise FitError(f"k is not identifiable on axis {', '.join(missing)}: no row of that axis has a known "
+                       "load (load_N). Hang known masses (or give the rotor weight share) to calibrate it; "
+                       "the gap and origin do not need it")
+
+
+def _with_correction(res: FitResult, correction, prob: Problem, meta: Meta) -> FitResult:
+    """The result with the bootstrap's subtracted bias recorded per parameter (SI units)."""
+    free = free_mask(prob, meta)
+    scale = si_scale(prob)[0][free]
+    return dataclasses.replace(res, bias_correction={
+        "n": correction.n, "converged_fraction": correction.converged_fraction,
+        **{n: {"subtracted": float(b), "mc_error": float(e)}
+           for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
 
 
 def _initial(prob, meta, df, model, start_from):

@@ -206,6 +206,28 @@ def _unsense(effects, axis, i_top, i_bottom, x, y):
     return i_top, i_bottom, x, y
 
 
+def _records(protocol, bias, it_m, ib_m, v_m, w_m, sets, tt, temp, noise) -> pd.DataFrame:
+    """The recorded readings as contract rows: one row per step and axis (SI inside, file units out)."""
+    rows = []
+    for s in range(len(protocol)):
+        for a, name in enumerate(AXES):
+            lo = protocol.loads[protocol.load_id[s]]
+            rows.append({
+                "axis": name, "bias_A": bias[s, a], "i_top_A": it_m[s, a], "i_bottom_A": ib_m[s, a],
+                "v_um": v_m[s] * 1e6, "w_um": w_m[s] * 1e6,
+                "load_N": (lo.force_v, lo.force_w)[a] if lo.known else np.nan,
+                "load_id": protocol.load_id[s], "experiment": protocol.experiment[s],
+                "iteration": int(protocol.iteration[s]),
+                "v_set_um": sets[s, 0] * 1e6, "w_set_um": sets[s, 1] * 1e6,
+                "time_s": tt[s], "temperature_C": temp[s],
+                # Zero noise is written as an empty cell ('not known'): a zero std cannot weight a reading.
+                "i_top_std_A": noise.current or np.nan, "i_bottom_std_A": noise.current or np.nan,
+                "v_std_um": round(noise.position * 1e6, 12) or np.nan,
+                "w_std_um": round(noise.position * 1e6, 12) or np.nan,
+            })
+    return pd.DataFrame(rows)
+
+
 def simulate(
     spec: RigSpec, protocol: Protocol, effects: Sequence[Effect] = (), noise: Noise = Noise(), *,
     seed: int | np.random.Generator = 0, state: RigState | None = None, ambient_C: float = 22.0,
@@ -288,24 +310,7 @@ def simulate(
     v_m = x_m[:, 0] + pos_noise[:, 0]  # the same position sample is recorded with both axes' rows
     w_m = x_m[:, 1] + pos_noise[:, 1]
 
-    rows = []
-    for s in range(n):
-        for a, name in enumerate(AXES):
-            lo = protocol.loads[protocol.load_id[s]]
-            rows.append({
-                "axis": name, "bias_A": bias[s, a], "i_top_A": it_m[s, a], "i_bottom_A": ib_m[s, a],
-                "v_um": v_m[s] * 1e6, "w_um": w_m[s] * 1e6,
-                "load_N": (lo.force_v, lo.force_w)[a] if lo.known else np.nan,
-                "load_id": protocol.load_id[s], "experiment": protocol.experiment[s],
-                "iteration": int(protocol.iteration[s]),
-                "v_set_um": sets[s, 0] * 1e6, "w_set_um": sets[s, 1] * 1e6,
-                "time_s": tt[s], "temperature_C": temp[s],
-                # Zero noise is written as an empty cell ('not known'): a zero std cannot weight a reading.
-                "i_top_std_A": noise.current or np.nan, "i_bottom_std_A": noise.current or np.nan,
-                "v_std_um": round(noise.position * 1e6, 12) or np.nan,
-                "w_std_um": round(noise.position * 1e6, 12) or np.nan,
-            })
-    data = pd.DataFrame(rows)
+    data = _records(protocol, bias, it_m, ib_m, v_m, w_m, sets, tt, temp, noise)
     truth = {
         "rig": spec.name,
         "params": {str(a): spec.params(protocol.assemblies[a]).as_dict_um() for a in sorted(protocol.assemblies)},
