@@ -9,7 +9,7 @@ Health follows iminuit's ``FMin``: each property is a yes/no answer and
     The column-scaled Jacobian's condition number is below the threshold and every
     gap is known to better than the relative threshold.
 ``k_identified``
-    Each present axis has a known load, so its force constant is calibrated.
+    Each present axis has a known load, so its force constant is calibrated (``k_by_axis`` per axis).
 ``adequate``
     χ² is consistent with the noise levels (p-value at least ``p_min``); ``None`` when
     the noise was estimated from the residuals, which makes χ²/dof 1 by construction.
@@ -185,9 +185,15 @@ class FitResult:
         return bool(self.condition < t.max_condition and self.relative_gap_std < t.max_relative_gap_std)
 
     @property
-    def k_identified(self) -> dict:
+    def k_by_axis(self) -> dict:
         """``{"v": bool, "w": bool}``: whether each axis' force constant is calibrated by known loads."""
         return {ax: bool(self.k_free[a]) for a, ax in enumerate(AXES)}
+
+    @property
+    def k_identified(self) -> bool:
+        """Every axis in the data has a known load, so its force constant is calibrated (force measurement works)."""
+        present = {n[2] for n in self.names if n in ("g_v0", "g_w0")}
+        return all(self.k_by_axis[ax] for ax in present)
 
     @property
     def adequate(self) -> bool | None:
@@ -250,7 +256,7 @@ class FitResult:
             "well_conditioned": self.well_conditioned, "health": self.health(),
             "reduced_chi2": self.reduced_chi2, "dof": self.dof, "condition": self.condition,
             "weak_direction": self.weak_direction, "noise_source": self.noise_source, "start": self.start,
-            "k_identified": self.k_identified, "correlations": corr,
+            "k_identified": self.k_by_axis, "correlations": corr,
             "effect_params": {n: {"value": self.value(n), "std": self.error(n)} for n in self.names if "." in n},
             "nuisance_loads_N": {n[5:-1]: {"value": self.value(n), "std": self.error(n)}
                                  for n in self.names if n.startswith("load[")},
@@ -293,7 +299,7 @@ class FitResult:
                 f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in ("g_v0", "v0", "g_w0", "w0")
                 if n in bc) + f" ({bc['n']} synthetic sets)")
         out += [f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)"
-                for ax, ok in self.k_identified.items() if not ok]
+                for ax, ok in self.k_by_axis.items() if not ok]
         return out
 
     def summary(self) -> str:

@@ -1,7 +1,9 @@
 """Figures as functions of results (STYLE.md section 9): each takes a result and an optional Axes.
 
 matplotlib (and ArviZ's plotting) are imported inside the functions, so importing
-ambfit stays fast.
+ambfit stays fast.  New figures come from pyplot on whatever backend the caller
+runs (inline in Jupyter, Agg for the command line, which sets it): library code
+never switches the backend.
 """
 
 from __future__ import annotations
@@ -10,9 +12,6 @@ import numpy as np
 
 
 def _axes(ax):
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     if ax is None:
@@ -27,14 +26,21 @@ def figure_of(obj):
     return obj.figure if hasattr(obj, "figure") and not hasattr(obj, "savefig") else obj
 
 
-def save(obj, path, dpi: int = 120) -> None:
-    """Save an Axes, a Figure or an ArviZ plot collection to ``path`` (a file name or a binary buffer, PNG)."""
+def save(obj, path, dpi: int = 120, *, close: bool = False) -> None:
+    """Save an Axes, a Figure or an ArviZ plot collection to ``path`` (a file name or a binary buffer, PNG).
+
+    ``close`` releases the figure afterwards (reports that draw many figures); a notebook keeps it to show.
+    """
     import os
 
     fig = figure_of(obj)
     fig.tight_layout()
     # a file name gives the format by its suffix; a buffer has none
     fig.savefig(path, dpi=dpi, **({} if isinstance(path, (str, os.PathLike)) else {"format": "png"}))
+    if close:
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
 
 
 def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.3, 6.2, 11.8, 50, 200, 1000)):
@@ -155,9 +161,6 @@ def plot_fig2_surface(space, *, limit_dchi2: float = 11.8, fig=None):
     """The paper's Fig. 2 as drawn there: RMS force misfit over the v-axis effective gap (600-1000 µm, left
     axis) and origin (-100...100 µm, right axis) as a 3-D surface, and the same seen from above with the set
     of "solutions" (Δχ² below ``limit_dchi2``, 3 sigma in 2-D) marked: a long valley, not a point."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     fig = fig or plt.figure(figsize=(12, 5))
@@ -220,9 +223,6 @@ def plot_fig3_positions(search, *, backup_clearance: float = 60e-6, ax=None):
 def plot_fig5_iterations(reproduction, *, fig=None):
     """The paper's Fig. 5: rotor origins and effective gaps over the 10 iterations of Table 2 (Table 1's
     experiment 2): the paper's values, this reproduction and the rig's 90 % band over replicates."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     from ambfit.studies.paper import QUANTITIES, load_table

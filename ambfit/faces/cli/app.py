@@ -19,6 +19,10 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+# The command line draws into files: the headless backend, unless the user chose one.  (The library itself never
+# switches backends, so figures show in notebooks.)
+os.environ.setdefault("MPLBACKEND", "Agg")
+
 app = typer.Typer(
     help="Identify active magnetic bearing parameters (effective gap, origin, force constant) from "
     "current-position perturbation data, and simulate a virtual test rig.",

@@ -1,0 +1,228 @@
+"""The least-squares core: the likelihood (Eq. 4 with effective variance), masks, effect priors,
+the covariance when the noise is estimated, and fit health (``FitResult``).
+
+References are computed by hand in the test with the ``math`` module or, for the covariance, from an
+analytic Jacobian of Eq. 4 written out here (not the library's automatic derivative).
+"""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+from ambfit import rig
+from ambfit.estimation import core
+from ambfit.estimation.fit import FitError, fit
+from ambfit.physics import effects as E
+from ambfit.rig import protocol as P
+
+# Closed-form references of a few float64 operations against the library's (automatically differentiated)
+# evaluation: agreement to ~1e-15 is observed; 1e-12 is round-off headroom, far below any formula error.
+REL = 1e-12
+COS = math.cos(math.radians(22.5))
+STD_COLUMNS = ["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"]
+
+# --- a two-row problem ------------------------------------------------------------------------------------
+
+# one reading per axis, known loads, std columns (the w row's position std differs to check the column used)
+TWO_ROWS = pd.DataFrame({
+    "axis": ["v", "w"], "bias_A": [1.5, 1.5], "i_top_A": [1.62, 1.71], "i_bottom_A": [1.38, 1.27],
+    "v_um": [12.0, 12.0], "w_um": [-7.0, -7.0], "load_N": [6.9, 6.5], "load_id": ["a", "a"],
+    "i_top_std_A": [0.6e-3, 0.5e-3], "i_bottom_std_A": [0.7e-3, 0.4e-3], "v_std_um": [0.1, 0.1],
+    "w_std_um": [0.2, 0.2],
+})
+G0, X0, K = (780e-6, 760e-6), (30e-6, -10e-6), (3.4e-6, 3.5e-6)
+
+
+def eq4_by_hand(a: int):
+    """Force misfit [N] and effective noise std [N] of row ``a`` of TWO_ROWS by hand (contract section 1).
+
+    s_eff = sqrt((2 k i_t / g_t^2 s_t)^2 + (2 k i_b / g_b^2 s_b)^2 + (2 k cos(alpha) (i_t^2/g_t^3 + i_b^2/g_b^3) s_x)^2)
+    (dF/di_t, dF/di_b and dF/dx of F = k (i_t^2/g_t^2 - i_b^2/g_b^2), dg_t/dx = -cos(alpha), dg_b/dx = +cos(alpha)).
+    """
+    row = TWO_ROWS.iloc[a]
+    x = (row["v_um"] if a == 0 else row["w_um"]) * 1e-6
+    s_x = (row["v_std_um"] if a == 0 else row["w_std_um"]) * 1e-6
+    it, ib, k = row["i_top_A"], row["i_bottom_A"], K[a]
+    gt = G0[a] - (X0[a] + x) * COS
+    gb = G0[a] + (X0[a] + x) * COS
+    f = k * (it**2 / gt**2 - ib**2 / gb**2)
+    s = math.sqrt((2 * k * it / gt**2 * row["i_top_std_A"]) ** 2 + (2 * k * ib / gb**2 * row["i_bottom_std_A"]) ** 2
+                  + (2 * k * COS * (it**2 / gt**3 + ib**2 / gb**3) * s_x) ** 2)
+    return f - row["load_N"], s
+
+
+def test_misfit_of_the_ideal_model_is_eq4_with_effective_variance():
+    prob, meta = core.build_problem(TWO_ROWS)
+    assert meta.k_free == (True, True) and meta.noise_source.count("std columns") == 2
+    theta = jnp.asarray(core.to_theta(G0, X0, K))
+    f, s = (np.asarray(a) for a in core.misfit(theta, prob))
+    for a in range(2):
+        f_hand, s_hand = eq4_by_hand(a)
+        assert f[a] == pytest.approx(f_hand, rel=REL)
+        assert s[a] == pytest.approx(s_hand, rel=REL)
+    # the position term is a real part of s_eff here (dropping it changes s_eff by more than 1 %)
+    assert float(s[1]) > 1.01 * math.hypot(2 * K[1] * 1.71 / (G0[1] - (X0[1] - 7e-6) * COS) ** 2 * 0.5e-3,
+                                           2 * K[1] * 1.27 / (G0[1] + (X0[1] - 7e-6) * COS) ** 2 * 0.4e-3)
+
+
+def test_masked_rows_give_zero_residual_but_keep_their_standardized_residual():
+    prob, _ = core.build_problem(TWO_ROWS, mask=[1.0, 0.0])
+    theta = jnp.asarray(core.to_theta(G0, X0, K))
+    r = np.asarray(core.residuals(theta, prob))
+    z = np.asarray(core.standardized(theta, prob))
+    hand = [eq4_by_hand(a)[0] / eq4_by_hand(a)[1] for a in range(2)]
+    assert r.shape == (2,)                          # ideal model: no prior residuals
+    assert r[0] == pytest.approx(hand[0], rel=1e-10) and r[1] == 0.0
+    np.testing.assert_allclose(z, hand, rtol=1e-10)   # ratio of two 1e-12 quantities
+    assert abs(hand[1]) > 1.0                        # the held-out row does have a misfit to hide
+
+
+def test_effect_parameters_carry_a_unit_gaussian_prior_residual():
+    # Saturation: b_sat in (1.0, 1.3) T -> centre 1.15, width 0.3; sharpness in (3, 6) -> centre 4.5, width 3.
+    # CurrentOffset.top is signed, in (4, 15) mA -> centre 0, width 15 mA.
+    model = core.Model.of((E.Saturation(), E.CurrentOffset()))
+    assert model.names()[:4] == ["saturation.b_sat[v]", "saturation.b_sat[w]", "saturation.sharpness[v]",
+                                 "saturation.sharpness[w]"]
+    q = np.array([0.5, -1.0, 0.0, 2.0, 1.0, -0.2, 0.3, 0.0])
+    sat, off = model.build(jnp.asarray(q))
+    np.testing.assert_allclose(np.asarray(sat.b_sat), [1.15 + 0.3 * 0.5, 1.15 - 0.3], rtol=REL)
+    np.testing.assert_allclose(np.asarray(sat.sharpness), [4.5, 4.5 + 3.0 * 2.0], rtol=REL)
+    np.testing.assert_allclose(np.asarray(off.top), [0.015, -0.2 * 0.015], rtol=REL)
+    prob, _ = core.build_problem(TWO_ROWS)
+    theta = jnp.asarray(np.concatenate([core.to_theta(G0, X0, K), q]))
+    r = np.asarray(core.residuals(theta, prob, model))
+    assert r.shape == (2 + 8,)
+    np.testing.assert_array_equal(r[2:], q)            # -log prior = sum(q^2)/2: residual q exactly
+    # and its Jacobian block is the identity: the prior does not depend on the data
+    j = np.asarray(core.jacobian(theta, prob, model))
+    np.testing.assert_array_equal(j[2:, 6:], np.eye(8))
+    np.testing.assert_array_equal(j[2:, :6], 0.0)
+
+
+# --- covariance when the noise is estimated -----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def noisy_table2():
+    """paper_table2, 2 iterations (16 rows, known rotor load), 2 mA current noise, fixed seed."""
+    return rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=2, center=(-33.3e-6, 11.3e-6)),
+                        noise=rig.Noise(current=2e-3, position=0.1e-6), seed=11).data
+
+
+def _analytic_jacobian(res, df, s_i=1e-3, s_x=0.0):
+    """d((F - L)/s) / d(g_v0, g_w0, v0, w0, k_v, k_w) [SI] by hand, s_eff held fixed at the estimate
+    (default: the unit weights of estimated noise, s_t = s_b = 1 mA, s_x = 0); also the residuals."""
+    p = dict(zip(res.names, res.values))
+    a = (df["axis"] == "w").to_numpy().astype(int)
+    x = np.where(a == 0, df["v_um"], df["w_um"]) * 1e-6
+    it, ib, load = df["i_top_A"].to_numpy(), df["i_bottom_A"].to_numpy(), df["load_N"].to_numpy()
+    g0 = np.array([p["g_v0"], p["g_w0"]])[a]
+    x0 = np.array([p["v0"], p["w0"]])[a]
+    k = np.array([p["k_v"], p["k_w"]])[a]
+    gt, gb = g0 - (x0 + x) * COS, g0 + (x0 + x) * COS
+    d_x0 = 2 * k * COS * (it**2 / gt**3 + ib**2 / gb**3)          # dg_t/dx0 = -cos, dg_b/dx0 = +cos (= dF/dx)
+    s = np.sqrt((2 * k * it / gt**2 * s_i) ** 2 + (2 * k * ib / gb**2 * s_i) ** 2 + (d_x0 * s_x) ** 2)
+    r = (k * (it**2 / gt**2 - ib**2 / gb**2) - load) / s
+    d_g0 = k * (-2 * it**2 / gt**3 + 2 * ib**2 / gb**3)          # dg_t/dg0 = dg_b/dg0 = 1
+    d_k = it**2 / gt**2 - ib**2 / gb**2
+    j = np.zeros((len(df), 6))
+    rows = np.arange(len(df))
+    j[rows, 0 + a] = d_g0 / s
+    j[rows, 2 + a] = d_x0 / s
+    j[rows, 4 + a] = d_k / s
+    return j, r
+
+
+# The library inverts the column-scaled J^T J of its automatic Jacobian with pinv, the reference the analytic one
+# with inv; the scaled condition number is ~30 here and they agree to 7e-14 (observed).  1e-9 is headroom for
+# other BLAS builds; a wrong noise scaling changes the covariance by a factor sqrt(chi2/dof) > 1.4 (asserted).
+COV_REL = 1e-9
+
+
+def assert_cov_equal(actual, expected):
+    """Covariances equal entry by entry relative to sqrt(var_i var_j) (exact zeros of the v-w blocks come out
+    as 1e-25 of round-off from the library's joint inverse)."""
+    sd = np.sqrt(np.diag(expected))
+    np.testing.assert_allclose(actual / np.outer(sd, sd), expected / np.outer(sd, sd), rtol=0, atol=COV_REL)
+
+
+def test_covariance_is_scaled_by_reduced_chi2_when_noise_is_estimated(noisy_table2):
+    bare = noisy_table2.drop(columns=STD_COLUMNS)
+    res = fit(bare)
+    assert res.noise_estimated and res.names == ["g_v0", "g_w0", "v0", "w0", "k_v", "k_w"]
+    j, r = _analytic_jacobian(res, bare)
+    chi2, dof = float(r @ r), len(r) - 6
+    assert res.chi2 == pytest.approx(chi2, rel=1e-9)      # 1e-9: round-off of a sum of 16 squares, with headroom
+    # precondition: chi2/dof far from 1, so chi2/dof and its square root (a wrong scaling) differ by a factor > 1.4
+    assert chi2 / dof > 2.0
+    # cov = (J^T J)^-1 chi2/dof, inverted with column scaling (the columns differ by 10 orders of magnitude)
+    n = np.linalg.norm(j, axis=0)
+    cov_hand = np.linalg.inv((j / n).T @ (j / n)) / np.outer(n, n) * chi2 / dof
+    assert_cov_equal(res.cov, cov_hand)
+    np.testing.assert_allclose(res.std, np.sqrt(np.diag(cov_hand)), rtol=COV_REL)
+    # the same weights declared rather than estimated: the same estimate, the covariance without the scaling
+    declared = fit(bare, sigma_i=1e-3, sigma_x=0.0)
+    assert not declared.noise_estimated
+    np.testing.assert_allclose(declared.values, res.values, rtol=1e-9)
+    assert_cov_equal(res.cov, declared.cov * chi2 / dof)
+
+
+def test_noise_from_std_columns_is_not_rescaled(noisy_table2):
+    # the rig wrote its noise levels (2 mA, 0.1 µm) to the std columns: cov = (J^T J)^-1, no chi2/dof factor
+    res = fit(noisy_table2)
+    assert not res.noise_estimated and "std columns" in res.noise_source
+    j, r = _analytic_jacobian(res, noisy_table2, s_i=2e-3, s_x=0.1e-6)
+    assert res.chi2 == pytest.approx(float(r @ r), rel=1e-9)      # as above
+    n = np.linalg.norm(j, axis=0)
+    cov_hand = np.linalg.inv((j / n).T @ (j / n)) / np.outer(n, n)
+    assert_cov_equal(res.cov, cov_hand)
+
+
+# --- health -----------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def saturated_table2():
+    """Three biases (1.0/1.4/1.8 A) at ±20 and ±40 µm (24 rows) on a saturating rig (b_sat 1.2 T), default noise,
+    std columns.  (Table 2's design, two biases at one pair of positions, absorbs saturation into biased
+    gap and origin with an adequate χ², so it cannot show the effect.)"""
+    proto = P.perturbation((1.0, 1.4, 1.8), (20e-6, 40e-6), center=(-33.3e-6, 11.3e-6))
+    sat = rig.simulate(rig.PAPER_RIG, proto, (E.Saturation(b_sat=1.2, sharpness=5.0),), seed=5).data
+    clean = rig.simulate(rig.PAPER_RIG, proto, seed=5).data
+    return sat, clean
+
+
+def test_adequacy_detects_a_planted_effect(saturated_table2):
+    sat, clean = saturated_table2
+    bad = fit(sat)
+    assert bad.converged and not bad.noise_estimated
+    assert bad.adequate is False and bad.p_value < 1e-3
+    text = " ".join(bad.health())
+    assert "χ²/dof" in text and "ideal law" in text and f"{bad.reduced_chi2:.3g}" in text
+    assert bad.to_json()["goodness_of_fit"]["adequate"] is False
+    # the same design and noise without the effect: the ideal law is adequate and healthy
+    good = fit(clean)
+    assert good.adequate is True and good.health() == []
+
+
+def test_adequacy_is_unknown_when_noise_is_estimated(saturated_table2):
+    sat, _ = saturated_table2
+    res = fit(sat.drop(columns=STD_COLUMNS))
+    assert res.adequate is None
+    assert not any("χ²/dof" in h for h in res.health())
+    assert res.to_json()["goodness_of_fit"]["adequate"] is None
+
+
+def test_unidentifiable_design_is_reported_or_raised():
+    # one set-point, unknown load: gap and origin trade off along the valley of Fig. 2
+    loads = {"u": P.Load(5.0, 4.0, known=False)}
+    repeated = P.concat(*(P.grid([(10e-6, 10e-6)], [1.2, 1.4, 1.6], load="u", loads=loads, iteration=i)
+                          for i in range(4)))
+    data = rig.simulate(rig.PAPER_RIG, repeated, seed=0).data
+    res = fit(data, throw=False, max_steps=20)
+    assert res.well_conditioned is False
+    assert any("does not identify" in h for h in res.health())
+    assert res.to_json()["well_conditioned"] is False
+    with pytest.raises(FitError, match="does not identify"):
+        fit(data, max_steps=20)

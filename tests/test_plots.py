@@ -1,0 +1,311 @@
+"""Figures are functions of results (STYLE.md section 9): each plotting function, called on a small
+hand-made object, draws the data it is given, with labels and units, on its own Axes.
+"""
+
+import io
+import os
+import subprocess
+import sys
+import textwrap
+import types
+
+import matplotlib
+import numpy as np
+import pandas as pd
+import pytest
+
+from ambfit.estimation.conditioning import SolutionSpace
+from ambfit.faces import plots
+from ambfit.studies.paper import QUANTITIES, load_table
+
+matplotlib.use("Agg")   # the test session's own choice (headless); the library must not make it
+import matplotlib.pyplot as plt  # noqa: E402
+
+# Plotted coordinates are the inputs times 1e6 (m -> µm) or unchanged: 1e-9 relative is round-off of that
+# product; a wrong unit is a factor 1e3 or more.
+REL = 1e-9
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    plt.close("all")
+
+
+# --- small inputs -----------------------------------------------------------------------------------------
+
+G_STAR, X_STAR = 775e-6, 33e-6          # grid minimum [m]
+
+
+def small_space(axis="v"):
+    """A quadratic χ² bowl around (775 µm, 33 µm): sd 10 µm in gap, 2 µm in origin."""
+    gap = np.linspace(745e-6, 805e-6, 31)
+    origin = np.linspace(27e-6, 39e-6, 25)
+    chi2 = ((gap[:, None] - G_STAR) / 10e-6) ** 2 + ((origin[None, :] - X_STAR) / 2e-6) ** 2 + 12.0
+    return SolutionSpace(axis=axis, gap=gap, origin=origin, chi2=chi2, rms=np.sqrt(chi2) * 1e-3, n_rows=40)
+
+
+def small_result():
+    """The least-squares point and covariance (names, values, cov) of a fit, nothing else."""
+    return types.SimpleNamespace(names=["g_v0", "v0"], values=np.array([776e-6, 32e-6]),
+                                 cov=np.diag([(10e-6) ** 2, (2e-6) ** 2]))
+
+
+RANKING = {"verdict": "saturation", "shrink": 0.87, "heldout_excess_before": 6.5,
+           "ranking": [{"effect": "saturation", "heldout_excess_after": 0.8},
+                       {"effect": "fringing", "heldout_excess_after": 4.0},
+                       {"effect": "leakage", "heldout_excess_after": 5.5}]}
+
+DESIGNS = pd.DataFrame({"design": ["paper", "rich", "one point"], "crlb_gap_um": [3.0, 0.5, np.inf],
+                        "condition": [1e3, 50.0, np.inf], "loads": ["known", "known", ""]})
+
+SPREAD = pd.DataFrame({"table": [2, 1], "quantity": ["v0_um", "g_v0_um"], "role": ["calibration", "prediction"],
+                       "paper_sd": [4.0, 20.0], "rig_median": [3.0, 18.0], "rig_lo": [2.0, 12.0],
+                       "rig_hi": [4.5, 30.0]})
+
+
+def small_search(iterations=3):
+    rows = []
+    for it in range(1, iterations + 1):
+        for v, w in ((10.0 * it, -5.0), (-10.0 * it, 5.0)):
+            rows += [{"axis": "v", "iteration": it, "v_um": v, "w_um": w},
+                     {"axis": "w", "iteration": it, "v_um": v, "w_um": w}]
+    centers = np.array([[-30e-6 + it * 1e-6, 10e-6] for it in range(iterations)])
+    return types.SimpleNamespace(data=pd.DataFrame(rows), centers=centers,
+                                 truth={"params": {"0": {"v0_um": 33.3, "w0_um": -11.3}}})
+
+
+def small_reproduction(iterations=10, replicates=5):
+    rng = np.random.default_rng(0)
+    run = np.stack([np.full(iterations, v) for v in (33.0, -11.0, 775.0, 763.0)], axis=-1)[None]  # [row, it, q]
+    reps = run[None] + rng.normal(0, 1.0, (replicates, 1, iterations, 4))
+    return types.SimpleNamespace(table2_index=0, run=run, replicates=reps)
+
+
+def small_diagnosis():
+    op = pd.DataFrame({"b_top_T": [0.5, 0.7, 0.9, 1.1]})
+    return types.SimpleNamespace(most_structured_variable="b_top_T", operating=op,
+                                 residuals_before=np.array([0.1, 1.0, 3.0, 8.0]),
+                                 residuals_after=np.array([0.2, -0.3, 0.1, 0.4]))
+
+
+def labels(ax):
+    leg = ax.get_legend()
+    return [t.get_text() for t in leg.get_texts()] if leg else []
+
+
+def line(ax, label):
+    return next(ln for ln in ax.lines if ln.get_label() == label)
+
+
+# --- each function: labels, units, data ---------------------------------------------------------------------
+
+def test_residual_map_draws_before_and_after_against_the_variable():
+    x, zb, za = [0.5, 0.7, 0.9], [0.1, 2.5, 7.0], [0.1, -0.2, 0.3]
+    ax = plots.plot_residual_map(x, zb, za, label="b_top_T")
+    assert ax.get_xlabel() == "b_top_T" and ax.get_ylabel() == "standardized residual z"
+    np.testing.assert_array_equal(line(ax, "ideal model").get_xydata(), np.column_stack([x, zb]))
+    np.testing.assert_array_equal(line(ax, "with the verdict effect").get_ydata(), za)
+    assert "±2 noise units" in labels(ax)
+    only = plots.plot_residual_map(x, zb)
+    assert [ln.get_label() for ln in only.lines] == ["ideal model"]
+
+
+def test_diagnosis_residuals_use_the_most_structured_variable():
+    d = small_diagnosis()
+    ax = plots.plot_diagnosis_residuals(d)
+    assert ax.get_xlabel() == "b_top_T"
+    np.testing.assert_array_equal(line(ax, "ideal model").get_xdata(), d.operating["b_top_T"])
+    np.testing.assert_array_equal(line(ax, "with the verdict effect").get_ydata(), d.residuals_after)
+
+
+def test_ranking_has_one_bar_per_candidate_and_the_baseline():
+    ax = plots.plot_ranking(RANKING)
+    bars = ax.patches
+    assert len(bars) == len(RANKING["ranking"]) == 3
+    np.testing.assert_allclose([b.get_width() for b in bars], [0.8, 4.0, 5.5], rtol=REL)
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["saturation", "fringing", "leakage"]
+    green = matplotlib.colors.to_rgba("tab:green")
+    assert [b.get_facecolor() == green for b in bars] == [True, False, False]      # the verdict
+    base = line(ax, "ideal model")
+    assert tuple(base.get_xdata()) == (6.5, 6.5)                                    # excess before
+    assert ax.get_xlabel() == "held-out excess residual [noise units]"
+    assert ax.get_title() == "verdict: saturation, shrink 0.87"
+    # a Diagnosis-like object is read through its contract record
+    obj = types.SimpleNamespace(to_json=lambda: RANKING)
+    assert len(plots.plot_ranking(obj).patches) == 3
+
+
+def test_design_comparison_marks_unbounded_designs():
+    ax = plots.plot_design_comparison(DESIGNS)
+    bars = ax.patches
+    assert len(bars) == len(DESIGNS)
+    # an unbounded design is drawn grey at 100 x the largest finite bound
+    np.testing.assert_allclose([b.get_width() for b in bars], [3.0, 0.5, 300.0], rtol=REL)
+    assert bars[2].get_facecolor() == matplotlib.colors.to_rgba("tab:gray")
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["paper (known)", "rich (known)", "one point"]
+    assert ax.get_xscale() == "log" and ax.get_xlabel().endswith("[µm] (grey: unbounded)")
+    texts = [t.get_text() for t in ax.texts]
+    assert texts[0] == "  cond 1e+03" and texts[2].endswith("not identifiable")
+
+
+def test_solution_space_is_in_micrometres_with_ellipses_of_the_covariance():
+    space, res = small_space(), small_result()
+    draws = np.array([[770e-6, 30e-6], [780e-6, 35e-6]])          # (gap, origin) [m]
+    ax = plots.plot_solution_space(space, result=res, samples=draws)
+    assert ax.get_xlabel() == "v-axis origin [µm]" and ax.get_ylabel() == "v-axis effective gap [µm]"
+    assert ax.get_title() == "Solution space, axis v (40 readings)"
+    # the map: cells centred on the grid in µm, coloured by log10(1 + Δχ²)
+    mesh = ax.collections[0]
+    edges = mesh.get_coordinates()
+    np.testing.assert_allclose((edges[0, 1:, 0] + edges[0, :-1, 0]) / 2, space.origin * 1e6, rtol=REL)
+    np.testing.assert_allclose((edges[1:, 0, 1] + edges[:-1, 0, 1]) / 2, space.gap * 1e6, rtol=REL)
+    np.testing.assert_allclose(mesh.get_array(), np.log10(1.0 + space.chi2 - 12.0), rtol=REL, atol=1e-12)
+    np.testing.assert_allclose(line(ax, "grid minimum").get_xydata()[0], [33.0, 775.0], rtol=REL)
+    np.testing.assert_allclose(line(ax, "posterior draws").get_xydata(), [[30.0, 770.0], [35.0, 780.0]], rtol=REL)
+    ls_point = line(ax, "least squares (68/95 % ellipses)").get_xydata()[0]
+    np.testing.assert_allclose(ls_point, [32.0, 776.0], rtol=REL)
+    # 68 % ellipse (Δχ² = 2.3 in 2-D): half-widths sqrt(2.3) x (2 µm origin, 10 µm gap) about the estimate
+    ell = next(ln for ln in ax.lines if len(ln.get_xdata()) == 200 and ln.get_linestyle() == "-")
+    xy = ell.get_xydata()
+    np.testing.assert_allclose(np.ptp(xy, axis=0) / 2, [np.sqrt(2.3) * 2.0, np.sqrt(2.3) * 10.0], rtol=1e-3)
+    # (1e-3: the ellipse is sampled at 200 angles, the extreme is missed by at most 1 - cos(pi/200) ~ 1e-4)
+    # weakest direction: along the gap, 6 sd = ±60 µm
+    weak = line(ax, "weakest Fisher direction").get_xydata()
+    np.testing.assert_allclose(np.abs(weak[1] - weak[0]), [0.0, 120.0], atol=1e-9)
+    cbar = [a for a in ax.figure.axes if a is not ax]
+    assert len(cbar) == 1 and cbar[0].get_ylabel() == "log10(1 + Δχ²)"
+
+
+def test_fig2_surface_has_the_surface_and_the_map_from_above():
+    fig = plots.plot_fig2_surface(small_space())
+    ax3, ax = fig.axes
+    assert ax3.name == "3d" and ax3.get_zlabel() == "log10 RMS force error [mN]"
+    assert ax3.get_xlabel() == "v-axis effective gap [µm]" and ax3.get_ylabel() == "v-axis origin [µm]"
+    assert ax.get_xlabel() == "v-axis origin [µm]" and "Δχ² < 11.8" in ax.get_title()
+    np.testing.assert_allclose(ax.lines[0].get_xydata()[0], [33.0, 775.0], rtol=REL)
+
+
+def test_fig3_positions_one_colour_per_iteration_and_the_clearance():
+    s = small_search(iterations=3)
+    ax = plots.plot_fig3_positions(s, backup_clearance=60e-6)
+    assert ax.get_xlabel() == "v position [µm]" and ax.get_ylabel() == "w position [µm]"
+    readings = [ln for ln in ax.lines if ln.get_marker() == "o"]
+    assert len(readings) == 3
+    np.testing.assert_array_equal(readings[2].get_xydata(), [[30.0, -5.0], [-30.0, 5.0]])
+    circle = line(ax, "back-up bearing clearance (60 µm)").get_xydata()
+    np.testing.assert_allclose(np.hypot(circle[:, 0], circle[:, 1]), 60.0, rtol=REL)
+    star = line(ax, "true effective origin (−v0, −w0)").get_xydata()[0]
+    np.testing.assert_allclose(star, [-33.3, 11.3], rtol=REL)
+    centres = [ln for ln in ax.lines if ln.get_marker() == "x"]
+    np.testing.assert_allclose(centres[0].get_xydata()[0], [-30.0, 10.0], rtol=REL)
+
+
+def test_fig5_iterations_shows_paper_and_rig_per_quantity():
+    rep = small_reproduction()
+    fig = plots.plot_fig5_iterations(rep)
+    top, bottom = fig.axes
+    assert top.get_ylabel() == "rotor origin [µm]" and bottom.get_ylabel() == "effective gap [µm]"
+    assert bottom.get_xlabel() == "iteration"
+    t2 = load_table(2)
+    np.testing.assert_allclose(line(top, "v0 paper").get_ydata(), t2[QUANTITIES[0]], rtol=REL)
+    np.testing.assert_allclose(line(bottom, "g_w0 ambfit rig").get_ydata(), rep.run[0, :, 3], rtol=REL)
+    assert set(labels(bottom)) >= {"g_v0 rig 90 % band", "g_v0 ambfit rig", "g_v0 paper"}
+
+
+def test_spread_compares_paper_sd_with_the_rig_range():
+    ax = plots.plot_spread(SPREAD)
+    assert ax.get_xscale() == "log" and ax.get_xlabel() == "standard deviation [µm]"
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["T2 v0 (cal.)", "T1 g_v0 (pred.)"]
+    np.testing.assert_array_equal(line(ax, "paper").get_xdata(), [4.0, 20.0])
+    assert "rig: median and 5-95 % of the sd" in labels(ax)
+
+
+def test_pair_plot_shows_the_posterior_draws_of_the_variables_present():
+    import arviz as az
+
+    rng = np.random.default_rng(0)
+    g, v = rng.normal(775e-6, 1e-6, (2, 50)), rng.normal(33e-6, 1e-6, (2, 50))     # 2 chains x 50 draws [m]
+    tree = az.from_dict({"posterior": {"g_v0": g, "v0": v}})
+    fig = plots.figure_of(plots.plot_pair(types.SimpleNamespace(datatree=tree)))
+    assert isinstance(fig, matplotlib.figure.Figure)
+    # k_v and the w axis are absent from this posterior and are left out: a 2 x 2 matrix
+    assert len(fig.axes) == 4
+    cross = next(a for a in fig.axes if a.get_xlabel() == "g_v0" and a.get_ylabel() == "v0")
+    pts = np.concatenate([c.get_offsets() for c in cross.collections])     # one scatter per chain
+    np.testing.assert_array_equal(pts, np.column_stack([g.ravel(), v.ravel()]))
+
+
+def test_save_writes_a_png_and_figure_of_finds_the_figure():
+    ax = plots.plot_ranking(RANKING)
+    assert plots.figure_of(ax) is ax.figure and plots.figure_of(ax.figure) is ax.figure
+    buf = io.BytesIO()
+    plots.save(ax, buf)
+    assert buf.getvalue()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# --- no global state ---------------------------------------------------------------------------------------
+
+CALLS = {
+    "residual_map": lambda ax: plots.plot_residual_map([1, 2], [0.1, 0.2], label="x", ax=ax),
+    "diagnosis_residuals": lambda ax: plots.plot_diagnosis_residuals(small_diagnosis(), ax=ax),
+    "ranking": lambda ax: plots.plot_ranking(RANKING, ax=ax),
+    "design_comparison": lambda ax: plots.plot_design_comparison(DESIGNS, ax=ax),
+    "solution_space": lambda ax: plots.plot_solution_space(small_space(), result=small_result(), ax=ax),
+    "fig3_positions": lambda ax: plots.plot_fig3_positions(small_search(), ax=ax),
+    "spread": lambda ax: plots.plot_spread(SPREAD, ax=ax),
+}
+
+
+@pytest.mark.parametrize("name", CALLS)
+def test_plots_draw_on_their_own_axes_not_the_callers_current_one(name):
+    fig0, ax0 = plt.subplots()          # the caller's current figure and axes
+    backend = matplotlib.get_backend()
+    ax = CALLS[name](None)
+    assert ax is not ax0 and ax.figure is not fig0
+    assert not (ax0.lines or ax0.patches or ax0.collections or ax0.texts)
+    assert plt.fignum_exists(fig0.number)                       # the caller's figure is left open
+    mine_fig, mine = plt.subplots()
+    assert CALLS[name](mine) is mine                            # a given Axes is used, nothing else is created
+    assert len(mine_fig.axes) in (1, 2)                         # (2: the solution space's colour bar)
+    assert matplotlib.get_backend().lower() == backend.lower()
+
+
+@pytest.mark.parametrize("name", ["fig2_surface", "fig5_iterations"])
+def test_figure_plots_use_the_given_figure(name):
+    fig0 = plt.figure()
+    call = {"fig2_surface": lambda fig: plots.plot_fig2_surface(small_space(), fig=fig),
+            "fig5_iterations": lambda fig: plots.plot_fig5_iterations(small_reproduction(), fig=fig)}[name]
+    mine = plt.figure()
+    assert call(mine) is mine and len(mine.axes) == 2 and not fig0.axes
+    assert call(None) is not fig0 and not fig0.axes
+
+
+def _run_with_backend(code: str) -> str:
+    """Run ``code`` in a fresh interpreter whose matplotlib backend is chosen by the caller (svg)."""
+    env = {**os.environ, "MPLBACKEND": "svg"}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_importing_the_plots_does_not_switch_the_backend():
+    out = _run_with_backend("""
+        import matplotlib, matplotlib.pyplot as plt
+        before = matplotlib.get_backend()
+        import ambfit, ambfit.faces.plots
+        print(before, matplotlib.get_backend())
+    """)
+    assert out == "svg svg"
+
+
+def test_plotting_does_not_switch_the_callers_backend():
+    out = _run_with_backend("""
+        import matplotlib, matplotlib.pyplot as plt
+        fig = plt.figure()
+        from ambfit.faces import plots
+        plots.plot_residual_map([1, 2], [0.1, 0.2], label="x")
+        print(matplotlib.get_backend(), plt.fignum_exists(fig.number))
+    """)
+    assert out == "svg True"
