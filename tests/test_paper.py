@@ -1,4 +1,4 @@
-"""The paper's tables as data, their reproduction on the rig, and the HTML reports."""
+"""The paper's tables as data and their reproduction on the rig (the HTML reports: tests/test_report.py)."""
 
 import re
 from pathlib import Path
@@ -6,11 +6,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
 from ambfit.studies import paper
 from ambfit.rig import protocol
-from ambfit.faces.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 Q = list(paper.QUANTITIES)
@@ -104,49 +102,6 @@ def test_published_gap_names_the_candidates_with_magnitudes():
     mu = 0.080 / (2 * diff_v * 1e-6)
     assert f"{mu:.0f}" in could["iron_reluctance"]["needs"]
     assert could["position_gain"]["plausible"] is False   # 1.6 % against a 0.25 % micrometer calibration
-
-
-def _self_contained(html: str) -> bool:
-    srcs = re.findall(r'(?:src|href)="([^"]+)"', html)
-    return all(s.startswith("data:") for s in srcs) and "<img" in html
-
-
-def test_paper_report_is_one_self_contained_page(tmp_path):
-    from ambfit.faces import report
-
-    path = report.paper_report(tmp_path / "paper", replicates=3, seed=1, demonstration=False)
-    paper_html = path.read_text()
-    assert _self_contained(paper_html)
-    for head in ("Table 1", "Table 2", "Table 3", "Table 4", "Fig. 2", "Fig. 3", "Fig. 5", "sim-to-real gap"):
-        assert head in paper_html
-    assert paper_html.count("<img") >= 6
-    comp = pd.read_csv(tmp_path / "paper" / "comparison.csv")
-    assert len(comp) == 108
-    for f in ("fig2_solution_space.png", "fig5_iterations.png", "fig3_position_pairs.png", "README.md",
-              "spread.csv", "reproduction.json"):
-        assert (tmp_path / "paper" / f).stat().st_size > 500
-
-
-def test_data_report_cli_writes_all_sections(tmp_path):
-    out = tmp_path / "rep"
-    r = CliRunner().invoke(app, ["report", str(ROOT / "data" / "paper_table2.csv"), "--out", str(out),
-                                 "--steps", "400", "--ensembles", "2", "--design-steps", "3"])
-    assert r.exit_code == 0, r.output
-    page = (out / "index.html").read_text()
-    assert _self_contained(page)
-    for head in ("1. Identification", "2. Posterior", "3. Solution space", "4. What to measure next",
-                 "5. Sim-to-real gap diagnosis"):
-        assert head in page
-    assert "failed" not in page
-    assert page.count("<img") >= 3
-
-
-def test_data_report_cli_rejects_bad_data(tmp_path):
-    bad = tmp_path / "bad.csv"
-    bad.write_text("axis,bias_A,i_top_A\nv,1.4,oops\n")
-    r = CliRunner().invoke(app, ["report", str(bad), "--out", str(tmp_path / "r"), "--no-posterior"])
-    assert r.exit_code == 2
-    assert "bad.csv" in r.output
 
 
 def test_design_stays_within_the_back_up_bearing(tmp_path):

@@ -58,7 +58,7 @@ from ambfit.estimation.core import (
 from ambfit.estimation.results import FitResult, Thresholds, describe_weakness
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
-from ambfit.physics.model import pole_gaps
+from ambfit.physics.model import horseshoe_force, pole_gaps
 
 
 def start(prob: Problem, meta: Meta, data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> tuple[np.ndarray, str]:
@@ -96,7 +96,7 @@ def _grid_start(prob: Problem, axis: int, bearing: Bearing) -> tuple[float, floa
         gt, gb = pole_gaps(g, xs[:, None], x[None, :], bearing.cos_alpha)
         ok = np.all(np.minimum(gt, gb) > 0.05 * g, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
-            unit = it**2 / gt**2 - ib**2 / gb**2   # [origin, row], Eq. 4 with k = 1
+            unit = horseshoe_force(1.0, it, gt, 1.0, ib, gb)   # [origin, row], Eq. 4 with k = 1
         # per load group, the best load (or k for known loads) is the mean: relative spread is the cost
         cost = np.zeros(len(xs))
         for grp in np.unique(gid):

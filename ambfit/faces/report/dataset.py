@@ -1,0 +1,239 @@
+"""The report of one data set (``ambfit report DATA.csv --out DIR``).
+
+:func:`data_report` identifies the data (least squares and the paper's closed form),
+samples the posterior, maps the solution space, recommends the next perturbations and
+diagnoses the sim-to-real gap.  Each section is one function of its result
+(:func:`identification` of a :class:`~ambfit.estimation.results.FitResult`,
+:func:`posterior` of a :class:`~ambfit.estimation.bayes.Posterior`, ...) returning the
+context of its macro in ``templates/data_sections.html.j2``; the prose is in the template,
+every number in it comes from the result.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ambfit.faces.report.render import figure, footer, render, table
+from ambfit.physics.bearing import PAPER_BEARING
+
+
+def failed(what: str, exc: BaseException | str) -> dict:
+    """The context of a section that could not run: what failed and why."""
+    return {"failed": what, "message": str(exc)}
+
+
+def skipped(reason: str) -> dict:
+    """The context of a section left out on request."""
+    return {"reason": reason}
+
+
+def overview(path, data) -> dict:
+    """The data set at a glance: file, readings, experiments, load groups (``data``: a :class:`ambfit.data.Dataset`)."""
+    df = data.frame
+    return {"path": str(path), "n_rows": len(df),
+            "n_experiments": int(df["experiment"].nunique()) if "experiment" in df else 1,
+            "n_load_groups": int(df["load_id"].nunique()) if "load_id" in df else 1}
+
+
+def identification(result, closed=None) -> dict:
+    """Least-squares estimates beside the closed form's.
+
+    ``result``: :class:`~ambfit.estimation.results.FitResult`; ``closed``: a
+    :class:`~ambfit.estimation.closed_form.ClosedFormResult`, the
+    :class:`~ambfit.estimation.closed_form.ClosedFormError` that says why it does not apply, or None.
+    """
+    ident = pd.DataFrame([{"parameter": key, "value": p["value"], "std": p["std"]}
+                          for key, p in result.contract_params().items()])
+    closed_error = str(closed) if isinstance(closed, Exception) else None
+    if closed is not None and closed_error is None:
+        params = closed.params()
+
+        def column(field):
+            return [np.nan if params.get(k, {}).get(field) is None else float(params[k][field])
+                    for k in ident["parameter"]]
+
+        ident["closed form (Eq. 5-7)"] = column("value")
+        ident["closed form std"] = column("std")
+    return {"table": table(ident, 4), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
+            "dof": result.dof, "condition": result.condition, "weak_direction": result.weak_direction,
+            "noise_source": result.noise_source, "closed_form": closed is not None, "closed_error": closed_error}
+
+
+def posterior(result, *, draw: bool = True) -> dict:
+    """Posterior summary, sampler settings and diagnostics, and the pair plot (``draw``).
+
+    ``result``: :class:`~ambfit.estimation.bayes.Posterior`."""
+    rec = result.to_json()
+    lo = (1 - rec["hdi_prob"]) / 2 * 100
+    post = pd.DataFrame([{"parameter": k, "mean": p["value"], "sd": p["std"], f"hdi {lo:g} %": p["hdi_low"],
+                          f"hdi {100 - lo:g} %": p["hdi_high"], "R-hat": p["r_hat"], "ESS bulk": p["ess_bulk"]}
+                         for k, p in rec["params"].items()])
+    pair = None
+    if draw:
+        from ambfit.faces import plots
+
+        pair = figure(plots.plot_pair(result))
+    return {"table": table(post, 4), "n_ensembles": int(result.draws.shape[0]), "n_steps": result.n_steps,
+            "n_walkers": result.n_walkers, "tau_max": float(np.max(result.tau)), "message": result.message,
+            "converged": rec["converged"], "figure": pair}
+
+
+def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 200, 1000)) -> dict:
+    """The Δχ² maps over (origin, gap), one panel per axis, with contours at ``sigmas`` (2-D coverage).
+
+    ``spaces``: ``{axis: SolutionSpace}`` (:func:`ambfit.estimation.conditioning.solution_space`), an
+    exception in place of a map that could not be computed; ``result``: the least-squares
+    :class:`~ambfit.estimation.results.FitResult` drawn on top.
+    """
+    from matplotlib.figure import Figure
+    from scipy.stats import chi2, norm
+
+    from ambfit.faces import plots
+
+    coverage = [1 - 2 * norm.sf(s) for s in sigmas]
+    levels = [float(chi2.ppf(c, 2)) for c in coverage]
+    fig = Figure(figsize=(12, 4.8))
+    for ax, (axis, space) in zip(np.atleast_1d(fig.subplots(1, len(spaces))), spaces.items()):
+        if isinstance(space, Exception):
+            ax.text(0.5, 0.5, f"axis {axis}: {space}", ha="center", wrap=True)
+        else:
+            plots.plot_solution_space(space, result=result, ax=ax, levels=(*levels, *outer_levels))
+    return {"figure": figure(fig), "levels": levels, "coverage_percent": [c * 100 for c in coverage]}
+
+
+def design(recommendation, *, max_radius_um: float | None = None, candidates: pd.DataFrame | None = None) -> dict:
+    """The recommended next steps with the target's predicted standard error after each.
+
+    ``recommendation``: :class:`~ambfit.estimation.design.Recommendation`; ``candidates``: the grid it chose
+    from (default: :func:`ambfit.estimation.design.candidate_steps`, which
+    :func:`~ambfit.estimation.design.recommend` centres on the estimated effective origin).
+    """
+    from ambfit.estimation import design as design_mod
+    from ambfit.estimation.results import display
+
+    rec = recommendation
+    factor, unit = display(rec.target, 1.0)
+    steps = rec.steps.copy()
+    steps.insert(0, "step", np.arange(1, len(steps) + 1))
+    if "predicted_std_after" in steps:
+        steps[f"{rec.target} std after [{unit}]"] = steps.pop("predicted_std_after") * factor
+    grid = design_mod.candidate_steps() if candidates is None else candidates
+    return {"table": table(steps, 2), "target": rec.target, "criterion": rec.criterion, "std_now": rec.std_now * factor,
+            "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": max_radius_um,
+            "bias_A": (float(grid["bias_A"].min()), float(grid["bias_A"].max()))}
+
+
+def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
+    """Verdict, noise floor, ranking of the candidate effects, structured regions and flagged parameters.
+
+    ``result``: :class:`~ambfit.diagnosis.Diagnosis`."""
+    nf = result.noise_floor
+    ranking = pd.DataFrame([{"effect": c.effect, "held-out excess after": c.after, "shrink": c.shrink,
+                             "ΔAIC": c.to_json(result.ideal)["delta_aic"]} for c in result.ranking])
+    regions = result.where.regions[:max_regions]
+    where = pd.DataFrame([{"region": r.describe(), "rows": r.rows, "z": r.z} for r in regions])
+    bars = None
+    if draw:
+        from ambfit.faces import plots
+
+        bars = figure(plots.plot_ranking(result))
+    return {"verdict": result.verdict, "confounded_with": list(result.confounded_with), "shrink": result.shrink,
+            "noise_source": nf.source, "mean_z2": nf.mean_z2, "expected_mean_z2": nf.expected_mean_z2,
+            "heldout_excess_before": result.heldout_excess_before, "folds": result.folds,
+            "ranking": table(ranking, 3), "figure": bars, "where": table(where, 2) if regions else None,
+            "flagged": [e for e in result.parameter_gap if e.get("flagged")]}
+
+
+def _attempt(what: str, compute) -> dict:
+    """``compute()``, or the failed section's context: one failed section must not lose the rest of the report."""
+    try:
+        return compute()
+    except Exception as exc:  # noqa: BLE001 - reported on the page, the rest still stands
+        return failed(what, exc)
+
+
+def _sections(ds, res, record: dict, *, steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
+              do_diagnosis, seed) -> dict:
+    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON."""
+    from ambfit.estimation import bayes, closed_form, conditioning
+    from ambfit.estimation import design as design_mod
+
+    try:
+        closed = closed_form.identify(ds, bearing=bearing)
+        record["closed_form"] = closed.to_json()
+    except closed_form.ClosedFormError as exc:
+        closed = exc
+    out = {"identification": identification(res, closed)}
+
+    def sample():
+        sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, seed=seed, ls=res, bearing=bearing)
+        record["bayes"] = sr.to_json()
+        return posterior(sr)
+
+    out["posterior"] = _attempt("Posterior sampling", sample) if do_posterior else skipped("--no-posterior")
+    spaces = {}
+    for axis in ("v", "w"):
+        try:
+            spaces[axis] = conditioning.solution_space(ds, axis, weights_at=res, bearing=bearing)
+        except Exception as exc:  # noqa: BLE001 - the panel says why, the other axis still stands
+            spaces[axis] = exc
+    out["solution_space"] = _attempt("Solution space", lambda: solution_space(spaces, res))
+
+    def recommend():
+        rec = design_mod.recommend(ds, n_steps=design_steps, target="g_v0", result=res, max_radius_um=max_radius_um)
+        record["design"] = {"std_now": rec.std_now, "steps": rec.steps.to_dict(orient="records")}
+        return design(rec, max_radius_um=max_radius_um)
+
+    out["design"] = _attempt("Design recommendation", recommend)
+
+    def diagnose():
+        from ambfit import diagnosis as gap
+
+        dg = gap.diagnose(ds, bearing=bearing)
+        record["diagnosis"] = dg.to_json()
+        return diagnosis(dg)
+
+    out["diagnosis"] = _attempt("Diagnosis", diagnose) if do_diagnosis else skipped("--no-diagnosis")
+    return out
+
+
+def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design_steps: int = 8,
+                bearing=PAPER_BEARING, max_radius_um: float | None = 50.0, do_posterior: bool = True,
+                do_diagnosis: bool = True, seed: int = 0, command: str = "") -> tuple[Path, dict]:
+    """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
+    and ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the
+    closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
+    the page says why and the record's ``least_squares`` holds the ``error``.
+
+    Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
+    """
+    from ambfit.data import read_csv
+    from ambfit.estimation.fit import FitError, fit
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    ds = read_csv(data_path)
+    record = {"data": str(data_path), "n_rows": len(ds.frame)}
+    sections = {"overview": overview(data_path, ds)}
+    try:
+        res = fit(ds, bearing=bearing)
+    except FitError as exc:
+        record["least_squares"] = {"error": str(exc)}
+        sections["identification"] = failed("Least squares", exc)
+    else:
+        record["least_squares"] = res.to_json()
+        sections |= _sections(ds, res, record, steps=steps, ensembles=ensembles, design_steps=design_steps,
+                              bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
+                              do_diagnosis=do_diagnosis, seed=seed)
+    (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
+    html_path = out / "index.html"
+    command = command or f"ambfit report {data_path} --out {out}"
+    html_path.write_text(render("data.html.j2", title=f"ambfit report: {Path(data_path).name}", sections=sections,
+                                footer=footer(command, time.perf_counter() - t0)))
+    return html_path, record

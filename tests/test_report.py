@@ -1,0 +1,326 @@
+"""The HTML reports: each section is a function of a result, rendered by its template macro; every number in the
+prose is the number in the result (or in the paper's tables) it came from, and nothing is left unexpanded."""
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from ambfit.data import read_csv
+from ambfit.estimation.fit import fit
+from ambfit.faces.cli import app
+from ambfit.faces.report import dataset
+from ambfit.faces.report import paper_sections as ps
+from ambfit.faces.report.render import plain, section
+from ambfit.physics.bearing import PAPER_BEARING
+from ambfit.studies import paper as study
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLE2 = ROOT / "data" / "paper_table2.csv"
+DATA, PAPER = "data_sections.html.j2", "paper_sections.html.j2"
+MARKERS = ("{{", "}}", "{%", "%}", "{#", "#}")
+
+
+def expanded(html: str) -> bool:
+    """No template syntax left in the output."""
+    return not any(m in html for m in MARKERS)
+
+
+def _self_contained(html: str) -> bool:
+    srcs = re.findall(r'(?:src|href)="([^"]+)"', html)
+    return all(s.startswith("data:") for s in srcs) and "<img" in html
+
+
+@pytest.fixture(scope="module")
+def data():
+    return read_csv(TABLE2)
+
+
+@pytest.fixture(scope="module")
+def ls(data):
+    return fit(data)
+
+
+# --- the data report's sections --------------------------------------------------------------------------
+
+def test_identification_quotes_the_fit_and_the_closed_form(data, ls):
+    from ambfit.estimation import closed_form
+
+    closed = closed_form.identify(data)
+    html = str(section(DATA, "identification", dataset.identification(ls, closed)))
+    text = plain(html)
+    assert expanded(html)
+    assert f"reduced χ² {ls.reduced_chi2:.3f} on {ls.dof} dof" in text
+    assert f"condition number of the scaled Jacobian {ls.condition:.3g}" in text
+    for key, p in ls.contract_params().items():
+        if key.endswith("_um"):      # the table prints µm to 4 decimals
+            assert f"<td>{p['value']:.4f}</td>" in html, key
+    assert f"<td>{closed.params()['g_v0_um']['value']:.4f}</td>" in html
+    assert "Closed form: mean ± standard error" in text
+
+
+def test_identification_says_why_the_closed_form_does_not_apply(ls):
+    from ambfit.estimation.closed_form import ClosedFormError
+
+    html = str(section(DATA, "identification", dataset.identification(ls, ClosedFormError("needs two biases"))))
+    assert "Closed form not applicable: needs two biases" in plain(html)
+    assert "closed form (Eq. 5-7)" not in html
+
+
+def test_posterior_section_reports_the_run(data, ls):
+    from ambfit.estimation import bayes
+
+    post = bayes.sample(data, n_ensembles=2, n_steps=150, seed=1, ls=ls)
+    rec = post.to_json()
+    html = str(section(DATA, "posterior", dataset.posterior(post, draw=False)))
+    text = plain(html)
+    assert expanded(html)
+    assert f"2 independent emcee ensembles × 150 steps × {post.n_walkers} walkers" in text
+    assert f"max autocorrelation time {np.max(post.tau):.0f} steps" in text
+    lo = (1 - rec["hdi_prob"]) / 2 * 100
+    assert f"hdi {lo:g} %" in html and f"hdi {100 - lo:g} %" in html
+    assert f"<td>{rec['params']['g_v0_um']['value']:.4f}</td>" in html
+
+
+def test_solution_space_caption_follows_its_contour_levels(data, ls):
+    from scipy.stats import chi2
+
+    from ambfit.estimation import conditioning
+
+    spaces = {"v": conditioning.solution_space(data, "v", weights_at=ls), "w": ValueError("no w map")}
+    html = str(section(DATA, "solution_space", dataset.solution_space(spaces, ls, sigmas=(1, 2))))
+    text = plain(html)
+    assert expanded(html) and "<img" in html
+    # 1 and 2 sigma in two dimensions: chi2(2).ppf(0.6827) = 2.30, ppf(0.9545) = 6.18
+    assert f"Δχ² = {chi2.ppf(0.6827, 2):.1f}, {chi2.ppf(0.9545, 2):.1f} (68.3, 95.4 % in 2-D)" in text
+    assert "11.8" not in text
+
+
+def test_design_section_describes_the_grid_it_chose_from(data, ls):
+    from ambfit.estimation import design
+
+    grid = design.candidate_steps((0.0, 0.0), offsets_um=(-30, 0, 30), biases_A=(1.0, 1.5))
+    rec = design.recommend(data, n_steps=2, candidates=grid, result=ls)
+    html = str(section(DATA, "design", dataset.design(rec, candidates=grid)))
+    text = plain(html)
+    assert expanded(html)
+    assert f"A-optimal choice for g_v0 (now ± {rec.std_now * 1e6:.3g} µm)" in text
+    assert "set-points ±30 µm" in text and "biases 1-1.5 A" in text and "kept within" not in text
+    after = rec.steps["predicted_std_after"].iloc[-1] * 1e6
+    assert "g_v0 std after [µm]" in html and f"<td>{after:.2f}</td>" in html
+    # without a grid: the one recommend() uses by default
+    text = plain(section(DATA, "design", dataset.design(rec, max_radius_um=45.0)))
+    assert "set-points ±50 µm" in text and "kept within 45 µm of the sensor origin" in text
+    assert "biases 0.8-1.8 A" in text
+
+
+def test_diagnosis_section_reads_the_typed_diagnosis(data):
+    from ambfit import diagnosis as gap
+    from ambfit.physics import effects
+
+    dg = gap.diagnose(data, candidates=[effects.PositionGain(), effects.IronReluctance()], pairs=False)
+    html = str(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
+    text = plain(html)
+    assert expanded(html)
+    assert f"Verdict: {dg.verdict};" in text and f"shrink {dg.shrink:.3f}" in text
+    nf = dg.noise_floor
+    assert f"mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f})" in text
+    assert f"held-out excess of the ideal model {dg.heldout_excess_before:.2f} noise units (folds: {dg.folds})" in text
+    where = [html.index(f"<td>{c.effect}</td>") for c in dg.ranking]
+    assert where == sorted(where)                       # best first, as ranked
+    assert f"<td>{dg.ranking[0].after:.3f}</td>" in html
+    # the nominal gap is the bearing's: another bearing, another sentence
+    other = dataclasses.replace(PAPER_BEARING, nominal_gap=750e-6)
+    text = plain(section(DATA, "diagnosis", dataset.diagnosis(
+        dataclasses.replace(dg, parameter_gap=gap.parameter_gap(dg.baseline, other)), draw=False)))
+    assert f"identified {dg.baseline.value('g_v0') * 1e6:.4g} vs nominal 750 (" in text and "762" not in text
+
+
+def test_data_report_without_a_fit_says_why(tmp_path, monkeypatch):
+    import importlib
+
+    fit_mod = importlib.import_module("ambfit.estimation.fit")   # the module (the package exports the function)
+
+    def fail(*args, **kwargs):
+        raise fit_mod.FitError("singular Jacobian at the start")
+
+    monkeypatch.setattr(fit_mod, "fit", fail)
+    path, rec = dataset.data_report(TABLE2, tmp_path / "r")
+    page = path.read_text()
+    assert rec["least_squares"] == {"error": "singular Jacobian at the start"}
+    assert set(rec) == {"data", "n_rows", "least_squares"}
+    assert "Least squares failed: singular Jacobian at the start" in plain(page)
+    assert "2. Posterior" not in page and expanded(page)
+
+
+def test_data_report_skips_sections_on_request(tmp_path):
+    path, rec = dataset.data_report(TABLE2, tmp_path / "r", design_steps=2, do_posterior=False,
+                                    do_diagnosis=False)
+    page = path.read_text()
+    assert expanded(page) and _self_contained(page)
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "design"}
+    assert json.loads((tmp_path / "r" / "report.json").read_text())["n_rows"] == rec["n_rows"] == 80
+    assert "Skipped (--no-posterior)." in page and "Skipped (--no-diagnosis)." in page
+    assert f"reduced χ² {rec['least_squares']['reduced_chi2']:.3f}" in page
+    assert f"now ± {rec['design']['std_now'] * 1e6:.3g} µm" in page
+
+
+def test_data_report_cli_writes_all_sections(tmp_path):
+    out = tmp_path / "rep"
+    r = CliRunner().invoke(app, ["report", str(TABLE2), "--out", str(out),
+                                 "--steps", "400", "--ensembles", "2", "--design-steps", "3"])
+    assert r.exit_code == 0, r.output
+    page = (out / "index.html").read_text()
+    assert _self_contained(page)
+    for head in ("1. Identification", "2. Posterior", "3. Solution space", "4. What to measure next",
+                 "5. Sim-to-real gap diagnosis"):
+        assert head in page
+    assert "failed" not in page
+    assert page.count("<img") >= 3
+    assert expanded(page)
+    rec = json.loads((out / "report.json").read_text())
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "design", "diagnosis"}
+    assert f"shrink {rec['diagnosis']['shrink']:.3f}" in page
+    assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
+
+
+def test_data_report_cli_rejects_bad_data(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("axis,bias_A,i_top_A\nv,1.4,oops\n")
+    r = CliRunner().invoke(app, ["report", str(bad), "--out", str(tmp_path / "r"), "--no-posterior"])
+    assert r.exit_code == 2
+    assert "bad.csv" in r.output
+
+
+# --- the paper report's sections -------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def rep():
+    return study.reproduce(replicates=3, seed=1)
+
+
+@pytest.fixture
+def bias_check():
+    """A bias-pair check with known ranges: 0 µm without an effect, 1.25 µm with the offset."""
+    pairs = ["1.4/1.5", "1.4/1.6", "1.5/1.6"]
+    return pd.DataFrame({"effect": ["none"] * 3 + ["offset"] * 3, "bias_pair": pairs * 2,
+                         "v0_um": [33.3, 33.3, 33.3, 33.0, 33.5, 34.25], "w0_um": -11.3,
+                         "g_v0_um": 775.0, "g_w0_um": 763.0})
+
+
+def test_intro_and_calibration_quote_the_reproduction(rep):
+    text = plain(section(PAPER, "intro", ps.intro(rep)))
+    assert f"({rep.noise.current * 1e3:.2f} mA per current reading" in text
+    assert f"repeated {rep.replicates.shape[0]} times ({rep.failed} rejected)" in text
+    assert f"overall means ({rep.spec.g0[0] * 1e6:.0f}/{rep.spec.g0[1] * 1e6:.0f} µm" in text
+    shift = study.TABLE4_SHIFT
+    assert f"Table 4, {(rep.spec.x0[0] + shift[0]) * 1e6:.1f}/{(rep.spec.x0[1] + shift[1]) * 1e6:.1f} µm" in text
+    nc = rep.noise_calibration()
+    text = plain(section(PAPER, "calibration", ps.calibration(rep)))
+    assert f"current noise of {nc['calibrated_current_noise_mA']:.2f} mA" in text
+    assert f"from its {nc['dof']} degrees of freedom" in text
+
+
+def test_paper_numbers_follow_the_paper_tables(rep, bias_check, monkeypatch):
+    # edit the transcribed tables: every sentence that quotes them must follow (none may be typed into the prose)
+    original = study.load_table
+
+    def edited(n, averages=False):
+        t = original(n, averages)
+        if n == 2 and not averages:
+            t.loc[7, "g_w0_um"], t.loc[0, "w0_um"] = 900.0, -8.5
+        if n == 1 and not averages:
+            t["v0_um"] = [36.0, 32.0, 27.0]
+        return t
+
+    monkeypatch.setattr(study, "load_table", edited)
+    text = plain(section(PAPER, "calibration", ps.calibration(rep)))
+    assert "iteration 8's 900.0 µm on w" in text and "850.7" not in text
+    assert "iteration 1 (-8.50 µm, before" in text and "-7.18" not in text
+    text = plain(section(PAPER, "origin_spread", ps.origin_spread(rep, bias_check)))
+    assert "36.00 → 32.00 → 27.00 µm" in text and "(-4.50 µm each)" in text and "(9.0 µm over Table 1)" in text
+    assert "35.08" not in text and "6.3 µm" not in text
+    assert "0.00 µm with none, 1.25 µm with offset" in text
+
+
+def test_gap_spread_and_eq7_bias_quote_the_reproduction(rep):
+    s = ps.gap_spread(rep)
+    text = plain(section(PAPER, "gap_spread", s))
+    assert f"the paper's sd is {s['ratio'][0]:.2f}-{s['ratio'][1]:.2f} times the rig's median" in text
+    assert f"sqrt(1 + 2 · 0.9 · ρ) = {np.sqrt(max(1 + 1.8 * s['rho'], 0.05)):.2f}" in text   # 10 iterations
+    assert re.search(r"\b\d+(st|nd|rd|th) percentile", text) and not re.search(r"(?<!1)[123]th\b", text)
+    comp = rep.comparison()
+    e = ps.eq7_bias(rep)
+    text = plain(section(PAPER, "eq7_bias", e))
+    row = comp[(comp["table"] == 1) & (comp["row"] == 1) & (comp["quantity"] == "g_v0_um")].iloc[0]
+    assert f"1.4/1.5 A: {row['rig_mean'] - rep.spec.g0[0] * 1e6:+.1f} ± " in text
+    assert f"Table 1's 0.1 A pairs" in text and f"row sd of about {e['row_sd']:.0f} µm" in text
+
+
+def test_table_titles_and_figure_texts_come_from_the_protocol(rep):
+    titles = [str(section(PAPER, "table_title", ps.side_by_side(rep, t))) for t in (1, 2, 3, 4)]
+    assert titles == ["Table 1: 3 bias pairs, ±20 µm", "Table 2: 10 iterations of Table 1's experiment 2",
+                      "Table 3: 4 initial rotor positions", "Table 4: after rotor reassembly"]
+    text = plain(section(PAPER, "fig3", ps.fig3(rep)))
+    # Table 4's widest pairs (±50 µm) about (47.4, -13.1) µm reach 97.4 µm; the paper's clearance is 60 µm
+    assert "reach about 97 µm" in text and "beyond the 60 µm clearance" in text
+    wide = dataclasses.replace(rep.spec, bearing=dataclasses.replace(rep.spec.bearing, backup_clearance=150e-6))
+    text = plain(section(PAPER, "fig3", ps.fig3(dataclasses.replace(rep, spec=wide))))
+    assert "within the 150 µm clearance" in text
+
+
+def test_own_gap_uses_the_bearing_and_the_demonstration():
+    bearing = dataclasses.replace(PAPER_BEARING, nominal_gap=770e-6, position_gain_tolerance=0.005)
+    published = study.published_gap(nominal=bearing)
+    gv = {e["parameter"]: e for e in published}["g_v0_um"]
+    demo = {"nominal_gap_um": 770.0,
+            "implied": {"iron_reluctance_mu_r": [3000.0, 9e4], "iron_path_mm": 80.0,
+                        "position_gain_percent": [0.6, 0.1]},
+            "scenarios": {
+                "iron_reluctance": {"paper_protocol": {"g_v0_um": [778.6, 1.4], "verdict": "none"},
+                                    "bias_sweep": {"n_rows": 90, "g_v0_um": [770.2, 0.5], "verdict": "iron_reluctance",
+                                                   "heldout_excess": 1.57, "shrink": 1.0}},
+                "position_gain": {"paper_protocol": {"g_v0_um": [777.9, 1.4], "verdict": "none"},
+                                  "bias_sweep": {"n_rows": 90, "g_v0_um": [774.6, 0.5], "verdict": "none",
+                                                 "heldout_excess": 0.4, "shrink": 0.0}}}}
+    s = ps.own_gap(published, demo, biases=(1.4, 1.6), bearing=bearing)
+    html = str(section(PAPER, "own_gap", s))
+    text = plain(html)
+    assert expanded(html)
+    assert "nominal 770 µm" in text and "762" not in text
+    assert f"by {gv['difference']:+.1f} µm ({gv['z']:.0f} se)" in text
+    assert "micrometer calibration (0.50 %)" in text
+    assert "iron reluctance (μr 3000 over 80 mm) gives an effective g_v0 of 778.6 ± 1.4 µm" in text
+    assert "at 1.4-1.6 A the iron's extra gap is constant" in text
+    assert "separates them: the diagnosis names 'iron_reluctance' for the iron (held-out excess 1.57" in text
+    assert "true effect (nominal 770 µm)" in str(s["demo_table"])
+
+
+def test_paper_report_is_one_self_contained_page(tmp_path):
+    from ambfit.faces import report
+
+    path = report.paper_report(tmp_path / "paper", replicates=3, seed=1, demonstration=False)
+    paper_html = path.read_text()
+    assert _self_contained(paper_html)
+    for head in ("Table 1", "Table 2", "Table 3", "Table 4", "Fig. 2", "Fig. 3", "Fig. 5", "sim-to-real gap"):
+        assert head in paper_html
+    assert paper_html.count("<img") >= 6
+    comp = pd.read_csv(tmp_path / "paper" / "comparison.csv")
+    assert len(comp) == 108
+    for f in ("fig2_solution_space.png", "fig5_iterations.png", "fig3_position_pairs.png", "README.md",
+              "spread.csv", "reproduction.json"):
+        assert (tmp_path / "paper" / f).stat().st_size > 500
+    assert expanded(paper_html)
+    readme = (tmp_path / "paper" / "README.md").read_text()
+    assert expanded(readme) and not re.search(r"<[a-z/][^>]*>", readme) and "&#" not in readme
+    assert "## Table 4: paper vs ambfit" in readme
+    rec = json.loads((tmp_path / "paper" / "reproduction.json").read_text())
+    assert set(rec) == {"replicates", "failed", "seed", "noise", "seconds_reproduction", "comparison", "spread",
+                        "autocorrelation", "between_experiment_sd", "noise_calibration", "table2_trend", "fig2",
+                        "published_gap", "gap_demonstration", "bias_pair_check"}
+    assert f"repeated {rec['replicates']} times" in paper_html
