@@ -22,7 +22,7 @@ import pandas as pd
 
 from ambfit.physics import effects
 from ambfit import diagnosis as gap
-from ambfit.studies import paper
+from ambfit.studies import paper, paper_gap
 from ambfit.faces import plots
 from ambfit import rig
 from ambfit.rig import protocol as P
@@ -52,7 +52,7 @@ plt.show()
 # rig in `data/paper/bearing.toml` and names what each candidate would need.
 
 # %%
-for e in paper.published_gap():
+for e in paper_gap.published_gap():
     print(f"{e['parameter']}: {e['identified']:.1f} ± {e['std']:.1f} vs nominal {e['nominal']:.0f} "
           f"({e['z']:+.1f} se), flagged={e['flagged']}")
     for c in e.get("could_be", []):
@@ -65,7 +65,7 @@ for e in paper.published_gap():
 # bias sweep up to 2.6 A (flux density about 1 T) separates them.
 
 # %%
-demo = paper.gap_demonstration(seed=0)
+demo = paper_gap.gap_demonstration(seed=0)
 rows = []
 for name, e in demo["scenarios"].items():
     for design, r in (("paper protocol", e["paper_protocol"]), ("bias sweep 0.6-2.6 A", e["bias_sweep"])):

@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ambfit.studies import paper
+from ambfit.studies import paper, paper_gap
 from ambfit.rig import protocol
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,7 +93,7 @@ def test_noise_calibrated_on_table2_matches_its_scatter(rep):
 
 
 def test_published_gap_names_the_candidates_with_magnitudes():
-    pg = {e["parameter"]: e for e in paper.published_gap()}
+    pg = {e["parameter"]: e for e in paper_gap.published_gap()}
     avgs = pd.concat([paper.load_table(t, averages=True) for t in (1, 3, 4)])
     diff_v = avgs["g_v0_um"].mean() - 762.0
     assert pg["g_v0_um"]["flagged"] and not pg["g_w0_um"]["flagged"]

@@ -19,6 +19,7 @@ from ambfit.faces.report import paper_sections as ps
 from ambfit.faces.report.render import plain, section
 from ambfit.physics.bearing import PAPER_BEARING
 from ambfit.studies import paper as study
+from ambfit.studies import paper_gap
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE2 = ROOT / "data" / "paper_table2.csv"
@@ -276,7 +277,7 @@ def test_table_titles_and_figure_texts_come_from_the_protocol(rep):
 
 def test_own_gap_uses_the_bearing_and_the_demonstration():
     bearing = dataclasses.replace(PAPER_BEARING, nominal_gap=770e-6, position_gain_tolerance=0.005)
-    published = study.published_gap(nominal=bearing)
+    published = paper_gap.published_gap(nominal=bearing)
     gv = {e["parameter"]: e for e in published}["g_v0_um"]
     demo = {"nominal_gap_um": 770.0,
             "implied": {"iron_reluctance_mu_r": [3000.0, 9e4], "iron_path_mm": 80.0,

@@ -206,6 +206,7 @@ def residuals(theta, prob: Problem, model: Model = IDEAL):
     return _weighted(theta, (prob, model, s))
 
 
+@eqx.filter_jit
 def standardized(theta, prob: Problem, model: Model = IDEAL):
     """``(F - L) / s_eff`` of every row, held-out rows included (dimensionless)."""
     f, s = misfit(theta, prob, model)

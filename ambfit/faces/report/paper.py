@@ -16,6 +16,7 @@ from pathlib import Path
 from ambfit.faces.report import paper_sections as sec
 from ambfit.faces.report.render import footer, img, markdown, plain, png_bytes, render, section
 from ambfit.studies import paper as study
+from ambfit.studies import paper_gap
 
 PROSE = ("intro", "calibration", "gap_spread", "origin_spread", "eq7_bias")
 """The paragraphs of the paper report that the Markdown summary repeats, in order."""
@@ -110,9 +111,9 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     except FitError as exc:
         fig2_fit = exc
     figs = _figures(out, rep, space, fig2_fit, spread)
-    bias_check = study.bias_pair_check()
-    published = study.published_gap()
-    demo = study.gap_demonstration(seed=seed) if demonstration else None
+    bias_check = paper_gap.bias_pair_check()
+    published = paper_gap.published_gap()
+    demo = paper_gap.gap_demonstration(seed=seed) if demonstration else None
     record = _record(rep, seed=seed, space=space, fig2_fit=fig2_fit, bias_check=bias_check, published=published,
                      demo=demo)
     (out / "reproduction.json").write_text(json.dumps(record, indent=2, default=float))

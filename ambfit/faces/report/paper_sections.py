@@ -123,7 +123,7 @@ def gap_spread(rep, *, low: float = 5.0, high: float = 95.0) -> dict:
 def origin_spread(rep, bias_check: pd.DataFrame, *, low: float = 5.0, high: float = 95.0) -> dict:
     """The paper's origin spread: within and between experiments, the trend inside Table 2 and the step across
     Table 1, against what current-sensor errors on the rig produce (``bias_check``:
-    :func:`ambfit.studies.paper.bias_pair_check`)."""
+    :func:`ambfit.studies.paper_gap.bias_pair_check`)."""
     origins = _prediction(rep.spread(), gaps=False)
     extra = rep.between_experiment_sd()
     extra = extra[~extra["quantity"].str.startswith("g_")]["extra_sd"]
@@ -235,8 +235,8 @@ def own_gap(published: list, demo: dict | None = None, *, biases=(np.nan, np.nan
     """The paper's effective gaps against its nominal gap, the candidate effects and (``demo``) what the rig
     shows of them.
 
-    ``published``: :func:`ambfit.studies.paper.published_gap`; ``demo``:
-    :func:`ambfit.studies.paper.gap_demonstration` or None; ``biases``: the paper protocol's bias pair [A];
+    ``published``: :func:`ambfit.studies.paper_gap.published_gap`; ``demo``:
+    :func:`ambfit.studies.paper_gap.gap_demonstration` or None; ``biases``: the paper protocol's bias pair [A];
     ``bearing``: the calibration tolerance and current limit."""
     pg = {e["parameter"]: e for e in published}
     gv, gw = pg["g_v0_um"], pg["g_w0_um"]
