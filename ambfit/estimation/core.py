@@ -214,6 +214,7 @@ def standardized(theta, prob: Problem, model: Model = IDEAL):
 
 
 def _edm(theta, prob, model):
+    """Estimated distance to the minimum and the Jacobian it was computed from."""
     j = jax.jacfwd(residuals)(theta, prob, model)
     g = j.T @ residuals(theta, prob, model)
     h = j.T @ j
@@ -221,7 +222,22 @@ def _edm(theta, prob, model):
     # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
     # the identifiability checks then say why.
     h = h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0))
-    return g @ jnp.linalg.solve(h, g)
+    return g @ jnp.linalg.solve(h, g), j
+
+
+def _solve(theta0, prob, model, max_steps, rtol, atol):
+    def round_(_, carry):
+        theta, steps, _ = carry
+        s = misfit(theta, prob, model)[1]
+        sol = optx.least_squares(_weighted, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta,
+                                 args=(prob, model, s), max_steps=max_steps, throw=False)
+        return sol.value, steps + sol.stats["num_steps"], sol.result
+
+    # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
+    theta, steps, result = jax.lax.fori_loop(
+        0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
+    edm, j = _edm(theta, prob, model)
+    return theta, result, steps, edm, j
 
 
 @eqx.filter_jit
@@ -233,17 +249,17 @@ def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_ST
     the steps of all rounds; ``result`` is the last round's optimistix result; ``edm`` decides
     convergence (see ``EDM_MAX``).
     """
-    def round_(_, carry):
-        theta, steps, _ = carry
-        s = misfit(theta, prob, model)[1]
-        sol = optx.least_squares(_weighted, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta,
-                                 args=(prob, model, s), max_steps=max_steps, throw=False)
-        return sol.value, steps + sol.stats["num_steps"], sol.result
+    return _solve(theta0, prob, model, max_steps, rtol, atol)[:4]
 
-    # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
-    theta, steps, result = jax.lax.fori_loop(
-        0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
-    return theta, result, steps, _edm(theta, prob, model)
+
+@eqx.filter_jit
+def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS):
+    """:func:`solve`, plus the Jacobian of :func:`residuals` and the standardized residuals of every row at the
+    solution: ``(theta, result, num_steps, edm, jacobian, z)``.  One compiled function per model and step budget,
+    which is what a single fit needs (the diagnosis fits dozens of models, and compile time dominates there)."""
+    theta, result, steps, edm, j = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
+    f, s = misfit(theta, prob, model)
+    return theta, result, steps, edm, j, f / s
 
 
 @eqx.filter_jit

@@ -53,7 +53,7 @@ from ambfit.data import Dataset
 from ambfit.estimation import closed_form
 from ambfit.estimation.core import (
     EDM_MAX, FIRST_STEPS, K_REFERENCE, FitError, Meta, Model, Problem, build_problem, free_mask, free_names, jacobian,
-    seed_loads_and_k, si_scale, solve, standardized, to_theta,
+    seed_loads_and_k, si_scale, solve_and_measure, standardized, to_theta,
 )
 from ambfit.estimation.results import FitResult, Thresholds, describe_weakness
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
@@ -187,9 +187,9 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     # The ideal law from a closed-form seed needs a few steps; a second solve (another compilation) only when
     # that was not enough.  Extended fits start further away (effects at their prior centre): one solve.
     first = max_steps if model.n else min(FIRST_STEPS, max_steps)
-    theta, result, steps, edm = solve(jnp.asarray(theta0), prob, model, max_steps=first)
+    theta, result, steps, edm, jac, z = solve_and_measure(jnp.asarray(theta0), prob, model, max_steps=first)
     if not edm < EDM_MAX and max_steps > first:  # a far start: give Levenberg-Marquardt room
-        theta, result, more, edm = solve(theta, prob, model, max_steps=max_steps)
+        theta, result, more, edm, jac, z = solve_and_measure(theta, prob, model, max_steps=max_steps)
         steps = steps + more
     lm = "successful" if result == optx.RESULTS.successful else str(result)
     theta = np.asarray(theta)
@@ -199,9 +199,11 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
 
         correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed)
         theta = theta - correction.bias
+        jac, z = jacobian(jnp.asarray(theta), prob, model), standardized(jnp.asarray(theta), prob, model)
     thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
                             max_steps=max_steps)
-    res = _finish(theta, float(edm), lm, int(steps), prob, meta, model, how, thresholds)
+    res = _finish(theta, np.asarray(jac), np.asarray(z), float(edm), lm, int(steps), prob, meta, model, how,
+                  thresholds)
     if correction is not None:
         res = _with_correction(res, correction, prob, meta)
     if throw:
@@ -243,12 +245,13 @@ def _initial(prob, meta, df, model, start_from):
     return np.concatenate([theta, np.zeros(model.n)]), f"from the {start_from.model} fit"
 
 
-def _finish(theta, edm, lm, steps, prob, meta, model, how, thresholds) -> FitResult:
+def _finish(theta, jac, z, edm, lm, steps, prob, meta, model, how, thresholds) -> FitResult:
+    """Covariance, conditioning and the result record from the Jacobian ``jac`` and standardized residuals ``z``
+    at the solution ``theta``."""
     free = free_mask(prob, meta, model)
     names = free_names(meta, free, model)
-    z = np.asarray(standardized(jnp.asarray(theta), prob, model))
     used = np.asarray(prob.mask) > 0
-    j = np.asarray(jacobian(jnp.asarray(theta), prob, model))[:, free]
+    j = jac[:, free]
     dof = int(used.sum()) - int(free.sum())
     if dof < 1:
         raise FitError(f"the design does not identify the parameters: {int(used.sum())} readings for "
