@@ -22,7 +22,8 @@
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ambfit.estimation import conditioning, fit
+import ambfit
+from ambfit.estimation import conditioning
 from ambfit.faces import plots
 from ambfit import rig
 from ambfit.rig import protocol as P
@@ -35,7 +36,7 @@ from ambfit.studies.paper import fig2_data
 # %%
 first = fig2_data(seed=7)
 space = conditioning.solution_space(first, "v")
-ls = fit.fit(first)
+ls = ambfit.fit(first)
 print(f"g_v0 = {ls.value('g_v0') * 1e6:.0f} ± {ls.error('g_v0') * 1e6:.0f} µm, v0 = {ls.value('v0') * 1e6:.1f} ± "
       f"{ls.error('v0') * 1e6:.1f} µm, correlation {ls.corr[ls.names.index('g_v0'), ls.names.index('v0')]:+.3f}")
 
@@ -60,7 +61,7 @@ print(f"weakest direction (gap, origin) = {d.round(4)}: {d[1] / d[0]:+.3f} µm o
 
 # %%
 centred = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=10, center=(-33.3e-6, 11.3e-6)), seed=3).data
-ls2 = fit.fit(centred)
+ls2 = ambfit.fit(centred)
 plots.plot_solution_space(conditioning.solution_space(centred, "v", weights_at=ls2), result=ls2)
 plt.show()
 

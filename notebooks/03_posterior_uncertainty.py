@@ -23,7 +23,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ambfit.estimation import bayes, fit
+import ambfit
+from ambfit.estimation import bayes
 from ambfit.faces import plots
 from ambfit.data import read_csv
 
@@ -32,8 +33,8 @@ ROOT = Path.cwd() if (Path.cwd() / "data").exists() else Path.cwd().parent
 ds = read_csv(ROOT / "data" / "paper_table2.csv")
 
 # %%
-ls = fit.fit(ds)
-res = bayes.sample(ds, n_ensembles=2 if FAST else 4, n_steps=1500 if FAST else 4000, seed=1, ls=ls)
+ls = ambfit.fit(ds)
+res = ambfit.sample(ds, n_ensembles=2 if FAST else 4, n_steps=1500 if FAST else 4000, seed=1, ls=ls)
 print(res.message)
 res.to_dataframe()
 

@@ -20,12 +20,11 @@
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from ambfit.physics import effects
-from ambfit import diagnosis as gap
-from ambfit.studies import paper, paper_gap
-from ambfit.faces import plots
+import ambfit
 from ambfit import rig
+from ambfit.faces import plots
 from ambfit.rig import protocol as P
+from ambfit.studies import paper_gap
 
 # %% [markdown]
 # ## 1. A planted effect: saturation
@@ -33,16 +32,23 @@ from ambfit.rig import protocol as P
 # rig whose iron saturates at 1.2 T.
 
 # %%
-sim = rig.simulate(rig.PAPER_RIG, P.rich(biases=(1.0, 1.4, 1.8, 2.2), masses_kg=(0.0, 1.0)),
-                   [effects.Saturation(b_sat=1.2)], seed=4)
-dg = gap.diagnose(sim.data, candidates=[effects.Saturation(), effects.IronReluctance(), effects.Leakage(),
-                                        effects.PositionGain()], pairs=False).to_json()
-print(f"verdict {dg['verdict']}, shrink {dg['shrink']:.3f}, held-out excess {dg['heldout_excess_before']:.1f} "
-      "noise units before")
-pd.DataFrame([{k: r[k] for k in ("effect", "heldout_excess_after", "shrink", "delta_aic")} for r in dg["ranking"]])
+sim = ambfit.simulate(rig.PAPER_RIG, P.rich(biases=(1.0, 1.4, 1.8, 2.2), masses_kg=(0.0, 1.0)),
+                      [ambfit.Saturation(b_sat=1.2)], seed=4)
+dg = ambfit.diagnose(sim.data, candidates=[ambfit.Saturation(), ambfit.IronReluctance(), ambfit.Leakage(),
+                                           ambfit.PositionGain()], pairs=False)
+print(dg.verdict_text())
+print(f"held-out excess {dg.heldout_excess_before:.1f} noise units before")
+dg.to_dataframe()
+
+# %% [markdown]
+# The verdict's model is an ordinary `FitResult`: its effect parameters come with errors.
+
+# %%
+dg.verdict_fit
 
 # %%
 plots.plot_ranking(dg)
+plots.plot_diagnosis_residuals(dg)
 plt.show()
 
 # %% [markdown]

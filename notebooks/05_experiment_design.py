@@ -24,14 +24,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ambfit.estimation import design, fit
+import ambfit
+from ambfit.estimation import design
 from ambfit import rig
 from ambfit.rig import protocol as P
 from ambfit.data import read_csv
 
 ROOT = Path.cwd() if (Path.cwd() / "data").exists() else Path.cwd().parent
 ds = read_csv(ROOT / "data" / "paper_table2.csv")
-ls = fit.fit(ds)
+ls = ambfit.fit(ds)
 print(f"now: g_v0 = {ls.value('g_v0') * 1e6:.2f} ± {ls.error('g_v0') * 1e6:.2f} µm from {ls.n_rows} readings")
 
 # %%
@@ -52,9 +53,9 @@ def run(points_bias, seed):
 achieved, repeated = [], []
 for seed in range(5):
     new = run(list(zip(rec.steps["v_set_um"], rec.steps["w_set_um"], rec.steps["bias_A"])), seed)
-    achieved.append(fit.fit(pd.concat([ds.frame, new], ignore_index=True)).error("g_v0") * 1e6)
+    achieved.append(ambfit.fit(pd.concat([ds.frame, new], ignore_index=True)).error("g_v0") * 1e6)
     # the same number of readings spent on two more iterations of the paper's protocol
     more = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=2, center=(-33.3e-6, 11.3e-6)), seed=100 + seed).data
-    repeated.append(fit.fit(pd.concat([ds.frame, more], ignore_index=True)).error("g_v0") * 1e6)
+    repeated.append(ambfit.fit(pd.concat([ds.frame, more], ignore_index=True)).error("g_v0") * 1e6)
 print(f"predicted after 8 steps: {rec.steps['predicted_std_after'].iloc[-1] * 1e6:.2f} µm")
 print(f"achieved (5 runs): {np.mean(achieved):.2f} µm;  two more paper iterations (8 steps): {np.mean(repeated):.2f} µm")
