@@ -22,6 +22,7 @@ demo: $(STAMP)
 	$(BIN)/ambfit identify data/paper_table2.csv --method closed-form --json reports/demo/identify_closed_form.json
 
 test: $(STAMP)
+	$(BIN)/ruff check ambfit tests benchmarks notebooks
 	$(BIN)/python -m pytest -q
 
 # The seed paper's Tables 1-4 and Figs. 2, 3, 5 rerun on the rig, side by side with the paper (about 6 min).

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ambfit import rig
 from ambfit.estimation import closed_form
 from ambfit.rig import protocol
-from ambfit import rig
 
 # The seed paper's Table 2 (10 iterations of experiment 2 of Table 1), µm.
 PAPER_TABLE2 = {

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ambfit import rig
 from ambfit.estimation import design, fit
 from ambfit.rig import protocol
-from ambfit import rig
 
 ROOT = Path(__file__).resolve().parents[1]
 

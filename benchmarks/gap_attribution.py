@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ambfit.physics import effects as E
 from ambfit import diagnosis as gap
-from ambfit.rig import protocol
 from ambfit import rig
+from ambfit.physics import effects as E
+from ambfit.rig import protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ambfit.physics import effects as E
-from ambfit.estimation import fit
 from ambfit import diagnosis as gap
-from ambfit.faces import plots
-from ambfit.rig import protocol
 from ambfit import rig
+from ambfit.estimation import fit
+from ambfit.faces import plots
+from ambfit.physics import effects as E
+from ambfit.rig import protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "gap"

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ambfit import rig
 from ambfit.estimation import batch, core, fit
 from ambfit.rig import protocol
-from ambfit import rig
 
 ROOT = Path(__file__).resolve().parents[1]
 

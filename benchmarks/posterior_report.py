@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ambfit import rig
+from ambfit.data import read_csv
 from ambfit.estimation import bayes, conditioning, fit
 from ambfit.faces import plots
-from ambfit import rig
 from ambfit.rig import protocol as P
-from ambfit.data import read_csv
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "posterior"

@@ -27,8 +27,8 @@ import os
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from ambfit.studies import paper
 from ambfit.faces import plots
+from ambfit.studies import paper
 
 FAST = os.environ.get("AMBFIT_FAST", "1") != "0"
 REPLICATES = 12 if FAST else 200

@@ -20,12 +20,11 @@
 
 # %%
 import matplotlib.pyplot as plt
-import numpy as np
 
 import ambfit
+from ambfit import rig
 from ambfit.estimation import conditioning
 from ambfit.faces import plots
-from ambfit import rig
 from ambfit.rig import protocol as P
 from ambfit.studies.paper import fig2_data
 

@@ -21,12 +21,11 @@ import os
 from pathlib import Path
 
 import matplotlib.pyplot as plt
-import numpy as np
 
 import ambfit
+from ambfit.data import read_csv
 from ambfit.estimation import bayes
 from ambfit.faces import plots
-from ambfit.data import read_csv
 
 FAST = os.environ.get("AMBFIT_FAST", "1") != "0"
 ROOT = Path.cwd() if (Path.cwd() / "data").exists() else Path.cwd().parent

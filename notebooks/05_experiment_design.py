@@ -25,10 +25,10 @@ import numpy as np
 import pandas as pd
 
 import ambfit
-from ambfit.estimation import design
 from ambfit import rig
-from ambfit.rig import protocol as P
 from ambfit.data import read_csv
+from ambfit.estimation import design
+from ambfit.rig import protocol as P
 
 ROOT = Path.cwd() if (Path.cwd() / "data").exists() else Path.cwd().parent
 ds = read_csv(ROOT / "data" / "paper_table2.csv")

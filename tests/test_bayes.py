@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
+from ambfit import rig
 from ambfit.estimation import bayes, conditioning, design, fit
 from ambfit.rig import protocol as P
-from ambfit import rig
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +107,7 @@ def test_design_recommendation_reduces_the_predicted_gap_error(table2):
 
 def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
     from typer.testing import CliRunner
+
     from ambfit.faces.cli import app
     d = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=3, center=(-33.3e-6, 11.3e-6)), seed=2).data
     csv = tmp_path / "d.csv"

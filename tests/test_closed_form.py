@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from ambfit import rig
 from ambfit.estimation import closed_form as cf
 from ambfit.rig import protocol as P
-from ambfit import rig
 
 NF = rig.NOISE_FREE
 

@@ -5,8 +5,8 @@ import pandas as pd
 import pytest
 
 from ambfit import data as D
-from ambfit.rig import protocol as P
 from ambfit import rig
+from ambfit.rig import protocol as P
 
 
 @pytest.fixture

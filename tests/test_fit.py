@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from ambfit import rig
 from ambfit.estimation import core, fit
 from ambfit.rig import protocol as P
-from ambfit import rig
 
 
 def _truth_within(res, spec, n_se=4.0, k=True):
@@ -194,8 +194,9 @@ def test_pulls_are_unbiased_with_unit_variance_small_study():
 
 
 def test_model_currents_reproduce_the_rig():
-    from ambfit.estimation.debias import model_currents
     import jax.numpy as jnp
+
+    from ambfit.estimation.debias import model_currents
     spec = rig.PAPER_RIG.with_truth(g0=(800e-6, 740e-6), x0=(-12e-6, 25e-6))
     clean = rig.simulate(spec, P.rich(), noise=rig.NOISE_FREE).data
     prob, _ = core.build_problem(clean, sigma_i=1e-3, sigma_x=1e-7)

@@ -3,12 +3,11 @@
 import numpy as np
 import pytest
 
-from ambfit.physics import effects as E
-from ambfit.estimation import fit
-from ambfit import Bearing
+from ambfit import Bearing, rig
 from ambfit import diagnosis as gap
+from ambfit.estimation import fit
+from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
-from ambfit import rig
 
 
 def _diag(effects, seed=3):
@@ -111,7 +110,9 @@ def test_effect_withheld_from_the_fit_data(saturated):
 
 def test_diagnose_cli_writes_contract_json_and_figures(tmp_path, saturated):
     import json
+
     from typer.testing import CliRunner
+
     from ambfit.faces.cli import app
     csv, js, rep = tmp_path / "s.csv", tmp_path / "d.json", tmp_path / "report"
     saturated.to_csv(csv, index=False)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ambfit.rig import origin
 from ambfit import rig
+from ambfit.rig import origin
 
 
 def test_noise_free_search_converges_in_one_move():

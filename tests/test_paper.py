@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ambfit.studies import paper, paper_gap
 from ambfit.rig import protocol
+from ambfit.studies import paper, paper_gap
 
 ROOT = Path(__file__).resolve().parents[1]
 Q = list(paper.QUANTITIES)
@@ -105,8 +105,8 @@ def test_published_gap_names_the_candidates_with_magnitudes():
 
 
 def test_design_stays_within_the_back_up_bearing(tmp_path):
-    from ambfit.estimation import design
     from ambfit.data import read_csv
+    from ambfit.estimation import design
 
     rec = design.recommend(read_csv(ROOT / "data" / "paper_table2.csv"), n_steps=4, max_radius_um=50.0)
     assert (np.hypot(rec.steps["v_set_um"], rec.steps["w_set_um"]) <= 50.0).all()
@@ -130,8 +130,8 @@ def test_noise_calibration_from_table2(rep):
 
 def test_eq7_gap_scatter_is_proportional_to_current_noise():
     # noise_calibration rescales the current noise by the ratio of scatters: check the proportionality
-    from ambfit.estimation import closed_form
     from ambfit import rig
+    from ambfit.estimation import closed_form
 
     proto = protocol.paper_table2(iterations=10, center=(-33.3e-6, 11.3e-6))
 

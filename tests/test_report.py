@@ -260,7 +260,7 @@ def test_gap_spread_and_eq7_bias_quote_the_reproduction(rep):
     text = plain(section(PAPER, "eq7_bias", e))
     row = comp[(comp["table"] == 1) & (comp["row"] == 1) & (comp["quantity"] == "g_v0_um")].iloc[0]
     assert f"1.4/1.5 A: {row['rig_mean'] - rep.spec.g0[0] * 1e6:+.1f} ± " in text
-    assert f"Table 1's 0.1 A pairs" in text and f"row sd of about {e['row_sd']:.0f} µm" in text
+    assert "Table 1's 0.1 A pairs" in text and f"row sd of about {e['row_sd']:.0f} µm" in text
 
 
 def test_table_titles_and_figure_texts_come_from_the_protocol(rep):

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from ambfit import rig
 from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
-from ambfit import rig
 
 NF = rig.NOISE_FREE
 

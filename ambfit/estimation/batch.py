@@ -22,8 +22,21 @@ import pandas as pd
 
 from ambfit.estimation.closed_form import POSITION_TOLERANCE, _cluster_positions
 from ambfit.estimation.core import (
-    EDM_MAX, IDEAL, K_REFERENCE, FitError, Model, Problem, build_problem, free_mask, free_names, jacobian, param_scale,
-    residuals, seed_loads_and_k, solve, to_theta,
+    EDM_MAX,
+    IDEAL,
+    K_REFERENCE,
+    FitError,
+    Model,
+    Problem,
+    build_problem,
+    free_mask,
+    free_names,
+    jacobian,
+    param_scale,
+    residuals,
+    seed_loads_and_k,
+    solve,
+    to_theta,
 )
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 

@@ -29,11 +29,21 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
+from ambfit.estimation.core import (
+    IDEAL,
+    K_REFERENCE,
+    Model,
+    Problem,
+    build_problem,
+    free_mask,
+    free_names,
+    misfit,
+    param_scale,
+    to_theta,
+    unpack,
+)
 from ambfit.estimation.fit import FitResult, fit
 from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, pm
-from ambfit.estimation.core import (
-    IDEAL, K_REFERENCE, Model, Problem, build_problem, free_mask, free_names, misfit, param_scale, to_theta, unpack,
-)
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 PARAM_UNITS = {"g_v0": "µm", "g_w0": "µm", "v0": "µm", "w0": "µm", "k_v": "N m²/A²", "k_w": "N m²/A²"}

@@ -184,8 +184,8 @@ def standard_designs(center=(-33.3e-6, 11.3e-6), *, same_load: bool = False) -> 
 def compare_designs(spec=None, noise=None, designs: dict | None = None) -> pd.DataFrame:
     """Condition number and Cramér-Rao bounds of gap and origin (v axis) for each design, under both load
     assumptions of :func:`standard_designs` (one unknown load per position, or one shared)."""
-    from ambfit.estimation import information
     from ambfit import rig
+    from ambfit.estimation import information
 
     spec = spec or rig.PAPER_RIG
     noise = noise or rig.Noise()

@@ -18,15 +18,23 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset, load_groups
+from ambfit.estimation.core import (
+    K_REFERENCE,
+    Model,
+    build_problem,
+    free_mask,
+    free_names,
+    jacobian,
+    param_scale,
+    to_theta,
+)
 from ambfit.estimation.fit import FitResult, fit
-from ambfit.estimation.core import K_REFERENCE, Model, build_problem, free_mask, free_names, jacobian, param_scale, to_theta
-from ambfit.physics.model import AXES
+from ambfit.physics.bearing import AXES
 
 
 @dataclasses.dataclass(frozen=True)

@@ -52,8 +52,22 @@ import pandas as pd
 from ambfit.data import Dataset
 from ambfit.estimation import closed_form
 from ambfit.estimation.core import (
-    EDM_MAX, FIRST_STEPS, K_REFERENCE, FitError, Meta, Model, Problem, build_problem, free_mask, free_names, jacobian,
-    seed_loads_and_k, si_scale, solve_and_measure, standardized, to_theta,
+    EDM_MAX,
+    FIRST_STEPS,
+    K_REFERENCE,
+    FitError,
+    Meta,
+    Model,
+    Problem,
+    build_problem,
+    free_mask,
+    free_names,
+    jacobian,
+    seed_loads_and_k,
+    si_scale,
+    solve_and_measure,
+    standardized,
+    to_theta,
 )
 from ambfit.estimation.results import FitResult, Thresholds, describe_weakness
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing

@@ -35,7 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from ambfit.physics.effects import Effect
 
-from ambfit.physics.bearing import AXES, MU_0, PAPER_BEARING, Bearing  # noqa: F401  (AXES, MU_0 re-exported)
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 
 class BearingParams(eqx.Module):

@@ -5,7 +5,16 @@
 """
 
 from ambfit.rig.virtual import (
-    FORCE_TOLERANCE_N, NOISE_FREE, PAPER_RIG, Noise, RigError, RigSpec, RigState, Simulation, simulate, write_truth,
+    FORCE_TOLERANCE_N,
+    NOISE_FREE,
+    PAPER_RIG,
+    Noise,
+    RigError,
+    RigSpec,
+    RigState,
+    Simulation,
+    simulate,
+    write_truth,
 )
 
 __all__ = ["FORCE_TOLERANCE_N", "NOISE_FREE", "PAPER_RIG", "Noise", "RigError", "RigSpec", "RigState", "Simulation",

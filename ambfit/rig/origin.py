@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 from ambfit.estimation import closed_form
+from ambfit.physics.bearing import AXES
 from ambfit.physics.effects import Effect
-from ambfit.physics.model import AXES
 from ambfit.rig.protocol import perturbation
 from ambfit.rig.virtual import Noise, RigSpec, RigState, simulate
 

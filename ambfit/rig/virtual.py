@@ -30,8 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.physics.effects import Effect
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
+from ambfit.physics.effects import Effect
 from ambfit.physics.model import BearingParams, Readings, evaluate
 from ambfit.rig.protocol import Protocol
 

@@ -15,9 +15,9 @@ import dataclasses
 
 import numpy as np
 
-from ambfit.rig import protocol as P
 from ambfit import rig
 from ambfit.estimation.bayes import Prior, sample
+from ambfit.rig import protocol as P
 
 SBC_PRIOR = Prior(gap=rig.PAPER_RIG.nominal_gap, gap_log_sd=0.05, origin_sd=30e-6, k=rig.PAPER_RIG.force_constant, k_log_sd=0.2)
 """The prior the calibration draws from and the sampler assumes (the paper's rig, nominal values)."""

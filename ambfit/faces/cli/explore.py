@@ -9,8 +9,18 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import (
-    BearingOption, app, bearing_of, check_output, console, enable_compilation_cache, fail, note, pair, show_table,
-    warn, write_json,
+    BearingOption,
+    app,
+    bearing_of,
+    check_output,
+    console,
+    enable_compilation_cache,
+    fail,
+    note,
+    pair,
+    show_table,
+    warn,
+    write_json,
 )
 
 

@@ -10,7 +10,16 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import (
-    BearingOption, app, bearing_of, check_output, console, enable_compilation_cache, fail, note, show_table, warn,
+    BearingOption,
+    app,
+    bearing_of,
+    check_output,
+    console,
+    enable_compilation_cache,
+    fail,
+    note,
+    show_table,
+    warn,
     write_json,
 )
 

@@ -10,7 +10,16 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import (
-    BearingOption, app, bearing_of, check_output, console, fail, pair, parse_effect, show_table, write_json,
+    BearingOption,
+    app,
+    bearing_of,
+    check_output,
+    console,
+    fail,
+    pair,
+    parse_effect,
+    show_table,
+    write_json,
 )
 
 
