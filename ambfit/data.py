@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ambfit.physics.bearing import AXES, PAPER_BEARING
+
 REQUIRED = ("axis", "bias_A", "i_top_A", "i_bottom_A", "v_um", "w_um")
 """Columns every data file must have."""
 
@@ -33,8 +35,9 @@ LABELS = ("load_id", "experiment")
 CURRENTS = ("bias_A", "i_top_A", "i_bottom_A")
 STD_COLUMNS = ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")
 
-DEFAULT_MAX_POSITION_UM = 762.0
-"""Positions at least this large [µm] are rejected as 'as large as the gap' (the paper's nominal gap)."""
+DEFAULT_MAX_POSITION_UM = PAPER_BEARING.nominal_gap * 1e6
+"""Positions at least this large [µm] are rejected as 'as large as the gap' (the paper's nominal gap; the
+command line passes its ``--bearing``'s)."""
 
 
 class DataError(ValueError):
@@ -122,7 +125,7 @@ def check(raw: pd.DataFrame, *, source: str = "<memory>", max_position_um: float
         raise DataError("the file has a header but no data rows", file=source)
     df = raw.copy()
     df["axis"] = df["axis"].astype(str).str.strip()
-    bad = ~df["axis"].isin(("v", "w"))
+    bad = ~df["axis"].isin(AXES)
     if bad.any():
         r = int(np.argmax(bad.to_numpy()))
         _fail("unknown axis; valid axes are 'v' and 'w'", source, r, "axis", df["axis"].iloc[r])
@@ -233,7 +236,7 @@ def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -
 
 
 def readings(data: Dataset | pd.DataFrame):
-    """The rows as :class:`ambfit.model.Readings` in SI units."""
+    """The rows as :class:`ambfit.physics.model.Readings` in SI units."""
     from ambfit.physics.model import Readings
 
     df = data.frame if isinstance(data, Dataset) else data

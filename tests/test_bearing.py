@@ -43,6 +43,7 @@ def test_contract_file_in_si_units(tmp_path):
     assert b.backup_clearance == pytest.approx(60e-6)
     assert b.polarity == "NSNS"
     assert b.b_curve[-1] == 1.6 and b.h_curve[-1] == 2033.0
+    assert b.extra_keys == ("extra_key",)        # allowed by the contract, recorded, not used
     # k = 0.25 mu0 A (2N)^2 cos(alpha) = 0.25 * 4e-7 pi * 116e-6 * 320^2 * cos(22.5°) = 3.44765e-6
     k = 0.25 * 4e-7 * math.pi * 116e-6 * 320**2 * math.cos(math.radians(22.5))
     assert b.with_(lamination=1.0).force_constant() == pytest.approx(k, rel=1e-14)
@@ -57,6 +58,8 @@ def test_contract_file_in_si_units(tmp_path):
     ('polarity = "NNNN"', "polarity must be one of NNSS, NSNS"),
     ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [0.0]", "B_T must ascend and match"),
     ("nominal_gap_um = ", "not valid TOML"),
+    ("nominal_gap = 762.0", "unknown key 'nominal_gap'; did you mean 'nominal_gap_um'"),
+    ("turns_per_poles = 160", "did you mean 'turns_per_pole'"),
 ])
 def test_bad_files_name_the_file_and_key(tmp_path, text, words):
     path = tmp_path / "bad.toml"

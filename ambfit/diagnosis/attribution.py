@@ -246,7 +246,7 @@ class Diagnosis:
 
 def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing = PAPER_BEARING,
              floor_tolerance: float = 1.0, min_shrink: float = 0.5, pairs: bool = True, pair_verdict: bool = False,
-             max_steps: int = 60, **noise) -> Diagnosis:
+             max_steps: int = 60, baseline: FitResult | None = None, **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
     Verdict: ``none`` when the baseline's held-out residuals sit on the noise floor
@@ -256,12 +256,13 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     within ``floor_tolerance`` of the floor; when no single effect does, the best single
     plus each other candidate are tried the same way (``pairs=True``) and a pair can be
     the verdict (``pair_verdict=True``, else it is reported as ``best_pair``); otherwise
-    ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit.
+    ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
+    ``baseline`` is the ideal fit of these data when the caller already has it.
     """
     from ambfit.physics.effects import EFFECTS
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
-    base = fit(df, bearing=bearing, **noise)
+    base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
     fold_name, tests = folds(df)
     cands = list(candidates) if candidates is not None else [cls() for cls in EFFECTS.values()]
 

@@ -25,7 +25,7 @@ import pandas as pd
 from ambfit.data import Dataset, approach_direction
 from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
-from ambfit.physics.bearing import AXES
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.model import pole_gaps
 
 
@@ -114,12 +114,12 @@ class Where:
 
 
 def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins: int = 6,
-          alpha: float = 0.01) -> Where:
+          alpha: float = 0.01, bearing: Bearing = PAPER_BEARING) -> Where:
     """Where the baseline fit's standardized residuals are structured (see the module docstring)."""
     from scipy.stats import chi2, norm
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
-    result = result or fit(df)
+    result = result or fit(df, bearing=bearing)
     z = np.asarray(result.residuals)
     ov = operating_variables(df, result)
     tests, cells = [], []

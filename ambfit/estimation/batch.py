@@ -46,7 +46,7 @@ class BatchResult:
     """Estimates of every data set of a batch (SI units).
 
     ``values``, ``std``: array[n_sets, p]; ``converged``: array[n_sets] of bool
-    (estimated distance to the minimum below ``ambfit.fit.EDM_MAX``); ``num_steps``: array[n_sets].
+    (estimated distance to the minimum below ``ambfit.estimation.core.EDM_MAX``); ``num_steps``: array[n_sets].
     """
 
     names: list

@@ -1,6 +1,6 @@
 """Posterior of the bearing parameters: emcee sampling, ArviZ diagnostics.
 
-Likelihood: the effective-variance model of :mod:`ambfit.likelihood` as a proper
+Likelihood: the effective-variance model of :mod:`ambfit.estimation.core` as a proper
 density of the force misfits, ``(F - L) ~ N(0, s_eff(theta)^2)`` per reading.
 Priors (:class:`Prior`) have physical support: gap > 0, ``|origin| < gap``,
 ``k > 0``, weakly informative by default and centred on a nominal rig when one is
@@ -43,10 +43,8 @@ from ambfit.estimation.core import (
     unpack,
 )
 from ambfit.estimation.fit import FitResult, fit
-from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, pm
+from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, display, pm
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
-
-PARAM_UNITS = {"g_v0": "µm", "g_w0": "µm", "v0": "µm", "w0": "µm", "k_v": "N m²/A²", "k_w": "N m²/A²"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +63,11 @@ class Prior:
     k: float = K_REFERENCE
     k_log_sd: float = 1.0
     load_sd: float = 100.0
+
+    @classmethod
+    def from_bearing(cls, bearing: Bearing, **kw) -> Prior:
+        """The default weak prior centred on a bearing description: its nominal gap and its nominal ``k``."""
+        return cls(gap=bearing.nominal_gap, k=bearing.force_constant(), **kw)
 
     @classmethod
     def from_rig(cls, spec, gap_rel_sd: float = 0.05, origin_sd: float = 100e-6, k_rel_sd: float = 0.2) -> Prior:
@@ -132,7 +135,7 @@ class Posterior:
     Attributes
     ----------
     names : list[str]
-        Parameter names (SI units; see ``PARAM_UNITS`` for the reported units).
+        Parameter names (SI units; the DataTree and the JSON use the display units of :data:`ambfit.estimation.results.DISPLAY`).
     draws : array[n_ensembles, n_draws, p]
         Thinned post-burn-in draws, SI units, walkers pooled per ensemble.
     tau : array[n_ensembles, p]
@@ -170,7 +173,7 @@ class Posterior:
 
     @property
     def converged(self) -> bool:
-        """Long enough for its autocorrelation time and R-hat below 1.01 across the ensembles on every parameter."""
+        """Long enough for its autocorrelation time and R-hat below 1.01 across the ensembles (see :meth:`to_json`)."""
         return bool(self.to_json()["converged"])
 
     def _lines(self, ci_prob: float = 0.94) -> list[tuple[str, str, str, str]]:
@@ -207,8 +210,9 @@ class Posterior:
         return (f"<b>posterior</b><table><tr><th>parameter</th><th>mean ± sd</th><th>94 % HDI</th>"
                 f"<th>diagnostics</th></tr>{rows}</table><p>{html.escape(self.message)}</p>")
 
-    def to_json(self, ci_prob: float = 0.94) -> dict:
-        """Contract section 2 record with ``"method": "bayes"`` (µm, N m²/A²)."""
+    def to_json(self, ci_prob: float = 0.94, rhat_max: float = 1.01) -> dict:
+        """Contract section 2 record with ``"method": "bayes"`` (µm, N m²/A²); converged when the run was long
+        enough for its autocorrelation time and R-hat across the ensembles is below ``rhat_max`` everywhere."""
         import arviz as az
 
         post = self.datatree.posterior
@@ -223,10 +227,10 @@ class Posterior:
                 params[key] = {"value": float(v.mean()), "std": float(v.std(ddof=1)), "hdi_low": lo, "hdi_high": hi,
                                "r_hat": float(rhat[name]), "ess_bulk": float(ess[name])}
         return {"method": "bayes", "params": params, "converged": not self.too_short and bool(
-            all(p["r_hat"] < 1.01 for p in params.values())), "n_rows": self.ls.n_rows,
+            all(p["r_hat"] < rhat_max for p in params.values())), "n_rows": self.ls.n_rows,
             "n_ensembles": int(self.draws.shape[0]), "n_walkers": self.n_walkers, "n_steps": self.n_steps,
             "burn": self.burn, "thin": self.thin, "tau_max": float(np.max(self.tau)), "message": self.message,
-            "hdi_prob": ci_prob}
+            "hdi_prob": ci_prob, "rhat_max": rhat_max}
 
 
 def _same_precision(reference: str, value: float) -> str:
@@ -236,21 +240,19 @@ def _same_precision(reference: str, value: float) -> str:
     return f"{value:.{len(reference.split('.')[-1]) if '.' in reference else 0}f}"
 
 
-def _display_scale(name: str) -> float:
-    return 1e6 if PARAM_UNITS.get(name) == "µm" else 1.0
-
-
-def sample(data: Dataset | pd.DataFrame, *, prior: Prior = Prior(), n_ensembles: int = 4, n_walkers: int | None = None,
+def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
            n_steps: int = 3000, min_tau_multiple: float = 50.0, seed: int = 0, progress: bool = False,
            bearing: Bearing = PAPER_BEARING, ls: FitResult | None = None, **fit_kw) -> Posterior:
     """Sample the posterior with ``n_ensembles`` independent emcee ensembles.
 
     Each ensemble starts in a small Gaussian ball (0.1 sd of the least-squares
     covariance) around the least-squares optimum, runs ``n_steps`` steps, and is
-    burned in by ``2 max(tau)`` and thinned by ``max(tau) / 2``.
+    burned in by ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
+    :meth:`Prior.from_bearing` of ``bearing``.
     """
     import emcee
 
+    prior = prior if prior is not None else Prior.from_bearing(bearing)
     df = data.frame if isinstance(data, Dataset) else data
     ls = ls or fit(df, bearing=bearing, **fit_kw)
     prob, meta = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
@@ -303,7 +305,7 @@ def _datatree(names, draws, post, draws_z, df, tau, acc):
     import arviz as az
 
     ens, nd, p = draws.shape
-    posterior = {n.replace("[", "_").replace("]", "").replace("|", "_"): draws[:, :, j] * _display_scale(n)
+    posterior = {n.replace("[", "_").replace("]", "").replace("|", "_"): draws[:, :, j] * display(n, 1.0)[0]
                  for j, n in enumerate(names)}
     ll = np.asarray(_pointwise_batch(post, jnp.asarray(draws_z.reshape(-1, p)))).reshape(ens, nd, -1)
     lp = ll.sum(axis=-1)
@@ -320,7 +322,8 @@ def _datatree(names, draws, post, draws_z, df, tau, acc):
 
 def force_predictive(result: Posterior, axis: str, i_top, i_bottom, x, *, sigma_i: float = 0.0,
                      sigma_x: float = 0.0, seed: int = 0) -> dict:
-    """Posterior predictive force [N] on ``axis`` for given currents [A] and position [m]: mean, sd and 94 % HDI.
+    """Posterior predictive force [N] on ``axis`` for given currents [A] and position [m]: mean, sd and the 3 % and
+    97 % quantiles (a 94 % equal-tailed interval).
 
     Parameter uncertainty comes from the draws; reading noise (``sigma_i``, ``sigma_x``) is added per draw.
     """

@@ -90,7 +90,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
                    step: float = 1e-6, weights_at=None, bearing: Bearing = PAPER_BEARING, **noise) -> SolutionSpace:
     """χ² map of one axis over a (gap, origin) grid (defaults: the paper's Fig. 2 axes, 1 µm steps).
 
-    ``weights_at``: a :class:`ambfit.fit.FitResult` whose optimum fixes the
+    ``weights_at``: a :class:`ambfit.FitResult` whose optimum fixes the
     effective-variance weights; default: fit the data first.
     """
     from ambfit.estimation.fit import FitError, fit

@@ -37,7 +37,7 @@ import numpy as np
 import optimistix as optx
 
 from ambfit.estimation.problem import Meta, Problem, build_problem  # noqa: F401  (build_problem: the core's entry)
-from ambfit.physics.bearing import PAPER_BEARING, Bearing
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
 from ambfit.physics.model import BearingParams, evaluate, horseshoe_force, ideal_force, pole_gaps
 
@@ -134,7 +134,7 @@ class Model(eqx.Module):
         return "+".join(type(e).name for e in self.effects) or "ideal"
 
     def names(self) -> list[str]:
-        return [f"{type(self.effects[i]).name}.{f}[{ax}]" for i, f in self.fields for ax in ("v", "w")]
+        return [f"{type(self.effects[i]).name}.{f}[{ax}]" for i, f in self.fields for ax in AXES]
 
     def build(self, q) -> tuple:
         """Effects with their free fields set from the scaled vector ``q`` (value = centre + width * q)."""

@@ -1,7 +1,7 @@
 """Parametric-bootstrap bias correction of the least-squares estimates.
 
 Currents enter the force law squared and the readings are noisy, so the
-least-squares estimator of :mod:`ambfit.fit` has a bias of second order in the
+least-squares estimator of :mod:`ambfit.estimation.fit` has a bias of second order in the
 noise (an errors-in-variables effect: the Jacobian of a row correlates with its
 own noise).  On the paper's Table 2 design at 0.6 mA it is about +0.08 standard
 deviations on the origins and -0.06 on k (3000 rig data sets); it grows with the

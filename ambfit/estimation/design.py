@@ -1,7 +1,7 @@
 """Experiment design: which perturbations to run next to shrink the gap's uncertainty fastest.
 
 Given the readings so far, the least-squares optimum and its Fisher information
-(:mod:`ambfit.information`), each candidate step (set-points ``(v, w)`` and a bias,
+(:mod:`ambfit.estimation.information`), each candidate step (set-points ``(v, w)`` and a bias,
 one reading per axis, under the data's load) adds the information of its two
 predicted readings, computed at the estimate with the data's noise levels.  A
 greedy search picks steps one at a time, each maximising the reduction of the
@@ -9,7 +9,7 @@ target: the variance of one parameter (A-optimal for the gap, the default) or th
 log-determinant of the information of gap and origin (D-optimal).
 
 The predicted readings come from the ideal model at the estimate
-(:func:`ambfit.debias.model_currents`); the recommendation is only as good as the
+(:func:`ambfit.estimation.debias.model_currents`); the recommendation is only as good as the
 model, and says so (it is local to the current estimate).
 """
 
@@ -34,7 +34,7 @@ from ambfit.estimation.core import (
     to_theta,
 )
 from ambfit.estimation.fit import FitResult, fit
-from ambfit.physics.bearing import AXES
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,7 +118,7 @@ def _information_rows(res: FitResult, df: pd.DataFrame) -> tuple[np.ndarray, lis
 
 def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.DataFrame | None = None,
               target: str = "g_v0", criterion: str = "A", result: FitResult | None = None,
-              max_radius_um: float | None = None) -> Recommendation:
+              max_radius_um: float | None = None, bearing: Bearing = PAPER_BEARING) -> Recommendation:
     """Greedy A- (variance of ``target``) or D-optimal (log det of gap/origin information) next steps.
 
     ``candidates`` has columns ``v_set_um``, ``w_set_um``, ``bias_A``; default: a grid of
@@ -128,7 +128,7 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     back-up bearing clearance, 60 µm on the paper's rig, less a margin).
     """
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
-    res = result or fit(df)
+    res = result or fit(df, bearing=bearing)
     if target not in res.names:
         raise ValueError(f"target {target!r} is not estimated here; choose one of {res.names}")
     if candidates is None:

@@ -93,7 +93,7 @@ def start(prob: Problem, meta: Meta, data: pd.DataFrame, bearing: Bearing = PAPE
         g[a], x[a] = _grid_start(prob, a, bearing)
         how.append(f"{ax}: grid")
     theta = to_theta(g, x, K_REFERENCE, np.zeros(prob.n_loads))
-    return seed_loads_and_k(theta, prob), ", ".join(how)
+    return seed_loads_and_k(theta, prob, Model.of((), bearing)), ", ".join(how)
 
 
 def _grid_start(prob: Problem, axis: int, bearing: Bearing) -> tuple[float, float]:
@@ -211,7 +211,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     if debias and edm < EDM_MAX:
         from ambfit.estimation.debias import bootstrap_bias
 
-        correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed)
+        correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed, model=model)
         theta = theta - correction.bias
         jac, z = jacobian(jnp.asarray(theta), prob, model), standardized(jnp.asarray(theta), prob, model)
     thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
@@ -255,7 +255,7 @@ def _initial(prob, meta, df, model, start_from):
                      [vals.get("k_v", K_REFERENCE), vals.get("k_w", K_REFERENCE)],
                      [vals.get(f"load[{g}]", 0.0) for g in meta.load_groups])
     if not meta.load_groups:
-        theta = seed_loads_and_k(theta, prob)
+        theta = seed_loads_and_k(theta, prob, Model.of((), model.bearing))
     return np.concatenate([theta, np.zeros(model.n)]), f"from the {start_from.model} fit"
 
 

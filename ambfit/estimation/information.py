@@ -1,6 +1,6 @@
 """Fisher information and the Cramér-Rao bound for any perturbation design.
 
-For the effective-variance likelihood of :mod:`ambfit.fit` (Gaussian reading
+For the effective-variance likelihood of :mod:`ambfit.estimation.fit` (Gaussian reading
 noise, the equilibrium constraint linearised around the true readings) the
 Fisher information of the scaled parameters is ``I = J^T J`` with ``J`` the
 Jacobian of the standardized residuals at the truth, evaluated on noise-free

@@ -202,35 +202,47 @@ class FitResult:
             return None
         return bool(self.p_value >= self.thresholds.p_min)
 
-    def health(self) -> list[str]:
-        """Every failed health check as a sentence with its likely cause and the fix (empty when healthy)."""
+    def checks(self) -> list[tuple[str, bool | None, str]]:
+        """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
         from ambfit.estimation.core import EDM_MAX
 
-        out = []
-        if not self.well_conditioned:
-            rel = self.relative_gap_std
-            why = (f"condition number {self.condition:.3g} of the scaled Jacobian" if not
-                   self.condition < self.thresholds.max_condition else f"a gap has a relative standard error of {rel:.2g}")
-            out.append(f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more "
-                       "positions (the paper's symmetric pairs) and two or more biases")
-        if not self.converged:
-            out.append(f"least squares did not converge within {self.thresholds.max_steps} steps (EDM {self.edm:.2g}, "
-                       f"limit {EDM_MAX:g}; optimistix: {self.optimistix}); check the data for outliers or a wrong "
-                       "unit, or give a better start")
-        if self.adequate is False:
-            law = "the ideal law" if self.model == "ideal" else f"the model ({self.model})"
-            out.append(f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
-                       f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose")
-        return out
+        rel = self.relative_gap_std
+        why = (f"condition number {self.condition:.3g} of the scaled Jacobian" if not
+               self.condition < self.thresholds.max_condition else f"a gap has a relative standard error of {rel:.2g}")
+        law = "the ideal law" if self.model == "ideal" else f"the model ({self.model})"
+        missing = [ax for ax, ok in self.k_by_axis.items() if not ok and f"g_{ax}0" in self.names]
+        return [
+            ("well_conditioned", self.well_conditioned,
+             f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more positions "
+             "(the paper's symmetric pairs) and two or more biases"),
+            ("converged", self.converged,
+             f"least squares did not converge within {self.thresholds.max_steps} steps (EDM {self.edm:.2g}, limit "
+             f"{EDM_MAX:g}; optimistix: {self.optimistix}); check the data for outliers or a wrong unit, or give a "
+             "better start"),
+            ("adequate", self.adequate,
+             f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
+             f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose"),
+            ("k_identified", self.k_identified,
+             f"k_{' and k_'.join(missing)} not identified: no known load on axis {' and '.join(missing)}; hang known "
+             "masses to calibrate it (gap and origin do not need it, force measurement does)"),
+        ]
+
+    def health(self, *, include_k: bool = False) -> list[str]:
+        """Every failed health check as a sentence with its likely cause and the fix (empty when healthy).
+
+        A missing force constant is a property of the design, not a failure of the fit: listed only with
+        ``include_k`` (:meth:`notes` always says it).
+        """
+        return [text for name, ok, text in self.checks() if ok is False and (include_k or name != "k_identified")]
 
     def raise_for_health(self) -> None:
-        """Raise :class:`ambfit.FitError` when the fit is not converged or not identifiable (adequacy is reported,
+        """Raise :class:`ambfit.FitError` when the fit is not identifiable or not converged (adequacy is reported,
         not raised: an inadequate model still has estimates worth reading)."""
         from ambfit.estimation.core import FitError
 
-        failed = [h for h in self.health() if not h.startswith(("the ideal law", "the model ("))]
-        if failed:
-            raise FitError(failed[0])
+        for name, ok, text in self.checks():
+            if name in ("well_conditioned", "converged") and not ok:
+                raise FitError(text)
 
     def goodness_of_fit(self) -> dict:
         """Contract section 2's ``goodness_of_fit`` record."""

@@ -47,8 +47,8 @@ def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.
     """The paper's Fig. 2 as a map: Δχ² over (origin, gap) in µm, with the least-squares point,
     its 1- and 2-sigma ellipses, posterior draws and the weakest Fisher direction if given.
 
-    ``space``: :class:`ambfit.conditioning.SolutionSpace`; ``result``: a
-    :class:`ambfit.fit.FitResult`; ``samples``: array[n, 2] of (gap, origin) draws [m].
+    ``space``: :class:`ambfit.estimation.conditioning.SolutionSpace`; ``result``: a
+    :class:`ambfit.FitResult`; ``samples``: array[n, 2] of (gap, origin) draws [m].
     """
     import matplotlib.colors as mcolors
 
@@ -155,7 +155,7 @@ def plot_ranking(diagnosis, ax=None):
     return ax
 
 
-# --- the paper's figures (ambfit.paper) ------------------------------------------------------------------
+# --- the paper's figures (ambfit.studies.paper) ------------------------------------------------------------------
 
 def plot_fig2_surface(space, *, limit_dchi2: float = 11.8, fig=None):
     """The paper's Fig. 2 as drawn there: RMS force misfit over the v-axis effective gap (600-1000 µm, left
@@ -188,10 +188,13 @@ def plot_fig2_surface(space, *, limit_dchi2: float = 11.8, fig=None):
     return fig
 
 
-def plot_fig3_positions(search, *, backup_clearance: float = 60e-6, ax=None):
+def plot_fig3_positions(search, *, backup_clearance: float | None = None, ax=None):
     """The paper's Fig. 3: the symmetric position pairs of an origin search in the (v, w) plane (sensor
-    coordinates, µm), one colour per iteration, with the back-up bearing clearance and the true effective
-    origin ``(-v0, -w0)``."""
+    coordinates, µm), one colour per iteration, with the back-up bearing clearance [m] (default: the paper
+    rig's, :data:`ambfit.PAPER_BEARING`) and the true effective origin ``(-v0, -w0)``."""
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    backup_clearance = PAPER_BEARING.backup_clearance if backup_clearance is None else backup_clearance
     ax = _axes(ax)
     df = search.data
     import matplotlib.pyplot as plt

@@ -18,6 +18,7 @@ constant ``k = 0.25 MU_0 A (2 N)^2 cos(alpha) * lamination`` [N m^2/A^2]
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import tomllib
 from pathlib import Path
@@ -69,6 +70,9 @@ class Bearing:
         Stator bore [m].
     b_curve, h_curve : tuple of float
         Lamination B-H curve, B ascending [T] and H [A/m]; empty when unknown.
+    extra_keys : tuple of str
+        Keys of the file that ambfit does not use (the contract allows more keys; a key that looks
+        like a misspelt known one is an error instead).
 
     Examples
     --------
@@ -95,6 +99,7 @@ class Bearing:
     bore_diameter: float = 35e-3
     b_curve: tuple = ()
     h_curve: tuple = ()
+    extra_keys: tuple = ()
 
     def __post_init__(self):
         if self.polarity not in POLARITIES:
@@ -188,9 +193,15 @@ class Bearing:
         if "polarity" in d:
             kw["polarity"] = str(d.pop("polarity")).upper()
         material = d.pop("material", None)
+        extra = []
         for key in list(d):
             if key not in scale:
-                continue  # the contract allows more keys
+                near = difflib.get_close_matches(key, [*scale, "name", "polarity", "material"], n=1, cutoff=0.75)
+                if near:
+                    raise BearingError(f"{source}: unknown key {key!r}; did you mean {near[0]!r}? "
+                                       f"(keys carry their unit: {', '.join(sorted(scale))})")
+                extra.append(key)   # the contract allows more keys
+                continue
             field, conv = scale[key]
             value = d.pop(key)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -200,6 +211,7 @@ class Bearing:
             kw["pole_width"] = math.sqrt(kw["pole_area"])   # no width given: a square face
         if material is not None:
             kw.update(_material(material, source))
+        kw["extra_keys"] = tuple(extra)
         try:
             return cls(**kw)
         except BearingError as exc:

@@ -3,7 +3,7 @@
 Each effect is an immutable :class:`equinox.Module` whose fields are its physical
 parameters (SI units; a field of shape ``(2,)`` holds the ``(v, w)`` values, a
 scalar is shared by both axes).  It modifies one or more stages of the force
-evaluation in :func:`ambfit.model.evaluate`:
+evaluation in :func:`ambfit.physics.model.evaluate`:
 
 ``physical``  sensor readings -> physical currents and positions (``unsense``)
 ``geometry``  effective gap ``g0`` and origin ``x0``
@@ -30,6 +30,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ambfit.physics.bearing import PAPER_BEARING
 from ambfit.physics.model import Context, _set
 
 __all__ = [
@@ -101,7 +102,9 @@ class Effect(eqx.Module):
 
 
 class Saturation(Effect):
-    """Iron saturation: the gap flux density lags the linear law ``B = MU_0 N i / (2 g)``.
+    """Iron saturation: the gap flux density lags the linear law ``B = MU_0 (2 N) i / (2 g)``.
+
+    (:meth:`ambfit.Bearing.flux_density`, ``N`` the turns of one pole.)
 
     ``B_eff = B / (1 + (B / b_sat)**sharpness)**(1 / sharpness)``, so the pole force
     (proportional to ``B_eff**2``) falls below the square law at high flux density.
@@ -132,10 +135,10 @@ class IronReluctance(Effect):
     ``b_th``), ``mu_r(B) = mu_r / (1 + (B / b_knee)**4)`` falls near saturation, so
     the extra gap grows with current.  With ``l_fe`` = 60-120 mm and ``mu_r`` =
     1500-5000 (unsaturated silicon iron) the constant part is 6-40 µm (Schweitzer & Maslen 2009, sec. 4.2,
-    eq. 4.8, p. 83: ``B = MU_0 N i / (2 g + l_fe / mu_r)``).
+    eq. 4.8, p. 83: ``B = MU_0 (2 N) i / (2 g + l_fe / mu_r)``).
     """
 
-    l_fe: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.08))
+    l_fe: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(PAPER_BEARING.iron_path))
     mu_r: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(3000.0))
     b_knee: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.4))
     name: ClassVar[str] = "iron_reluctance"
@@ -306,7 +309,7 @@ class Hysteresis(Effect):
     half-width ``width`` [A]: ``m = clip(m_prev, i - width, i + width)``, so the
     force at a given current depends on the direction it was approached from and
     the order of readings matters.  ``width = H_c l_fe / N``: coercive field 20-80
-    A/m of silicon iron over an 80 mm path and 480 turns gives 3-13 mA
+    A/m of silicon iron over the paper rig's 80 mm path and 2 x 240 turns gives 3-13 mA
     (Bozorth, *Ferromagnetism*, 1951, ch. 2; Mayergoyz, *Mathematical Models of
     Hysteresis*, 1991, ch. 1 for the play operator).  In a fit, where no history
     state is given, ``m = i - width * direction`` with the approach direction

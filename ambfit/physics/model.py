@@ -215,7 +215,7 @@ def evaluate(
     params : BearingParams
     readings : Readings
         Measured readings (or physical ones with ``physical=True``, as the rig uses).
-    effects : sequence of :class:`ambfit.effects.Effect`
+    effects : sequence of :class:`ambfit.physics.effects.Effect`
         Unmodelled physics added to the ideal law, applied stage by stage in order.
     bearing : Bearing
         The bearing's facts: pole angle, turns (for flux densities), pole face.

@@ -72,7 +72,7 @@ class OriginSearch:
         rows = []
         for j in range(self.n_iterations):
             row = {"it": str(j + 1)}
-            for a, ax in enumerate(("v", "w")):
+            for a, ax in enumerate(AXES):
                 row |= {f"{ax} centre [µm]": f"{self.centers[j, a] * 1e6:.2f}",
                         f"{ax} offset [µm]": f"{self.offsets[j, a] * 1e6:.2f}", f"g_{ax}0 [µm]": f"{self.g0[j, a] * 1e6:.2f}"}
             rows.append(row)

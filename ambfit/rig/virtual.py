@@ -150,7 +150,7 @@ class Simulation:
     physical_currents: np.ndarray  # array[n_steps, 2 axes, 2 coils] [A]
 
 
-def _solve_steps(params_by_step, readings_template, loads, effects, bearing, max_current, m0):
+def _solve_steps(params_by_step, readings_template, loads, effects, bearing, amplifier_limit, m0):
     """Scan over steps; each step solves both axes' control currents by bisection."""
 
     def step(m_prev, inp):
@@ -172,8 +172,8 @@ def _solve_steps(params_by_step, readings_template, loads, effects, bearing, max
             r = force_at(mid)[0]
             return jnp.where(r > 0, lo, mid), jnp.where(r > 0, mid, hi)
 
-        # Within the amplifier range each coil current lies in [0, max_current].
-        span = jnp.maximum(max_current - bias, 0.0)
+        # Within the amplifier range each coil current lies in [0, amplifier_limit].
+        span = jnp.maximum(amplifier_limit - bias, 0.0)
         lo, hi = jax.lax.fori_loop(0, _BISECTION_STEPS, bisect, (-span, span))
         rlo, rhi = force_at(lo)[0], force_at(hi)[0]
         ic = jnp.where(jnp.abs(rlo) < jnp.abs(rhi), lo, hi)

@@ -89,9 +89,12 @@ def bearing_of(path: Path | None):
     if path is None:
         return PAPER_BEARING
     try:
-        return Bearing.from_toml(path)
+        bearing = Bearing.from_toml(path)
     except BearingError as exc:
         fail(str(exc))
+    if bearing.extra_keys:
+        warn(f"{path}: keys not used by ambfit: {', '.join(bearing.extra_keys)}")
+    return bearing
 
 
 def check_output(*paths: Path | None, folder: bool = False):

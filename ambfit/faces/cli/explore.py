@@ -88,6 +88,7 @@ def design(
     max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
                                                         "sensor origin [µm] (back-up bearing clearance "
                                                         "less a margin; the paper's rig: 60 µm).")] = None,
+    bearing: BearingOption = None,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
     from ambfit.data import DataError, read_csv
@@ -97,7 +98,7 @@ def design(
     check_output(json_out)
     try:
         rec = design_mod.recommend(read_csv(data), n_steps=steps, target=target.value, criterion=criterion.value,
-                                   max_radius_um=max_radius_um)
+                                   max_radius_um=max_radius_um, bearing=bearing_of(bearing))
     except DataError as exc:
         fail(str(exc))
     except (fit.FitError, ValueError) as exc:

@@ -53,8 +53,9 @@ def identify(
     debias: Annotated[int, typer.Option(help="Subtract the estimator's second-order bias, estimated from this "
                                         "many synthetic data sets of the fitted model (0: off; 2000 is "
                                         "plenty).")] = 0,
-    max_position_um: Annotated[float, typer.Option(help="Reject positions at least this large [µm] "
-                                                   "(unit check).")] = 762.0,
+    max_position_um: Annotated[float | None, typer.Option(help="Reject positions at least this large [µm] "
+                                                          "(unit check; default: the bearing's nominal "
+                                                          "gap).")] = None,
     bearing: BearingOption = None,
 ):
     """Identify effective gap, origin (and k when loads are known) for each axis.
@@ -69,7 +70,7 @@ def identify(
     enable_compilation_cache()
     desc = bearing_of(bearing)
     try:
-        ds = read_csv(data, max_position_um=max_position_um)
+        ds = read_csv(data, max_position_um=max_position_um or desc.nominal_gap * 1e6)
     except DataError as exc:
         fail(str(exc))
     if method is Method.closed_form:
@@ -157,8 +158,8 @@ def sample(
     desc = bearing_of(bearing)
     try:
         ds = read_csv(data)
-        prior = bayes.Prior(gap=nominal_gap_um * 1e-6 if nominal_gap_um else desc.nominal_gap,
-                            gap_log_sd=gap_prior_log_sd)
+        prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
+                                         gap_log_sd=gap_prior_log_sd)
         res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps, seed=seed,
                            progress=progress and sys.stderr.isatty(), bearing=desc)
     except DataError as exc:

@@ -185,8 +185,9 @@ def _sections(ds, res, record: dict, *, steps, ensembles, design_steps, bearing,
     out["solution_space"] = _attempt("Solution space", lambda: solution_space(spaces, res))
 
     def recommend():
-        rec = design_mod.recommend(ds, n_steps=design_steps, target="g_v0", result=res, max_radius_um=max_radius_um)
-        record["design"] = {"std_now": rec.std_now, "steps": rec.steps.to_dict(orient="records")}
+        rec = design_mod.recommend(ds, n_steps=design_steps, target="g_v0", result=res, max_radius_um=max_radius_um,
+                                   bearing=bearing)
+        record["design"] = {k: v for k, v in rec.to_json().items() if k in ("std_now", "steps")}
         return design(rec, max_radius_um=max_radius_um)
 
     out["design"] = _attempt("Design recommendation", recommend)
@@ -194,7 +195,7 @@ def _sections(ds, res, record: dict, *, steps, ensembles, design_steps, bearing,
     def diagnose():
         from ambfit import diagnosis as gap
 
-        dg = gap.diagnose(ds, bearing=bearing)
+        dg = gap.diagnose(ds, bearing=bearing, baseline=res)
         record["diagnosis"] = dg.to_json()
         return diagnosis(dg)
 
