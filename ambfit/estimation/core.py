@@ -219,6 +219,8 @@ def _ideal_misfit(p: Unpacked, prob: Problem, cos_alpha: float):
 def _weighted(theta, args):
     prob, model, s = args
     f = misfit(theta, prob, model)[0]
+    if not model.n:
+        return prob.mask * f / s
     return jnp.concatenate([prob.mask * f / s, theta[theta.shape[0] - model.n:]])   # prior residuals: q ~ N(0, 1)
 
 
