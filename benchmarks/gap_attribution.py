@@ -125,7 +125,7 @@ def main():
     md += ["", "| measure | value | target |", "|---|---|---|",
            f"| top-1 correct on structured effects ({', '.join(structured)}) | {summary['top1_structured']:.2f} | ≥ 0.90 |",
            f"| `none` data called `none` | {summary['none_called_none']:.2f} | ≥ 0.95 |",
-           f"| median shrink when the verdict is right | {summary['median_shrink_when_right']} | ≥ 0.8 |",
+           f"| median shrink when the verdict is right | {summary['median_shrink_when_right']:.3f} | ≥ 0.8 |",
            f"| absorbed effects ({', '.join(absorbed)}): truth is the verdict or in the confounded set | "
            f"{summary['absorbed_truth_in_verdict_or_confounded']:.2f} | 1.0 |",
            f"| absorbed effects: parameter-level gap flags a difference (nominal rig given) | "
