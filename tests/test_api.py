@@ -47,3 +47,16 @@ def test_fit_is_the_function_and_modules_stay_reachable():
     assert ambfit.closed_form.__name__ == "identify"
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         ambfit.nope  # noqa: B018
+
+
+def test_the_data_format_document_ships_with_the_package_and_names_every_column():
+    from importlib.resources import files
+
+    from ambfit import data
+
+    text = (files("ambfit") / "docs" / "data-format.md").read_text()
+    for column in (*data.REQUIRED, *data.NUMERIC_OPTIONAL, *data.LABELS, "iteration"):
+        assert f"`{column}`" in text, column
+    for key in ("pole_angle_deg", "turns_per_pole", "pole_area_mm2", "nominal_gap_um", "backup_clearance_um",
+                "max_current_A", "polarity", "iron_path_mm"):
+        assert key in text, key
