@@ -51,6 +51,7 @@ class DataError(ValueError):
     """
 
     def __init__(self, reason: str, *, file=None, row: int | None = None, column: str | None = None, value=None):
+        value = value.item() if isinstance(value, np.generic) else value    # numbers print as numbers
         self.file, self.row, self.column, self.value, self.reason = file, row, column, value, reason
         where = [str(file) if file is not None else "<data>"]
         if row is not None:
@@ -77,8 +78,25 @@ class Dataset:
         return len(self.frame)
 
 
-def _fail(reason, source, row=None, column=None, value=None):
-    raise DataError(reason, file=source, row=None if row is None else int(row) + 1, column=column, value=value)
+class _Problems:
+    """Where the checks report: the first problem raises (``lazy=False``), or every problem is collected."""
+
+    def __init__(self, source: str, lazy: bool, limit: int = 20):
+        self.source, self.lazy, self.limit, self.items = source, lazy, limit, []
+
+    def add(self, reason, row=None, column=None, value=None):
+        err = DataError(reason, file=self.source, row=None if row is None else int(row) + 1, column=column, value=value)
+        if not self.lazy:
+            raise err
+        self.items.append(err)
+
+    def rows(self, mask, reason, column, values):
+        """Report the rows where ``mask`` holds (all of them up to ``limit`` when lazy, else the first)."""
+        idx = np.nonzero(np.asarray(mask))[0]
+        for r in idx[: self.limit]:
+            self.add(reason, r, column, values.iloc[r])
+        if len(idx) > self.limit:
+            self.add(f"{len(idx) - self.limit} more rows with the same problem", None, column)
 
 
 def read_csv(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_POSITION_UM) -> Dataset:
@@ -93,10 +111,28 @@ def read_csv(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_PO
     Raises
     ------
     DataError
-        On any of the contract's error cases, naming file, row, column and value.
+        On the first of the contract's error cases, naming file, row, column and value
+        (:func:`inspect` lists them all).
     """
+    return check(_read_raw(path), source=str(path), max_position_um=max_position_um)
+
+
+def inspect(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_POSITION_UM) -> list[DataError]:
+    """Every problem of a contract CSV file at once (empty when it is valid): what ``ambfit check`` lists."""
+    try:
+        raw = _read_raw(path)
+    except DataError as exc:
+        return [exc]
+    problems = _Problems(str(path), lazy=True)
+    _check(raw, problems, max_position_um)
+    return problems.items
+
+
+def _read_raw(path) -> pd.DataFrame:
     source = str(path)
     p = Path(path)
+    if p.is_dir():
+        raise DataError("is a directory, not a data file", file=source)
     if not p.is_file():
         raise DataError("no such file", file=source)
     try:
@@ -110,91 +146,99 @@ def read_csv(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_PO
     if dupes:
         raise DataError(f"duplicate column name(s) {dupes} in the header", file=source, row=None)
     try:
-        raw = pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True)
+        return pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True)
     except (pd.errors.ParserError, ValueError) as exc:
         raise DataError(f"not a valid CSV table: {exc}", file=source) from None
-    return check(raw, source=source, max_position_um=max_position_um)
 
 
 def check(raw: pd.DataFrame, *, source: str = "<memory>", max_position_um: float = DEFAULT_MAX_POSITION_UM) -> Dataset:
     """Check a table (cells as strings or numbers) against the contract; see :func:`read_csv`."""
+    return Dataset(frame=_check(raw, _Problems(source, lazy=False), max_position_um), source=source)
+
+
+def _check(raw: pd.DataFrame, problems: _Problems, max_position_um: float) -> pd.DataFrame:
+    """The contract's checks on ``raw``; returns the typed table (numeric columns as floats)."""
     missing = [c for c in REQUIRED if c not in raw.columns]
     if missing:
-        raise DataError(f"missing required column(s) {missing}; the file has {list(raw.columns)}", file=source)
+        problems.add(f"missing required column(s) {missing}; the file has {list(raw.columns)}")
     if len(raw) == 0:
-        raise DataError("the file has a header but no data rows", file=source)
+        problems.add("the file has a header but no data rows")
+        return raw
     df = raw.copy()
-    df["axis"] = df["axis"].astype(str).str.strip()
-    bad = ~df["axis"].isin(AXES)
-    if bad.any():
-        r = int(np.argmax(bad.to_numpy()))
-        _fail("unknown axis; valid axes are 'v' and 'w'", source, r, "axis", df["axis"].iloc[r])
+    if "axis" in df:
+        df["axis"] = df["axis"].astype(str).str.strip()
+        problems.rows(~df["axis"].isin(AXES), "unknown axis; valid axes are 'v' and 'w'", "axis", df["axis"])
+    _numeric(df, problems)
+    _ranges(df, problems, max_position_um)
+    _consistency(df, problems)
+    return df
 
-    for col in REQUIRED[1:] + tuple(c for c in NUMERIC_OPTIONAL if c in df.columns):
+
+def _numeric(df: pd.DataFrame, problems: _Problems):
+    for col in [c for c in REQUIRED[1:] + NUMERIC_OPTIONAL if c in df.columns]:
         text = df[col].astype(str).str.strip()
         empty = text.eq("") | text.str.lower().isin(("nan", "na", "none"))
-        if col in REQUIRED and empty.any():
-            r = int(np.argmax(empty.to_numpy()))
-            _fail("empty cell in a required column", source, r, col, df[col].iloc[r])
+        if col in REQUIRED:
+            problems.rows(empty, "empty cell in a required column", col, df[col])
         num = pd.to_numeric(text.where(~empty, None), errors="coerce").astype(float)
-        bad = (~empty) & ~np.isfinite(num)
-        if bad.any():
-            r = int(np.argmax(bad.to_numpy()))
-            _fail("not a finite number", source, r, col, df[col].iloc[r])
+        problems.rows((~empty) & ~np.isfinite(num), "not a finite number", col, df[col])
         df[col] = num
-
-    for col in CURRENTS:
-        neg = df[col] < 0
-        if neg.any():
-            r = int(np.argmax(neg.to_numpy()))
-            _fail("negative current; coil currents and biases cannot be negative", source, r, col, df[col].iloc[r])
-    for col in STD_COLUMNS:
-        if col in df.columns:
-            neg = df[col] <= 0
-            if neg.any():
-                r = int(np.argmax(neg.to_numpy()))
-                _fail("a standard error must be positive (leave the cell empty when it is not known)",
-                      source, r, col, df[col].iloc[r])
-    for col in ("v_um", "w_um", "v_set_um", "w_set_um"):
-        if col in df.columns:
-            big = df[col].abs() >= max_position_um
-            if big.any():
-                r = int(np.argmax(big.to_numpy()))
-                _fail(f"position as large as the air gap (>= {max_position_um:g} µm); positions must be in "
-                      "micrometres from the sensor zero: was another unit used?", source, r, col, df[col].iloc[r])
-
     if "iteration" in df.columns:
         text = df["iteration"].astype(str).str.strip()
         num = pd.to_numeric(text.where(text != "", None), errors="coerce")
-        bad = (text != "") & ~(np.isfinite(num) & (num == np.round(num)))
-        if bad.any():
-            r = int(np.argmax(bad.to_numpy()))
-            _fail("iteration must be an integer", source, r, "iteration", df["iteration"].iloc[r])
+        problems.rows((text != "") & ~(np.isfinite(num) & (num == np.round(num))), "iteration must be an integer",
+                      "iteration", df["iteration"])
 
-    if "time_s" in df.columns:
+
+def _ranges(df: pd.DataFrame, problems: _Problems, max_position_um: float):
+    for col in [c for c in CURRENTS if c in df.columns]:
+        problems.rows(df[col] < 0, "negative current; coil currents and biases cannot be negative", col, df[col])
+    for col in [c for c in STD_COLUMNS if c in df.columns]:
+        problems.rows(df[col] <= 0, "a standard error must be positive (leave the cell empty when it is not known)",
+                      col, df[col])
+    for col in [c for c in ("v_um", "w_um", "v_set_um", "w_set_um") if c in df.columns]:
+        problems.rows(df[col].abs() >= max_position_um,
+                      f"position as large as the air gap (>= {max_position_um:g} µm); positions must be in "
+                      "micrometres from the sensor zero: was another unit used?", col, df[col])
+
+
+def _consistency(df: pd.DataFrame, problems: _Problems):
+    if "time_s" in df.columns and pd.api.types.is_float_dtype(df["time_s"]):
         exp = df["experiment"] if "experiment" in df.columns else pd.Series("", index=df.index)
         for _, idx in df.groupby(exp, sort=False).groups.items():
             t = df.loc[idx, "time_s"].to_numpy()
             ok = ~np.isnan(t)
-            tt = t[ok]
-            dec = np.nonzero(np.diff(tt) < 0)[0]
+            dec = np.nonzero(np.diff(t[ok]) < 0)[0]
             if dec.size:
                 r = int(np.asarray(idx)[ok][dec[0] + 1])
-                _fail("time goes backwards within an experiment (time_s must be monotone)",
-                      source, r, "time_s", df["time_s"].iloc[r])
-
-    if "load_N" in df.columns:
-        keys = load_groups(df)
-        for key, idx in df.groupby(keys, sort=False).groups.items():
+                problems.add("time goes backwards within an experiment (time_s must be monotone)", r, "time_s",
+                             df["time_s"].iloc[r])
+    if "load_N" in df.columns and "axis" in df.columns and pd.api.types.is_float_dtype(df["load_N"]):
+        for key, idx in df.groupby(load_groups(df), sort=False).groups.items():
             loads = df.loc[idx, "load_N"].to_numpy()
             known = loads[~np.isnan(loads)]
             if known.size and not np.allclose(known, known[0], rtol=1e-9, atol=1e-12):
                 pos = np.asarray(idx)[~np.isnan(loads)]
                 r = int(pos[np.argmax(~np.isclose(known, known[0], rtol=1e-9, atol=1e-12))])
-                _fail(f"known load differs from {known[0]!r} N given on row {int(pos[0]) + 1} for the same "
-                      f"load group {key!r} (load_id, axis); rows sharing a load_id must share its load",
-                      source, r, "load_N", df["load_N"].iloc[r])
-    return Dataset(frame=df, source=source)
+                problems.add(f"known load differs from {known[0]!r} N given on row {int(pos[0]) + 1} for the same "
+                             f"load group {key!r} (load_id, axis); rows sharing a load_id must share its load",
+                             r, "load_N", df["load_N"].iloc[r])
+
+
+def duplicate_rows(df: pd.DataFrame) -> list[tuple[int, int]]:
+    """Exact duplicate readings as ``(row, first row it repeats)``, rows counted from 1 as in messages.
+
+    A duplicated reading counts twice in a fit and makes its error bars too small by up to sqrt(2).
+    """
+    cols = [c for c in (*REQUIRED, "load_N", "load_id", "experiment", "iteration", "time_s") if c in df.columns]
+    first = {}
+    out = []
+    for r, key in enumerate(map(tuple, df[cols].astype(str).to_numpy())):
+        if key in first:
+            out.append((r + 1, first[key] + 1))
+        else:
+            first[key] = r
+    return out
 
 
 def load_groups(df: pd.DataFrame) -> pd.Series:

@@ -151,3 +151,25 @@ def test_origin_search_failure_is_a_message_not_a_traceback():
     # biases too close for the noise: Eq. 6's radicand goes negative at some iteration
     r = runner.invoke(app, ["origin-search", "--biases-a", "1.4,1.401", "--current-noise-ma", "5", "--iterations", "5"])
     assert r.exit_code == 2 and "origin search iteration" in r.output and "Traceback" not in r.output
+
+
+def test_check_lists_every_problem_at_once(tmp_path):
+    # three planted errors in one file: an unknown axis, text in a current, a negative current
+    bad = tmp_path / "bad.csv"
+    bad.write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\n"
+                   "v,1.4,1.6,1.2,20,0\nq,1.4,1.6,1.2,20,0\nv,1.4,abc,1.2,20,0\nw,1.4,1.6,-1.2,20,0\n")
+    r = CliRunner().invoke(app, ["check", str(bad)])
+    assert r.exit_code == 2, r.output
+    assert "3 problem(s)" in r.output
+    for text in ("'q'", "'abc'", "-1.2", "unknown axis", "not a finite number", "negative current"):
+        assert text in r.output, text
+    assert "np.float64" not in r.output and "Traceback" not in r.output
+
+
+def test_check_passes_a_good_file_and_names_duplicates(tmp_path):
+    good = tmp_path / "good.csv"
+    good.write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\n"
+                    "v,1.4,1.6,1.2,20,0\nv,1.6,1.8,1.4,-20,0\nv,1.4,1.6,1.2,20,0\n")
+    r = CliRunner().invoke(app, ["check", str(good)])
+    assert r.exit_code == 0, r.output
+    assert "row 3 repeats row 1" in r.output and "1 duplicate reading(s)" in r.output

@@ -35,6 +35,40 @@ class By(str, Enum):
 
 
 @app.command()
+def check(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV (see ambfit/docs/data-format.md).")],
+    max_position_um: Annotated[float | None, typer.Option(help="Positions at least this large [µm] are flagged "
+                                                          "(default: the bearing's nominal gap).")] = None,
+    bearing: BearingOption = None,
+):
+    """List every problem of a data file at once (row, column, value, why), and exact duplicate readings.
+
+    Exits 2 when the file has problems, 0 when it is ready for identify.
+    """
+    from ambfit.data import duplicate_rows, inspect, read_csv
+
+    desc = bearing_of(bearing)
+    limit = max_position_um or desc.nominal_gap * 1e6
+    problems = inspect(data, max_position_um=limit)
+    if problems:
+        show_table([{"row": "" if e.row is None else str(e.row), "column": e.column or "",
+                     "value": "" if e.value is None else repr(e.value), "problem": e.reason} for e in problems],
+                   f"{data}: {len(problems)} problem(s)", left=("column", "value", "problem"))
+        raise typer.Exit(2)
+    ds = read_csv(data, max_position_um=limit)
+    df = ds.frame
+    dupes = duplicate_rows(df)
+    for row, first in dupes:
+        warn(f"{data}: row {row} repeats row {first} exactly; a repeated reading counts twice and makes the "
+             "error bars too small (up to sqrt(2) when every row is repeated)")
+    known = int(df["load_N"].notna().sum()) if "load_N" in df else 0
+    noise = "std columns" if all(c in df and df[c].notna().all() for c in ("i_top_std_A", "i_bottom_std_A")) \
+        else "no current std columns (noise will be estimated from the residuals)"
+    note(f"{data}: ok, {len(df)} rows ({', '.join(f'{(df.axis == ax).sum()} {ax}' for ax in ('v', 'w'))}), "
+         f"{known} rows with a known load, {noise}; {len(dupes)} duplicate reading(s)")
+
+
+@app.command()
 def identify(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     method: Annotated[Method, typer.Option(help="Estimator: 'least-squares' (all readings, weighted by their "
