@@ -33,7 +33,8 @@ ds = read_csv(ROOT / "data" / "paper_table2.csv")
 
 # %%
 ls = ambfit.fit(ds)
-res = ambfit.sample(ds, n_ensembles=2 if FAST else 4, n_steps=1500 if FAST else 4000, seed=1, ls=ls)
+res = ambfit.sample(ds, n_ensembles=2 if FAST else 4, n_steps=1500 if FAST else 4000, max_steps=1500 if FAST else 30000,
+                    seed=1, ls=ls)
 print(res.message)
 res.to_dataframe()
 

@@ -17,7 +17,7 @@ def table2():
 
 @pytest.fixture(scope="module")
 def short_run(table2):
-    return bayes.sample(table2, n_ensembles=2, n_steps=800, seed=1)
+    return bayes.sample(table2, n_ensembles=2, n_steps=800, max_steps=800, seed=1)   # capped: too short on purpose
 
 
 def test_posterior_recovers_truth_and_agrees_with_least_squares(short_run):
@@ -34,7 +34,7 @@ def test_posterior_recovers_truth_and_agrees_with_least_squares(short_run):
 
 def test_a_short_run_is_flagged_with_the_length_it_needs(short_run):
     assert short_run.too_short
-    assert "too short: run at least" in short_run.message
+    assert "too short and the cap of 800 steps was reached: run at least" in short_run.message
     js = short_run.to_json()
     assert js["method"] == "bayes" and js["converged"] is False
     for key in ("g_v0_um", "v0_um", "k_v_Nm2_per_A2"):
@@ -113,7 +113,7 @@ def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
     csv = tmp_path / "d.csv"
     d.to_csv(csv, index=False)
     out, js = tmp_path / "p.nc", tmp_path / "p.json"
-    r = CliRunner().invoke(app, ["sample", str(csv), "--steps", "300", "--ensembles", "2", "--out", str(out),
+    r = CliRunner().invoke(app, ["sample", str(csv), "--steps", "300", "--max-steps", "300", "--ensembles", "2", "--out", str(out),
                                  "--json", str(js), "--no-progress"])
     assert r.exit_code == 3 and "too short" in r.output     # 300 steps is well below 50 tau
     rec = json.loads(js.read_text())
@@ -130,3 +130,13 @@ def test_sbc_small_fast_version():
     # 72 pooled coverage indicators (correlated within a data set); a calibrated posterior gives ~0.9, and
     # below 0.7 happens by chance with probability < 0.1 % even counting the correlation as 12 independent sets
     assert pooled > 0.7
+
+
+def test_a_short_start_is_extended_until_fifty_tau(table2):
+    # Started far too short (300 steps), the run is extended until it is 50 autocorrelation times long and tau
+    # has settled, and then counts as converged: the default `ambfit sample` succeeds on ordinary data.
+    res = bayes.sample(table2, n_ensembles=2, n_steps=300, seed=3)
+    assert res.n_steps > 300 and not res.too_short
+    assert res.n_steps >= 50 * float(np.max(res.tau))
+    assert "added to reach 50 tau" in res.message
+    assert res.to_json()["converged"]

@@ -76,7 +76,7 @@ def test_identification_says_why_the_closed_form_does_not_apply(ls):
 def test_posterior_section_reports_the_run(data, ls):
     from ambfit.estimation import bayes
 
-    post = bayes.sample(data, n_ensembles=2, n_steps=150, seed=1, ls=ls)
+    post = bayes.sample(data, n_ensembles=2, n_steps=150, max_steps=150, seed=1, ls=ls)
     rec = post.to_json()
     html = str(section(DATA, "posterior", dataset.posterior(post, draw=False)))
     text = plain(html)
@@ -174,7 +174,7 @@ def test_data_report_skips_sections_on_request(tmp_path):
 def test_data_report_cli_writes_all_sections(tmp_path):
     out = tmp_path / "rep"
     r = CliRunner().invoke(app, ["report", str(TABLE2), "--out", str(out),
-                                 "--steps", "400", "--ensembles", "2", "--design-steps", "3"])
+                                 "--steps", "400", "--max-steps", "400", "--ensembles", "2", "--design-steps", "3"])
     assert r.exit_code == 0, r.output
     page = (out / "index.html").read_text()
     assert _self_contained(page)

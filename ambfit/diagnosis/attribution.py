@@ -194,7 +194,8 @@ class Diagnosis:
     def ranking_rows(self) -> list[dict]:
         """The ranking as ``{column: text}`` rows (best first)."""
         return [{"effect": r.effect, "held-out excess after": f"{r.heldout_excess_after:.2f}",
-                 "shrink": f"{r.shrink:.3f}", "in-sample mean z²": f"{r.insample_mean_z2:.2f}"}
+                 "shrink": f"{r.shrink:.3f}", "in-sample mean z²": f"{r.insample_mean_z2:.2f}",
+                 "fit": "converged" if r.converged else "not converged"}
                 for r in self.to_dataframe().itertuples()]
 
     def where_rows(self, n: int = 8) -> list[dict]:
@@ -207,8 +208,16 @@ class Diagnosis:
                 f"held-out excess {self.heldout_excess_before:.2f} noise units; folds: {self.folds}")
 
     def verdict_text(self) -> str:
-        text = (f"verdict: {self.verdict}; confounded with: {', '.join(self.confounded_with) or 'none'}; "
-                f"shrink {self.shrink:.3f}")
+        if self.verdict == "none":
+            text = ("verdict: none (the ideal law's held-out residuals sit on the noise floor); these data cannot "
+                    f"exclude: {', '.join(self.confounded_with) or 'nothing'}")
+        else:
+            text = (f"verdict: {self.verdict}; confounded with: {', '.join(self.confounded_with) or 'none'}; "
+                    f"shrink {self.shrink:.3f}")
+        failed = [c.effect for c in self.ranking if not c.fit.converged]
+        if failed:
+            text += (f"\nnot converged within the candidate fits' step budget (scored as they stand): "
+                     f"{', '.join(failed)}")
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "

@@ -240,15 +240,26 @@ def _same_precision(reference: str, value: float) -> str:
     return f"{value:.{len(reference.split('.')[-1]) if '.' in reference else 0}f}"
 
 
+TAU_TOLERANCE = 0.1
+"""When a run had to be extended, tau counts as settled once the last extension moved no ensemble's estimate by more
+than this fraction.  An integrated autocorrelation time estimated from 50 tau of chain scatters by about 10 %
+(emcee's documentation, "Autocorrelation analysis"), so a tighter test would chase that noise."""
+
+
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
-           n_steps: int = 3000, min_tau_multiple: float = 50.0, seed: int = 0, progress: bool = False,
-           bearing: Bearing = PAPER_BEARING, ls: FitResult | None = None, **fit_kw) -> Posterior:
-    """Sample the posterior with ``n_ensembles`` independent emcee ensembles.
+           n_steps: int = 3000, max_steps: int = 30000, min_tau_multiple: float = 50.0, seed: int = 0,
+           progress: bool = False, bearing: Bearing = PAPER_BEARING, ls: FitResult | None = None,
+           **fit_kw) -> Posterior:
+    """Sample the posterior with ``n_ensembles`` independent emcee ensembles, long enough for their autocorrelation.
 
     Each ensemble starts in a small Gaussian ball (0.1 sd of the least-squares
-    covariance) around the least-squares optimum, runs ``n_steps`` steps, and is
-    burned in by ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
-    :meth:`Prior.from_bearing` of ``bearing``.
+    covariance) around the least-squares optimum and runs ``n_steps`` steps; while the run is
+    shorter than ``min_tau_multiple`` times the largest integrated autocorrelation time (or,
+    once extended, tau still moves by more than ``TAU_TOLERANCE``), every ensemble is extended
+    to what the current tau asks for, up to ``max_steps``.  The draws are burned in by
+    ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
+    :meth:`Prior.from_bearing` of ``bearing``.  A run that hits ``max_steps`` is marked
+    ``too_short`` and its message says how long it should be.
     """
     import emcee
 
@@ -263,7 +274,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     theta_hat[free] = ls.values / scale[free]
     theta_hat[~free] = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(prob.n_loads))[~free]
     post = LogDensity(prob=prob, theta_ref=jnp.asarray(theta_hat), free_idx=jnp.asarray(np.nonzero(free)[0]),
-                     prior=prior, model=Model.of((), bearing))
+                      prior=prior, model=Model.of((), bearing))
     ndim = int(free.sum())
     n_walkers = n_walkers or max(32, 4 * ndim)
     cov_z = ls.cov / np.outer(scale[free], scale[free])
@@ -273,32 +284,49 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     def logp(zs):
         return np.asarray(_logp_batch(post, jnp.asarray(zs)))
 
-    chains, taus, accs = [], [], []
-    for e in range(n_ensembles):
+    samplers = []
+    for _ in range(n_ensembles):
         p0 = theta_hat[free] + 0.1 * rng.standard_normal((n_walkers, ndim)) @ chol.T
         sampler = emcee.EnsembleSampler(n_walkers, ndim, logp, vectorize=True)
         sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
         sampler.run_mcmc(p0, n_steps, progress=progress)
-        taus.append(sampler.get_autocorr_time(tol=0))
-        accs.append(float(np.mean(sampler.acceptance_fraction)))
-        chains.append(sampler.get_chain())
-    tau = np.array(taus)
+        samplers.append(sampler)
+    steps, tau, settled = _run_until_settled(samplers, n_steps, max_steps, min_tau_multiple, progress)
     tmax = float(np.max(tau))
     burn = int(np.ceil(2 * tmax))
     thin = max(1, int(tmax / 2))
-    too_short = n_steps < min_tau_multiple * tmax
-    message = (f"autocorrelation time up to {tmax:.1f} steps; {n_steps} steps per ensemble is "
-               + (f"too short: run at least {int(np.ceil(min_tau_multiple * tmax))} steps "
-                  f"({min_tau_multiple:g} tau) for a reliable tau and ESS" if too_short else
-                  f"{n_steps / tmax:.0f} tau (>= {min_tau_multiple:g})"))
-    draws_z = np.stack([c[burn::thin].reshape(-1, ndim) for c in chains])  # [ens, draws, p]
-    n_draw = min(d.shape[0] for d in draws_z)
-    draws_z = draws_z[:, :n_draw]
+    too_short = not (steps >= min_tau_multiple * tmax and settled)
+    message = (f"autocorrelation time up to {tmax:.1f} steps; {steps} steps per ensemble"
+               + (f" ({steps - n_steps} added to reach {min_tau_multiple:g} tau)" if steps > n_steps else "")
+               + (f" is too short and the cap of {max_steps} steps was reached: run at least "
+                  f"{int(np.ceil(min_tau_multiple * tmax))} steps (--max-steps) for a reliable tau and ESS"
+                  if too_short else f" is {steps / tmax:.0f} tau (>= {min_tau_multiple:g})"))
+    accs = np.array([float(np.mean(s.acceptance_fraction)) for s in samplers])
+    draws_z = np.stack([s.get_chain()[burn::thin].reshape(-1, ndim) for s in samplers])  # [ens, draws, p]
     draws = draws_z * scale[free]
-    dt = _datatree(names, draws, post, draws_z, df, tau, np.array(accs))
-    return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=n_steps,
-                          n_walkers=n_walkers, too_short=bool(too_short), message=message, datatree=dt, ls=ls,
-                          acceptance=np.array(accs))
+    dt = _datatree(names, draws, post, draws_z, df, tau, accs)
+    return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=steps, n_walkers=n_walkers,
+                     too_short=bool(too_short), message=message, datatree=dt, ls=ls, acceptance=accs)
+
+
+def _run_until_settled(samplers, n_steps: int, max_steps: int, min_tau_multiple: float, progress: bool):
+    """Extend every ensemble until the run is ``min_tau_multiple`` times its largest tau and tau has settled, or
+    ``max_steps`` is reached.  Returns ``(steps, tau[ensembles, p], settled)``."""
+    steps = n_steps
+    tau = np.array([s.get_autocorr_time(tol=0) for s in samplers])
+    settled = True   # a run long enough at once needs no second estimate (emcee: 50 tau is reliable)
+    while steps < min_tau_multiple * np.max(tau) or not settled:
+        if steps >= max_steps:
+            break
+        target = int(np.ceil(1.1 * min_tau_multiple * np.max(tau)))
+        extra = min(max(target - steps, n_steps // 4, 100), max_steps - steps)
+        for s in samplers:
+            s.run_mcmc(None, extra, progress=progress)
+        steps += extra
+        new = np.array([s.get_autocorr_time(tol=0) for s in samplers])
+        settled = bool(np.all(np.abs(new - tau) <= TAU_TOLERANCE * new))
+        tau = new
+    return steps, tau, settled
 
 
 def _datatree(names, draws, post, draws_z, df, tau, acc):

@@ -129,6 +129,9 @@ def write_json(record: dict, path: Path):
     try:
         with os.fdopen(fd, "w") as f:
             json.dump(record, f, indent=2)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)     # mkstemp makes 0600; an output file gets the usual permissions
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -169,7 +169,10 @@ def sample(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
                                                   "94 % HDI, R-hat, ESS) here.")] = None,
     pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
-    steps: Annotated[int, typer.Option(help="Steps per ensemble (at least 50 autocorrelation times).")] = 3000,
+    steps: Annotated[int, typer.Option(help="Steps per ensemble to start with; each ensemble is extended until "
+                                       "the run is 50 autocorrelation times long and tau has settled.")] = 3000,
+    max_steps: Annotated[int, typer.Option(help="Cap on the steps per ensemble (exit 3 with the length "
+                                           "needed when it is reached).")] = 30000,
     ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat compares them).")] = 4,
     walkers: Annotated[int | None, typer.Option(help="Walkers per ensemble (default max(32, 4 x parameters)).")] = None,
     nominal_gap_um: Annotated[float | None, typer.Option(help="Centre the gap prior on this nominal gap [µm] "
@@ -181,8 +184,9 @@ def sample(
 ):
     """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
 
-    Exits 3 when the run is too short for its autocorrelation time (and says how long it
-    should be) or R-hat across the ensembles exceeds 1.01.
+    Runs until the chains are 50 autocorrelation times long (up to --max-steps); exits 3 when
+    the cap is reached (and says how long the run should be) or R-hat across the ensembles
+    exceeds 1.01.
     """
     from ambfit.data import DataError, read_csv
     from ambfit.estimation import bayes, fit
@@ -194,8 +198,8 @@ def sample(
         ds = read_csv(data)
         prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
                                          gap_log_sd=gap_prior_log_sd)
-        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps, seed=seed,
-                           progress=progress and sys.stderr.isatty(), bearing=desc)
+        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
+                           max_steps=max_steps, seed=seed, progress=progress and sys.stderr.isatty(), bearing=desc)
     except DataError as exc:
         fail(str(exc))
     except fit.FitError as exc:

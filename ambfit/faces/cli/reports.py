@@ -16,7 +16,9 @@ def report(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for index.html (self-contained, figures "
                                       "embedded) and report.json.")],
-    steps: Annotated[int, typer.Option(help="emcee steps per ensemble for the posterior.")] = 3000,
+    steps: Annotated[int, typer.Option(help="emcee steps per ensemble to start the posterior with (extended "
+                                       "until 50 autocorrelation times).")] = 3000,
+    max_steps: Annotated[int, typer.Option(help="Cap on the posterior's steps per ensemble.")] = 30000,
     ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat across them).")] = 4,
     design_steps: Annotated[int, typer.Option(help="How many next perturbations to recommend.")] = 8,
     max_radius_um: Annotated[float | None, typer.Option(help="Recommend only set-points within this distance "
@@ -36,7 +38,7 @@ def report(
     enable_compilation_cache()
     try:
         path, rec = report_mod.data_report(
-            data, out, steps=steps, ensembles=ensembles, design_steps=design_steps, bearing=bearing_of(bearing),
+            data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps, bearing=bearing_of(bearing),
             max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
             command="ambfit report " + " ".join(sys.argv[2:]))
     except (DataError, OSError) as exc:

@@ -157,7 +157,7 @@ def _attempt(what: str, compute) -> dict:
         return failed(what, exc)
 
 
-def _sections(ds, res, record: dict, *, steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
+def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
               do_diagnosis, seed) -> dict:
     """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON."""
     from ambfit.estimation import bayes, closed_form, conditioning
@@ -171,7 +171,8 @@ def _sections(ds, res, record: dict, *, steps, ensembles, design_steps, bearing,
     out = {"identification": identification(res, closed)}
 
     def sample():
-        sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, seed=seed, ls=res, bearing=bearing)
+        sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
+                          bearing=bearing)
         record["bayes"] = sr.to_json()
         return posterior(sr)
 
@@ -203,7 +204,7 @@ def _sections(ds, res, record: dict, *, steps, ensembles, design_steps, bearing,
     return out
 
 
-def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design_steps: int = 8,
+def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
                 bearing=PAPER_BEARING, max_radius_um: float | None = 50.0, do_posterior: bool = True,
                 do_diagnosis: bool = True, seed: int = 0, command: str = "") -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
@@ -229,7 +230,7 @@ def data_report(data_path, out, *, steps: int = 3000, ensembles: int = 4, design
         sections["identification"] = failed("Least squares", exc)
     else:
         record["least_squares"] = res.to_json()
-        sections |= _sections(ds, res, record, steps=steps, ensembles=ensembles, design_steps=design_steps,
+        sections |= _sections(ds, res, record, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                               bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
                               do_diagnosis=do_diagnosis, seed=seed)
     (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
