@@ -83,9 +83,12 @@ def test_posterior_section_reports_the_run(data, ls):
     assert expanded(html)
     assert f"2 independent emcee ensembles × 150 steps × {post.n_walkers} walkers" in text
     assert f"max autocorrelation time {np.max(post.tau):.0f} steps" in text
-    lo = (1 - rec["hdi_prob"]) / 2 * 100
-    assert f"hdi {lo:g} %" in html and f"hdi {100 - lo:g} %" in html
-    assert f"<td>{rec['params']['g_v0_um']['value']:.4f}</td>" in html
+    assert f"{rec['hdi_prob'] * 100:g} % HDI" in html
+    # mean ± sd to the precision the sd justifies, the same numbers as the contract record
+    from ambfit.estimation.results import pm
+    g = rec["params"]["g_v0_um"]
+    assert f"<td>{pm(g['value'], g['std'])}</td>" in html
+    assert f"<td>{g['ess_bulk']:.0f}</td>" in html
 
 
 def test_solution_space_caption_follows_its_contour_levels(data, ls):

@@ -176,6 +176,13 @@ class Posterior:
         """Long enough for its autocorrelation time and R-hat below 1.01 across the ensembles (see :meth:`to_json`)."""
         return bool(self.to_json()["converged"])
 
+    def display_rows(self, ci_prob: float = 0.94) -> list[dict]:
+        """One ``{column: text}`` row per head parameter: mean ± sd and the HDI to the precision the sd justifies,
+        R-hat to 3 decimals, ESS as a whole number."""
+        pct = f"{ci_prob * 100:g} % HDI"
+        return [{"parameter": n, "mean ± sd": v, pct: h, "R-hat": d.split(",")[0].split()[-1],
+                 "ESS bulk": d.split()[-1]} for n, v, h, d in self._lines(ci_prob)]
+
     def _lines(self, ci_prob: float = 0.94) -> list[tuple[str, str, str, str]]:
         """``(name, mean ± sd, HDI, diagnostics)`` per head parameter, to the precision the sd justifies."""
         rec = self.to_json(ci_prob)["params"]

@@ -69,10 +69,7 @@ def posterior(result, *, draw: bool = True) -> dict:
 
     ``result``: :class:`~ambfit.estimation.bayes.Posterior`."""
     rec = result.to_json()
-    lo = (1 - rec["hdi_prob"]) / 2 * 100
-    post = pd.DataFrame([{"parameter": k, "mean": p["value"], "sd": p["std"], f"hdi {lo:g} %": p["hdi_low"],
-                          f"hdi {100 - lo:g} %": p["hdi_high"], "R-hat": p["r_hat"], "ESS bulk": p["ess_bulk"]}
-                         for k, p in rec["params"].items()])
+    post = pd.DataFrame(result.display_rows(rec["hdi_prob"]))
     pair = None
     if draw:
         from ambfit.faces import plots
