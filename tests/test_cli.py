@@ -173,3 +173,18 @@ def test_check_passes_a_good_file_and_names_duplicates(tmp_path):
     r = CliRunner().invoke(app, ["check", str(good)])
     assert r.exit_code == 0, r.output
     assert "row 3 repeats row 1" in r.output and "1 duplicate reading(s)" in r.output
+
+
+def test_design_stays_inside_the_bearings_clearance_and_current_limit(tmp_path):
+    # a bearing with a 30 µm back-up clearance and a 1.5 A coil limit: no recommended set-point lies beyond
+    # 30 µm from the sensor origin, no bias reaches 1.5 A
+    bearing = tmp_path / "b.toml"
+    bearing.write_text("backup_clearance_um = 30.0\nmax_current_A = 1.5\n")
+    js = tmp_path / "rec.json"
+    r = CliRunner().invoke(app, ["design", str(ROOT / "data" / "paper_table2.csv"), "--steps", "4",
+                                 "--bearing", str(bearing), "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    steps = json.loads(js.read_text())["steps"]
+    assert len(steps) == 4
+    for s in steps:
+        assert (s["v_set_um"] ** 2 + s["w_set_um"] ** 2) ** 0.5 <= 30.0 and s["bias_A"] < 1.5, s

@@ -124,23 +124,28 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     ``candidates`` has columns ``v_set_um``, ``w_set_um``, ``bias_A``; default: a grid of
     ±50 µm around the estimated effective origin at biases 0.8-1.8 A.  Candidate rows
     carry the data's most common load group (its known value, or its fitted value).
-    ``max_radius_um`` drops candidates farther than that from the sensor origin (the
-    back-up bearing clearance, 60 µm on the paper's rig, less a margin).
+    ``max_radius_um`` drops candidates farther than that from the sensor origin; by default the
+    bearing's back-up clearance (60 µm on the paper's rig): a set-point beyond it would put the rotor
+    on the back-up bearing.  Candidate biases at or above the bearing's coil current limit are
+    dropped too.  The bearing is the fit's (``result``) when one is given.
     """
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     res = result or fit(df, bearing=bearing)
+    bearing = res.bearing
+    if max_radius_um is None:
+        max_radius_um = bearing.backup_clearance * 1e6
     if target not in res.names:
         raise ValueError(f"target {target!r} is not estimated here; choose one of {res.names}")
     if candidates is None:
         centre = (-res.value("v0") * 1e6 if "v0" in res.names else 0.0,
                   -res.value("w0") * 1e6 if "w0" in res.names else 0.0)
         candidates = candidate_steps(tuple(round(c) for c in centre))
-    if max_radius_um is not None:
-        # keep the rotor off the back-up bearing: set-points within max_radius_um of the sensor origin
-        r = np.hypot(candidates["v_set_um"], candidates["w_set_um"])
-        candidates = candidates[r <= max_radius_um].reset_index(drop=True)
-        if candidates.empty:
-            raise ValueError(f"no candidate set-point lies within {max_radius_um:g} µm of the sensor origin")
+    # keep the rotor off the back-up bearing and the coils below their current limit
+    r = np.hypot(candidates["v_set_um"], candidates["w_set_um"])
+    candidates = candidates[(r <= max_radius_um) & (candidates["bias_A"] < bearing.max_current)].reset_index(drop=True)
+    if candidates.empty:
+        raise ValueError(f"no candidate set-point lies within {max_radius_um:g} µm of the sensor origin with a bias "
+                         f"below the {bearing.max_current:g} A current limit")
     groups = load_groups(df)
     main = groups.str.rsplit("|", n=1).str[0].mode().iloc[0]
     template = df[groups.str.startswith(main + "|")].iloc[0].copy()

@@ -86,8 +86,8 @@ def design(
                                                  "origin covariance).")] = Criterion.A,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
     max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
-                                                        "sensor origin [µm] (back-up bearing clearance "
-                                                        "less a margin; the paper's rig: 60 µm).")] = None,
+                                                        "sensor origin [µm] (default: the bearing's back-up "
+                                                        "clearance, 60 µm on the paper's rig).")] = None,
     bearing: BearingOption = None,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
