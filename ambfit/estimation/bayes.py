@@ -180,11 +180,11 @@ class Posterior:
         """One ``{column: text}`` row per head parameter: mean ± sd and the HDI to the precision the sd justifies,
         R-hat to 3 decimals, ESS as a whole number."""
         pct = f"{ci_prob * 100:g} % HDI"
-        return [{"parameter": n, "mean ± sd": v, pct: h, "R-hat": d.split(",")[0].split()[-1],
-                 "ESS bulk": d.split()[-1]} for n, v, h, d in self._lines(ci_prob)]
+        return [{"parameter": n, "mean ± sd": v, pct: h, "R-hat": r, "ESS bulk": e}
+                for n, v, h, r, e in self._lines(ci_prob)]
 
-    def _lines(self, ci_prob: float = 0.94) -> list[tuple[str, str, str, str]]:
-        """``(name, mean ± sd, HDI, diagnostics)`` per head parameter, to the precision the sd justifies."""
+    def _lines(self, ci_prob: float = 0.94) -> list[tuple[str, str, str, str, str]]:
+        """``(name, mean ± sd, HDI, R-hat, ESS)`` texts per head parameter, to the precision the sd justifies."""
         rec = self.to_json(ci_prob)["params"]
         out = []
         for name, key, _ in CONTRACT_PARAMS:
@@ -194,14 +194,14 @@ class Posterior:
             text = pm(p["value"], p["std"])
             decimals = text.split(" ± ")[0]
             hdi = _same_precision(decimals, p["hdi_low"]) + " … " + _same_precision(decimals, p["hdi_high"])
-            out.append((f"{name} [{DISPLAY[name][0]}]", text, hdi,
-                        f"R-hat {p['r_hat']:.3f}, ESS {p['ess_bulk']:.0f}"))
+            out.append((f"{name} [{DISPLAY[name][0]}]", text, hdi, f"{p['r_hat']:.3f}", f"{p['ess_bulk']:.0f}"))
         return out
 
     def summary(self, ci_prob: float = 0.94) -> str:
         """A short text summary: posterior mean ± sd, HDI, R-hat and ESS per parameter, and the run's verdict."""
         head = f"posterior ({self.draws.shape[0]} ensembles x {self.n_walkers} walkers x {self.n_steps} steps)"
-        rows = [f"  {n:<22} {v:<22} {int(ci_prob * 100)} % HDI {h:<26} {d}" for n, v, h, d in self._lines(ci_prob)]
+        rows = [f"  {n:<22} {v:<22} {int(ci_prob * 100)} % HDI {h:<26} R-hat {r}, ESS {e}"
+                for n, v, h, r, e in self._lines(ci_prob)]
         return "\n".join([head, *rows, self.message])
 
     __str__ = summary
@@ -212,10 +212,10 @@ class Posterior:
     def _repr_html_(self) -> str:
         import html
 
-        rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{html.escape(v)}</td><td>{html.escape(h)}</td>"
-                       f"<td>{html.escape(d)}</td></tr>" for n, v, h, d in self._lines())
-        return (f"<b>posterior</b><table><tr><th>parameter</th><th>mean ± sd</th><th>94 % HDI</th>"
-                f"<th>diagnostics</th></tr>{rows}</table><p>{html.escape(self.message)}</p>")
+        rows = self.display_rows()
+        head = "".join(f"<th>{html.escape(c)}</th>" for c in rows[0]) if rows else ""
+        body = "".join("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in r.values()) + "</tr>" for r in rows)
+        return (f"<b>posterior</b><table><tr>{head}</tr>{body}</table><p>{html.escape(self.message)}</p>")
 
     def to_json(self, ci_prob: float = 0.94, rhat_max: float = 1.01) -> dict:
         """Contract section 2 record with ``"method": "bayes"`` (µm, N m²/A²); converged when the run was long

@@ -185,9 +185,9 @@ def misfit(theta, prob: Problem, model: Model = IDEAL):
     ``ambfit identify`` is dominated by tracing).
     """
     p = unpack(theta, prob, model)
-    r = prob.readings
     if not model.effects:
         return _ideal_misfit(p, prob, model.bearing.cos_alpha)
+    r = prob.readings
 
     def force(it, ib, x):
         rr = eqx.tree_at(lambda z: (z.i_top, z.i_bottom, z.x), r, (it, ib, x))
@@ -282,8 +282,7 @@ def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: in
     solution: ``(theta, result, num_steps, edm, jacobian, z)``.  One compiled function per model and step budget,
     which is what a single fit needs (the diagnosis fits dozens of models, and compile time dominates there)."""
     theta, result, steps, edm, j = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
-    f, s = misfit(theta, prob, model)
-    return theta, result, steps, edm, j, f / s
+    return theta, result, steps, edm, j, standardized(theta, prob, model)
 
 
 @eqx.filter_jit

@@ -295,10 +295,8 @@ class FitResult:
 
     def display_row(self) -> dict:
         """The head parameters as ``{"g_v0 [µm]": "774.5 ± 1.4", ...}`` plus χ²/dof (one table row)."""
-        row = {}
-        for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w"):
-            unit = DISPLAY[n][0]
-            row[f"{n} [{unit}]"] = next((v for m, v, _ in self._rows() if m == n), "–")
+        shown = {n: v for n, v, _ in self._rows()}
+        row = {f"{n} [{DISPLAY[n][0]}]": shown.get(n, "–") for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")}
         row["χ²/dof"] = f"{self.reduced_chi2:.2f}"
         return row
 
