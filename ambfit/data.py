@@ -35,6 +35,10 @@ LABELS = ("load_id", "experiment")
 CURRENTS = ("bias_A", "i_top_A", "i_bottom_A")
 STD_COLUMNS = ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")
 
+MAX_CURRENT_A = 1e4
+"""Currents at least this large [A] are input errors, not readings (squared they overflow the force law);
+smaller ones beyond the bearing's coil limit are judged by :mod:`ambfit.estimation.plausibility`."""
+
 DEFAULT_MAX_POSITION_UM = PAPER_BEARING.nominal_gap * 1e6
 """Positions at least this large [µm] are rejected as 'as large as the gap' (the paper's nominal gap; the
 command line passes its ``--bearing``'s)."""
@@ -136,19 +140,53 @@ def _read_raw(path) -> pd.DataFrame:
     if not p.is_file():
         raise DataError("no such file", file=source)
     try:
-        with open(p, newline="") as f:
-            header = next(csv.reader(f), None)
+        header = _scan(p, source)
     except UnicodeDecodeError as exc:
         raise DataError(f"not a UTF-8 text file ({exc.reason})", file=source) from None
-    if not header:
-        raise DataError("the file is empty (no header line)", file=source)
     dupes = sorted({c for c in header if header.count(c) > 1})
     if dupes:
         raise DataError(f"duplicate column name(s) {dupes} in the header", file=source, row=None)
+    if len(header) == 1:
+        sep = next((s for s in (";", "\t", "|") if s in header[0]), None)
+        if sep is not None:
+            raise DataError(f"the header is one column that contains {sep!r}: the file looks {_SEPARATORS[sep]}-"
+                            "separated; ambfit reads comma-separated files (re-export as CSV with ',')", file=source)
     try:
-        return pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True)
+        # index_col=False: data rows with a trailing comma must not shift every column by one
+        return pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True, index_col=False)
     except (pd.errors.ParserError, ValueError) as exc:
         raise DataError(f"not a valid CSV table: {exc}", file=source) from None
+
+
+_SEPARATORS = {";": "semicolon", "\t": "tab", "|": "pipe"}
+
+MAX_LINE_CHARS = 1 << 16
+"""Longest line accepted [characters]: a contract row is a few hundred; longer lines are refused before any
+parsing, so a pathological file costs bounded time and memory."""
+
+
+def _scan(p: Path, source: str) -> list[str]:
+    """The header's column names, after checking every line's length and field count (bounded memory)."""
+    with open(p, newline="", encoding="utf-8") as f:
+        first = f.readline(MAX_LINE_CHARS + 1)
+        if not first.strip():
+            raise DataError("the file is empty (no header line)", file=source)
+        if len(first) > MAX_LINE_CHARS:
+            raise DataError(f"the header line is longer than {MAX_LINE_CHARS} characters; not a contract CSV file",
+                            file=source)
+        header = next(csv.reader([first]))
+        width = len(header) + 1            # one trailing comma is tolerated
+        row = 0
+        while line := f.readline(MAX_LINE_CHARS + 1):
+            row += 1
+            if len(line) > MAX_LINE_CHARS and not line.endswith("\n"):
+                raise DataError(f"line longer than {MAX_LINE_CHARS} characters (a contract row has "
+                                f"{len(header)} fields); the file is damaged or not a data file", file=source,
+                                row=row)
+            fields = line.count(",") + 1
+            if fields > width and '"' not in line:
+                raise DataError(f"{fields} fields where the header has {len(header)}", file=source, row=row)
+    return [h.strip() for h in header]
 
 
 def check(raw: pd.DataFrame, *, source: str = "<memory>", max_position_um: float = DEFAULT_MAX_POSITION_UM) -> Dataset:
@@ -193,6 +231,13 @@ def _numeric(df: pd.DataFrame, problems: _Problems):
 def _ranges(df: pd.DataFrame, problems: _Problems, max_position_um: float):
     for col in [c for c in CURRENTS if c in df.columns]:
         problems.rows(df[col] < 0, "negative current; coil currents and biases cannot be negative", col, df[col])
+    for col in [c for c in CURRENTS if c in df.columns]:
+        problems.rows(df[col] >= MAX_CURRENT_A, f"not a coil current (at least {MAX_CURRENT_A:g} A); currents must "
+                      "be in amperes", col, df[col])
+    if "i_top_A" in df.columns and "i_bottom_A" in df.columns:
+        problems.rows((df["i_top_A"] == 0) & (df["i_bottom_A"] == 0),
+                      "both coil currents are 0: the bearing carries no force at this reading (amplifier off or a "
+                      "missing value written as 0?); remove the row", "i_top_A", df["i_top_A"])
     for col in [c for c in STD_COLUMNS if c in df.columns]:
         problems.rows(df[col] <= 0, "a standard error must be positive (leave the cell empty when it is not known)",
                       col, df[col])
@@ -220,7 +265,7 @@ def _consistency(df: pd.DataFrame, problems: _Problems):
             if known.size and not np.allclose(known, known[0], rtol=1e-9, atol=1e-12):
                 pos = np.asarray(idx)[~np.isnan(loads)]
                 r = int(pos[np.argmax(~np.isclose(known, known[0], rtol=1e-9, atol=1e-12))])
-                problems.add(f"known load differs from {known[0]!r} N given on row {int(pos[0]) + 1} for the same "
+                problems.add(f"known load differs from {float(known[0])!r} N given on row {int(pos[0]) + 1} for the same "
                              f"load group {key!r} (load_id, axis); rows sharing a load_id must share its load",
                              r, "load_N", df["load_N"].iloc[r])
 
