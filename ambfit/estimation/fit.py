@@ -49,8 +49,8 @@ import numpy as np
 import optimistix as optx
 import pandas as pd
 
-from ambfit.data import Dataset
-from ambfit.estimation import closed_form
+from ambfit.data import Dataset, load_groups
+from ambfit.estimation import closed_form, plausibility, robust
 from ambfit.estimation.core import (
     EDM_MAX,
     FIRST_STEPS,
@@ -132,7 +132,8 @@ def _grid_start(prob: Problem, axis: int, bearing: Bearing) -> tuple[float, floa
 def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing: Bearing = PAPER_BEARING,
         sigma_i: float | None = None, sigma_x: float | None = None, mask=None, start_from: FitResult | None = None,
         require_k: bool = False, max_condition: float = 1e8, max_relative_gap_std: float = 0.1,
-        p_min: float = 1e-3, max_steps: int = 200, debias: int = 0, seed: int = 0, throw: bool = True) -> FitResult:
+        p_min: float = 1e-3, max_steps: int = 200, loss: str = "auto", alpha: float = robust.ALPHA,
+        debias: int = 0, seed: int = 0, throw: bool = True) -> FitResult:
     """Weighted least squares of gap, origin (k with known loads, nuisance loads, effect parameters).
 
     Parameters
@@ -162,6 +163,13 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     max_steps : int
         Levenberg-Marquardt step budget per reweighting round.  A first solve takes at
         most ``FIRST_STEPS`` per round; if it has not converged, a second one gets ``max_steps``.
+    loss : {"auto", "linear", "huber", "cauchy"}
+        ``auto`` (default): least squares with an outlier test on the studentized residuals; readings
+        beyond the Bonferroni bound (false-alarm probability ``alpha`` per data set) are named in
+        ``outliers`` and left out.  ``linear``: plain least squares (outliers are still named, not
+        left out).  ``huber``/``cauchy``: robust losses by reweighting (:mod:`ambfit.estimation.robust`).
+    alpha : float
+        False-alarm probability of the outlier test on clean data.
     debias : int
         Number of synthetic data sets for the parametric-bootstrap bias correction
         (:mod:`ambfit.estimation.debias`, ideal law only); 0 (default) reports the plain estimate.
@@ -187,6 +195,9 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     True
     """
     df = data.frame if isinstance(data, Dataset) else data
+    if loss not in robust.LOSSES:
+        raise ValueError(f"loss must be one of {robust.LOSSES}, got {loss!r}")
+    rows = np.asarray(df.index, dtype=int) + 1 if pd.api.types.is_integer_dtype(df.index) else np.arange(1, len(df) + 1)
     df = df.reset_index(drop=True)
     model = Model.of(effects, bearing)
     if debias and model.n:
@@ -196,7 +207,22 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         _require_k(meta)
     if start_from is None and model.n:
         start_from = fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask, max_steps=max_steps,
-                         throw=False)
+                         loss=loss, alpha=alpha, throw=False)
+        if start_from.outliers and loss == "auto":     # the extended model starts without the ideal fit's outliers
+            prob = prob.with_mask(np.asarray(prob.mask) * np.asarray(start_from.weights > 0, dtype=float))
+    thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
+                            max_steps=max_steps)
+    res = _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias, seed)
+    res = _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows)
+    res = dataclasses.replace(res, implausible=tuple(plausibility.check_result(dict(zip(res.names, res.values)),
+                                                                                bearing)))
+    if throw:
+        res.raise_for_health()
+    return res
+
+
+def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0, seed=0) -> FitResult:
+    """One weighted least-squares fit of ``prob`` (its mask as row weights)."""
     theta0, how = _initial(prob, meta, df, model, start_from)
     # The ideal law from a closed-form seed needs a few steps; a second solve (another compilation) only when
     # that was not enough.  Extended fits start further away (effects at their prior centre): one solve.
@@ -214,15 +240,105 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed, model=model)
         theta = theta - correction.bias
         jac, z = jacobian(jnp.asarray(theta), prob, model), standardized(jnp.asarray(theta), prob, model)
-    thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
-                            max_steps=max_steps)
     res = _finish(theta, np.asarray(jac), np.asarray(z), float(edm), lm, int(steps), prob, meta, model, how,
                   thresholds)
     if correction is not None:
         res = _with_correction(res, correction, prob, meta)
-    if throw:
-        res.raise_for_health()
     return res
+
+
+def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.ndarray:
+    """Studentized residuals of every row at ``res`` (fit weights from ``prob.mask``)."""
+    free = free_mask(prob, meta, model)
+    ones = prob.with_mask(np.ones(len(prob.mask)))
+    jac = np.asarray(jacobian(jnp.asarray(res.theta), ones, model))[: len(prob.mask)][:, free]
+    w = np.asarray(prob.mask) ** 2
+    return robust.studentized(jac, res.residuals, w > 0, w, known_noise=not meta.noise_estimated)
+
+
+def _reweighted(res, prob, meta, df, model, max_steps, thresholds, loss, base):
+    """Iteratively reweighted least squares with the robust ``loss`` from ``res``: ``(result, weights)``."""
+    w = base.copy()
+    for _ in range(robust.MAX_ROUNDS):
+        t = _studentized(res, prob.with_mask(np.sqrt(w)), meta, model)
+        new = base * robust.weights(t, loss)
+        if np.max(np.abs(new - w)) < 1e-3:
+            break
+        w = new
+        res = _fit_once(prob.with_mask(np.sqrt(w)), meta, df, model, res, max_steps, thresholds)
+    return res, w
+
+
+def _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows) -> FitResult:
+    """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``.
+
+    The test judges each reading against a fit the outliers cannot drag (Cauchy reweighting; one reading 17 σ
+    off pulls plain least squares so far that its neighbours look off too), then leaves the outliers out and
+    refits by plain least squares, repeating until no new reading is beyond the bound.
+    """
+    base = np.asarray(prob.mask, dtype=float)
+    if not np.all(np.isfinite(res.residuals[base > 0])) or not res.converged:
+        return res
+    plain = res
+    if loss in ("huber", "cauchy"):
+        res, w = _reweighted(res, prob, meta, df, model, max_steps, thresholds, loss, base)
+        return dataclasses.replace(res, loss=loss, weights=w, rows=rows, plain_shift=_shift(plain, res))
+    fitted = base > 0
+    limit = robust.threshold(int(fitted.sum()), alpha)
+    if not np.any(np.abs(_studentized(res, prob, meta, model)[fitted]) > limit):
+        return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
+    anchor, _ = _reweighted(res, prob, meta, df, model, max_steps, thresholds, "cauchy", base)
+    out = (np.abs(_studentized(anchor, prob.with_mask(base), meta, model)) > limit) & fitted
+    cur = prob
+    for _ in range(robust.MAX_ROUNDS):
+        if out.sum() > robust.MAX_FRACTION * fitted.sum():
+            return dataclasses.replace(plain, loss=loss, rows=rows, weights=base, outlier_note=(
+                f"{int(out.sum())} readings lie beyond the outlier bound |t| > {limit:.2f}: more than "
+                f"{robust.MAX_FRACTION:.0%} of the data, so not a few bad readings but a model that does not fit "
+                "them (none was left out); run ambfit diagnose"))
+        if loss == "linear" or not out.any():
+            break
+        cur = prob.with_mask(base * ~out)
+        res = _fit_once(cur, meta, df, model, res, max_steps, thresholds)
+        # judged again against the fit without them (a left-out reading is tested as a prediction)
+        new = (np.abs(_studentized(res, cur, meta, model)) > limit) & fitted
+        if np.array_equal(new, out):
+            break
+        out = new
+    if loss == "linear":
+        res, cur = plain, prob
+    t = _studentized(res, cur, meta, model)
+    found = tuple(_outlier(j, t[j], df, res, prob, rows) for j in np.nonzero(out)[0])
+    return dataclasses.replace(res, loss=loss, rows=rows, weights=np.asarray(cur.mask) ** 2, outliers=found,
+                               plain_shift=_shift(plain, res) if found and loss == "auto" else None)
+
+
+def _shift(plain: FitResult, res: FitResult) -> dict:
+    """How far plain least squares sits from ``res``, per head parameter, in ``res``'s standard errors."""
+    return {n: (plain.value(n) - res.value(n)) / res.error(n) for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+            if n in res.names and n in plain.names and res.error(n) > 0}
+
+
+def _outlier(j: int, t: float, df: pd.DataFrame, res: FitResult, prob: Problem, rows) -> robust.Outlier:
+    """The record of row ``j`` (0-based in ``df``): its reading and the values that would make it fit."""
+    r = df.iloc[j]
+    ax = str(r["axis"])
+    own = f"{ax}_um"
+    reading = {"i_top_A": float(r["i_top_A"]), "i_bottom_A": float(r["i_bottom_A"]), own: float(r[own])}
+    if "load_N" in df.columns and np.isfinite(r["load_N"]):
+        reading["load_N"] = float(r["load_N"])
+    vals = dict(zip(res.names, res.values))
+    g0, x0 = vals.get(f"g_{ax}0", np.nan), vals.get(f"{ax}0", 0.0)
+    k = vals.get(f"k_{ax}", K_REFERENCE)
+    load = float(np.asarray(prob.load)[j]) if bool(np.asarray(prob.known)[j]) else \
+        vals.get(f"load[{load_groups(df).iloc[j]}]", np.nan)
+    alt = {}
+    if np.isfinite(g0) and np.isfinite(load):
+        alt = robust.fits_with(reading["i_top_A"], reading["i_bottom_A"], reading[own] * 1e-6, load, g0, x0, k,
+                               res.bearing.cos_alpha)
+        if "x_um" in alt:
+            alt[own] = alt.pop("x_um")
+    return robust.Outlier(row=int(rows[j]), axis=ax, t=float(t), reading=reading, fits_with=alt)
 
 
 def _require_k(meta: Meta):
@@ -249,6 +365,8 @@ def _initial(prob, meta, df, model, start_from):
     if start_from is None:
         theta, how = start(prob, meta, df, model.bearing)
         return np.concatenate([theta, np.zeros(model.n)]), how
+    if start_from.model == model.name and len(start_from.theta) == len(si_scale(prob, model)[0]):
+        return np.asarray(start_from.theta), start_from.start      # a refit of the same model (robust rounds)
     vals = dict(zip(start_from.names, start_from.values))
     nominal = model.bearing.nominal_gap
     theta = to_theta([vals.get("g_v0", nominal), vals.get("g_w0", nominal)], [vals.get("v0", 0.0), vals.get("w0", 0.0)],
@@ -270,9 +388,19 @@ def _finish(theta, jac, z, edm, lm, steps, prob, meta, model, how, thresholds) -
     if dof < 1:
         raise FitError(f"the design does not identify the parameters: {int(used.sum())} readings for "
                        f"{int(free.sum())} parameters (no redundancy); add positions, biases or repetitions")
+    bad = (~np.isfinite(z[: len(used)]) | ~np.all(np.isfinite(jac[: len(used)]), axis=1)) & used
+    if bad.any() or not np.all(np.isfinite(theta)):
+        first = int(np.argmax(bad)) + 1 if bad.any() else None
+        raise FitError(f"the force law gives non-finite values{f' on {int(bad.sum())} row(s), the first row {first}' if first else ''}"
+                       " at the estimate (a pole gap closed, or currents and positions the law cannot use); check "
+                       "those rows' units and values (ambfit check)")
     norms = np.linalg.norm(j, axis=0)
     js = j / np.where(norms > 0, norms, 1.0)
-    _, sv, vt = np.linalg.svd(js, full_matrices=False)
+    try:
+        _, sv, vt = np.linalg.svd(js, full_matrices=False)
+    except np.linalg.LinAlgError:
+        raise FitError("the fit's Jacobian could not be decomposed (SVD did not converge): the readings span "
+                       "values the force law cannot handle; check units and extreme values (ambfit check)") from None
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
     scale, offset = si_scale(prob, model)
     chi2 = float(np.sum(z[used] ** 2))

@@ -47,6 +47,10 @@ class Problem(eqx.Module):
     def n_loads(self) -> int:
         return int(np.max(np.asarray(self.gidx), initial=-1)) + 1
 
+    def with_mask(self, mask) -> Problem:
+        """The same problem with other row weights (``mask``: 0 leaves a row out; robust losses use sqrt(w))."""
+        return eqx.tree_at(lambda p: p.mask, self, jnp.asarray(mask, dtype=float))
+
     def with_readings(self, i_top, i_bottom, x) -> Problem:
         """The same problem with other current and position readings (bootstrap, design)."""
         return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))

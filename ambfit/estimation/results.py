@@ -144,6 +144,13 @@ class FitResult:
     theta: np.ndarray
     thresholds: Thresholds = Thresholds()
     bias_correction: dict | None = None
+    loss: str = "linear"
+    weights: np.ndarray | None = None
+    rows: np.ndarray | None = None
+    outliers: tuple = ()
+    outlier_note: str = ""
+    plain_shift: dict | None = None
+    implausible: tuple = ()
 
     # --- values ---------------------------------------------------------------------------------------------
 
@@ -222,10 +229,30 @@ class FitResult:
             ("adequate", self.adequate,
              f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
              f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose"),
+            ("plausible", not self.implausible, "; ".join(map(str, self.implausible)) +
+             " (ambfit identify exits 3 unless --accept-implausible)"),
+            ("no_outliers", not self.outliers, self._outlier_text()),
             ("k_identified", self.k_identified,
              f"k_{' and k_'.join(missing)} not identified: no known load on axis {' and '.join(missing)}; hang known "
              "masses to calibrate it (gap and origin do not need it, force measurement does)"),
         ]
+
+    @property
+    def plausible(self) -> bool:
+        """No estimate is ruled out by the bearing description (:mod:`ambfit.estimation.plausibility`)."""
+        return not self.implausible
+
+    def _outlier_text(self) -> str:
+        if not self.outliers:
+            return ""
+        kept = self.loss == "linear"
+        text = (f"{len(self.outliers)} reading(s) beyond the outlier bound"
+                f"{', kept in the fit (loss linear)' if kept else ', left out of the fit'}: "
+                + "; ".join(map(str, self.outliers[:5])) + (" ..." if len(self.outliers) > 5 else ""))
+        if self.plain_shift:
+            n, d = max(self.plain_shift.items(), key=lambda kv: abs(kv[1]))
+            text += f". With them, {n} would move by {d:+.1f} standard errors"
+        return text
 
     def health(self, *, include_k: bool = False) -> list[str]:
         """Every failed health check as a sentence with its likely cause and the fix (empty when healthy).
@@ -273,6 +300,8 @@ class FitResult:
             "nuisance_loads_N": {n[5:-1]: {"value": self.value(n), "std": self.error(n)}
                                  for n in self.names if n.startswith("load[")},
             "bias_correction": self.bias_correction,
+            "loss": self.loss, "outliers": [o.to_json() for o in self.outliers],
+            "outlier_shift_sigma": self.plain_shift, "implausible": [f.to_json() for f in self.implausible],
         }
 
     def to_dataframe(self):
@@ -310,6 +339,8 @@ class FitResult:
                 if n in bc) + f" ({bc['n']} synthetic sets)")
         out += [f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)"
                 for ax, ok in self.k_by_axis.items() if not ok]
+        if self.outlier_note:
+            out.append(self.outlier_note)
         return out
 
     def summary(self) -> str:
