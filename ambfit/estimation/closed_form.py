@@ -40,6 +40,20 @@ MAX_CONDITION = 1e10
 """Systems with a larger condition number are reported as singular."""
 
 
+MIN_STEP_SNR = 3.0
+"""Eq. 6's numerator and denominator (the change of i^2 between the two biases) must exceed this many of their
+noise standard deviations; closer to zero the ratio, and the gap with it, is noise."""
+
+MAX_RELATIVE_SEM = 0.05
+"""The mean gap of an axis is trusted when its standard error is below this fraction of it."""
+
+MAX_REJECTED_FRACTION = 0.5
+"""More rejected iterations than this fraction: the protocol does not suit the noise, the mean is not trusted."""
+
+MAX_SCATTER_RATIO = 2.0
+"""Iteration-to-iteration scatter of the gap above this multiple of the scatter the noise predicts is flagged."""
+
+
 class ClosedFormError(ValueError):
     """Eq. 5-7 cannot be solved for these readings; the message says why."""
 
@@ -71,6 +85,41 @@ class Solution:
     biases: tuple[float, float]
     ratios: np.ndarray
     condition: float
+    g0_std_predicted: float = math.nan
+
+
+def _check_step(it, ib, sigma, n_avg):
+    """Eq. 6 is ill conditioned when a bias step moves i^2 by less than ``MIN_STEP_SNR`` noise std."""
+    if sigma is None or not np.isfinite(sigma) or sigma <= 0:
+        return
+    for name, cur in (("top", it), ("bottom", ib)):
+        for j in range(cur.shape[0]):
+            change = abs(cur[j, 0] ** 2 - cur[j, 1] ** 2)
+            noise = 2.0 * sigma * math.sqrt((cur[j, 0] ** 2 + cur[j, 1] ** 2) / n_avg)
+            if change < MIN_STEP_SNR * noise:
+                raise ClosedFormError(
+                    f"Eq. 6 is ill conditioned: between the two biases the {name}-coil i^2 changes by {change:.3g} A^2, "
+                    f"only {change / noise:.1f} times its noise ({noise:.2g} A^2 for {sigma * 1e3:.2g} mA); use a larger "
+                    "bias step or average more readings")
+
+
+def _predicted_std(x, it, ib, sigma, n_avg, bearing) -> float:
+    """Standard deviation of one iteration's gap that current noise ``sigma`` gives (linear propagation)."""
+    if sigma is None or not np.isfinite(sigma) or sigma <= 0:
+        return math.nan
+    base = solve(x, it, ib, bearing=bearing, _propagate=False).g0
+    h = 1e-7
+    grads = []
+    for cur in (it, ib):
+        for idx in np.ndindex(cur.shape):
+            pert = cur.copy()
+            pert[idx] += h
+            args = (pert, ib) if cur is it else (it, pert)
+            try:
+                grads.append((solve(x, *args, bearing=bearing, _propagate=False).g0 - base) / h)
+            except ClosedFormError:
+                return math.nan
+    return float(np.sqrt(np.sum(np.square(grads))) * sigma / math.sqrt(n_avg))
 
 
 def ratio(i_top_1, i_bottom_1, i_top_2, i_bottom_2) -> float:
@@ -95,7 +144,8 @@ def ratio(i_top_1, i_bottom_1, i_top_2, i_bottom_2) -> float:
 
 
 def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
-          bearing: Bearing = PAPER_BEARING) -> Solution:
+          bearing: Bearing = PAPER_BEARING, sigma_i: float | None = None, n_avg: int = 1,
+          _propagate: bool = True) -> Solution:
     """Eq. 6-7 for one iteration of one axis.
 
     Parameters
@@ -110,7 +160,11 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
         Known loads [N] of the readings (NaN where unknown) to calibrate ``k``.
     bearing : Bearing
         The bearing (its pole angle).
-
+    sigma_i : float, optional
+        Current noise std [A] of one reading: iterations whose bias step is within
+        ``MIN_STEP_SNR`` noise std of zero are refused, and the gap's predicted std is recorded.
+    n_avg : int
+        Readings averaged into each current.
     """
     x = np.asarray(positions, dtype=float)
     it = np.asarray(i_top, dtype=float).reshape(len(x), 2)
@@ -122,6 +176,8 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
         raise ClosedFormError(
             f"two positions coincide ({sep * 1e6:.3g} µm apart): Eq. 7 becomes singular; use distinct set-points")
     c = bearing.cos_alpha
+    if _propagate:
+        _check_step(it, ib, sigma_i, n_avg)
     p = np.array([ratio(it[j, 0], ib[j, 0], it[j, 1], ib[j, 1]) for j in range(len(x))])
     a = np.stack([1.0 - p, -(1.0 + p)], axis=1)
     rhs = (1.0 + p) * x * c
@@ -144,7 +200,9 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
         if ok.any():
             # Least squares through the origin: F = k * unit.
             k = float(np.sum(f[ok] * unit[ok]) / np.sum(unit[ok] ** 2))
-    return Solution(g0=g0, x0=x0, k=k, positions=x, biases=tuple(float(b) for b in biases), ratios=p, condition=cond)
+    pred = _predicted_std(x, it, ib, sigma_i, n_avg, bearing) if _propagate else math.nan
+    return Solution(g0=g0, x0=x0, k=k, positions=x, biases=tuple(float(b) for b in biases), ratios=p, condition=cond,
+                    g0_std_predicted=pred)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,6 +231,35 @@ class AxisEstimate:
     @property
     def n(self) -> int:
         return len(self.iterations)
+
+    @property
+    def g0_std_predicted(self) -> float:
+        """Iteration-to-iteration std of the gap that the current noise alone predicts (NaN when unknown)."""
+        pred = [s.g0_std_predicted for s in self.iterations.values() if np.isfinite(s.g0_std_predicted)]
+        return float(np.sqrt(np.mean(np.square(pred)))) if pred else math.nan
+
+    def checks(self) -> list[tuple[str, bool | None, str]]:
+        """Health of this axis' mean as ``(name, passed, cause and fix)`` (``passed`` None: cannot be judged)."""
+        where = f"closed form, axis {self.axis}" + (f", experiment {self.experiment}" if self.experiment != "all" else "")
+        total = self.n + len(self.rejected)
+        rel = self.g0_sem / self.g0 if self.n > 1 and self.g0 > 0 else math.nan
+        ratio = self.g0_std / self.g0_std_predicted if np.isfinite(self.g0_std_predicted) and self.n > 2 else math.nan
+        return [
+            ("enough_iterations", self.n >= 2,
+             f"{where}: {self.n} usable iteration(s) of {total}; a mean needs at least two to have an error bar"),
+            ("few_rejected", len(self.rejected) <= MAX_REJECTED_FRACTION * total,
+             f"{where}: {len(self.rejected)} of {total} iterations rejected (ill-conditioned or non-physical); the "
+             "rest are the lucky draws of a protocol whose bias step is too small for this noise, so their mean is "
+             "biased; use least squares, a larger bias step or more readings per set-point"),
+            ("precise", None if not np.isfinite(rel) else bool(rel <= MAX_RELATIVE_SEM),
+             f"{where}: the gap's standard error is {100 * rel:.0f} % of the gap (trusted below "
+             f"{100 * MAX_RELATIVE_SEM:.0f} %); Eq. 6 is too noisy at this protocol; use least squares (all readings) "
+             "or more iterations"),
+            ("scatter_as_predicted", None if not np.isfinite(ratio) else bool(ratio <= MAX_SCATTER_RATIO),
+             f"{where}: the iterations' gaps scatter {ratio:.1f} times more than the current noise predicts "
+             f"({self.g0_std * 1e6:.3g} µm against {self.g0_std_predicted * 1e6:.3g} µm): the load or the origin "
+             "changed between iterations, or the noise is larger than the std columns say"),
+        ]
 
 
 def _mean_sem(values):
@@ -231,7 +318,13 @@ def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solutio
         it.append(row_t)
         ib.append(row_b)
         loads.append(row_l)
-    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), bearing=bearing)
+    sigma = None
+    if all(c in df.columns for c in ("i_top_std_A", "i_bottom_std_A")):
+        std = df[["i_top_std_A", "i_bottom_std_A"]].to_numpy(float)
+        sigma = float(np.mean(std)) if np.isfinite(std).all() else None
+    n_avg = max(1, len(df) // (2 * len(xs)))
+    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), bearing=bearing,
+                 sigma_i=sigma, n_avg=n_avg)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,6 +359,19 @@ class ClosedFormResult:
                  "k [N·m²/A²]": pm(e.k, e.k_sem) if np.isfinite(e.k) else "–", "rejected": str(len(e.rejected))}
                 for (exp, ax), e in self.estimates.items()]
 
+    def checks(self) -> list[tuple[str, bool | None, str]]:
+        """Every axis' health checks (:meth:`AxisEstimate.checks`)."""
+        return [c for e in self.estimates.values() for c in e.checks()]
+
+    def health(self) -> list[str]:
+        """Every failed check as a sentence with its cause and fix (empty when the result can be trusted)."""
+        return [text for _, ok, text in self.checks() if ok is False]
+
+    @property
+    def trusted(self) -> bool:
+        """Every axis has at least two iterations, few rejections, a precise mean and scatter its noise explains."""
+        return not self.health()
+
     def rejections(self) -> list[str]:
         """Each rejected iteration and why."""
         return [f"rejected {exp}/{ax} iteration {it}: {why}" for (exp, ax), e in self.estimates.items()
@@ -296,6 +402,7 @@ class ClosedFormResult:
             detail.setdefault(exp, {})[ax] = {
                 "n_iterations": est.n,
                 "g0_scatter_um": _none(est.g0_std * 1e6),
+                "g0_scatter_predicted_um": _none(est.g0_std_predicted * 1e6),
                 "x0_scatter_um": _none(est.x0_std * 1e6),
                 "iterations": {str(i): {"g0_um": s.g0 * 1e6, "x0_um": s.x0 * 1e6, "condition": s.condition,
                                          "ratios": s.ratios.tolist()} for i, s in est.iterations.items()},
@@ -305,6 +412,7 @@ class ClosedFormResult:
             "method": "closed_form",
             "params": self.params(main),
             "converged": all(e.n > 0 for e in self.estimates.values()),
+            "trusted": self.trusted, "health": self.health(),
             "n_rows": self.n_rows,
             "std_meaning": "standard error of the mean over iterations (null with one iteration)",
             "detail": detail,

@@ -29,6 +29,53 @@ class Method(str, Enum):
     closed_form = "closed-form"
 
 
+class Loss(str, Enum):
+    auto = "auto"
+    linear = "linear"
+    huber = "huber"
+    cauchy = "cauchy"
+
+
+AcceptOption = Annotated[bool, typer.Option(
+    "--accept-implausible", help="Report results the bearing description rules out (k a million times off, a "
+                                 "negative k, a gap at 40 % of the drawn one, currents beyond the coil limit) and "
+                                 "exit 0 instead of 3.")]
+
+
+def judge(flags, accept: bool, what: str = "the result is"):
+    """Print implausibility flags; exit 3 unless ``accept``."""
+    for f in flags:
+        (warn if accept else lambda m: err_line(m))(str(f))
+    if flags and not accept:
+        fail(f"{what} implausible for this bearing (see above); check units and signs, or give the right "
+             "--bearing; --accept-implausible reports it anyway", 3)
+
+
+def err_line(msg: str):
+    from ambfit.faces.cli.app import err
+
+    err.print(f"[bold red]implausible:[/] {msg}", highlight=False, soft_wrap=True)
+
+
+def drop_duplicates(ds, name: str, keep: bool):
+    """Name exact duplicate readings; unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``."""
+    from ambfit.data import Dataset, duplicate_rows
+
+    dupes = duplicate_rows(ds.frame)
+    if not dupes:
+        return ds, []
+    listed = ", ".join(f"{r} repeats {f}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
+    if keep:
+        warn(f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; each "
+             "counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
+        return ds, []
+    drop = [r - 1 for r, _ in dupes]
+    frame = ds.frame.drop(index=ds.frame.index[drop])
+    warn(f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading is a "
+         "copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
+    return Dataset(frame=frame, source=ds.source), drop
+
+
 class By(str, Enum):
     none = "none"
     experiment = "experiment"
@@ -90,15 +137,25 @@ def identify(
     max_position_um: Annotated[float | None, typer.Option(help="Reject positions at least this large [µm] "
                                                           "(unit check; default: the bearing's nominal "
                                                           "gap).")] = None,
+    loss: Annotated[Loss, typer.Option(help="'auto': least squares with an outlier test (readings beyond the "
+                                       "Bonferroni bound, 1 % false alarms per file, are named and left out); "
+                                       "'linear': plain least squares (outliers named, kept); 'huber', 'cauchy': "
+                                       "robust losses.")] = Loss.auto,
+    keep_duplicates: Annotated[bool, typer.Option(help="Count exact duplicate readings as often as they appear "
+                                                  "(default: once, with a warning naming them).")] = False,
+    accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Identify effective gap, origin (and k when loads are known) for each axis.
 
     least-squares: value ± standard error from the fit's covariance; exits 3 with the
     reason when the fit does not converge or the design does not identify the
-    parameters.  closed-form: mean over iterations ± standard error of that mean.
+    parameters.  closed-form: mean over iterations ± standard error of that mean; exits 3
+    when its iterations cannot be trusted.  Both exit 3 when the bearing description rules
+    the result out (unless --accept-implausible).
     """
     from ambfit.data import DataError, read_csv
+    from ambfit.estimation import plausibility
 
     check_output(json_out)
     enable_compilation_cache()
@@ -107,18 +164,26 @@ def identify(
         ds = read_csv(data, max_position_um=max_position_um or desc.nominal_gap * 1e6)
     except DataError as exc:
         fail(str(exc))
+    judge(plausibility.check_data(ds.frame, desc), accept_implausible, f"{data.name}: the data are")
+    ds, dropped = drop_duplicates(ds, data.name, keep_duplicates)
     if method is Method.closed_form:
         record = _identify_closed_form(ds, data.name, by, desc)
     else:
-        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias, desc)
+        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias, desc,
+                              loss.value)
+    record["duplicates_dropped"] = [r + 1 for r in dropped]
+    flags = [plausibility.Flag(**f) for f in record.get("implausible", [])]
     if json_out is not None:
         write_json(record, json_out)
     if not record["converged"]:
         raise typer.Exit(3)
+    judge(flags, accept_implausible)
+    if record.get("trusted") is False:
+        raise typer.Exit(3)
 
 
 def _identify_closed_form(ds, name, by, bearing) -> dict:
-    from ambfit.estimation import closed_form
+    from ambfit.estimation import closed_form, plausibility
 
     try:
         result = closed_form.identify(ds, by_experiment=by is By.experiment, bearing=bearing)
@@ -128,15 +193,30 @@ def _identify_closed_form(ds, name, by, bearing) -> dict:
                left=("experiment", "axis"))
     for line in result.rejections():
         warn(line)
-    return result.to_json()
+    for line in result.health():
+        warn(line)
+    record = result.to_json()
+    keys = {e for e, _ in result.estimates}
+    record["implausible"] = [f.to_json() for key in sorted(keys) for f in plausibility.check_result(
+        {name: est_value for name, est_value in _si_values(result.params(key)).items()}, bearing)]
+    if not result.trusted:
+        warn("the closed-form result cannot be trusted (see above); ambfit identify exits 3")
+    return record
 
 
-def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias, bearing) -> dict:
+def _si_values(params: dict) -> dict:
+    """Contract parameter block -> internal names in SI."""
+    from ambfit.estimation.results import CONTRACT_PARAMS
+
+    return {name: params[key]["value"] / f for name, key, f in CONTRACT_PARAMS if key in params}
+
+
+def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias, bearing, loss) -> dict:
     from ambfit.estimation import fit
 
     kw = dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
               sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k,
-              debias=debias, bearing=bearing)
+              debias=debias, bearing=bearing, loss=loss)
     try:
         pooled = fit.fit(ds, **kw)
     except fit.FitError as exc:
@@ -151,8 +231,9 @@ def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, d
     else:
         for line in pooled.notes():
             note(line)
-        for problem in pooled.health():
-            warn(problem)
+        for check, ok, text in pooled.checks():
+            if ok is False and check not in ("k_identified", "plausible"):   # plausibility: judge() says it
+                warn(text)
         record = pooled.to_json()
     if by is By.experiment:
         record["experiments"] = {k: (r.to_json() if not isinstance(r, fit.FitError) else
