@@ -12,11 +12,42 @@ from ambfit.faces.cli import simulate  # noqa: F401, I001  (registers its comman
 from ambfit.faces.cli import identify  # noqa: F401
 from ambfit.faces.cli import explore  # noqa: F401
 from ambfit.faces.cli import reports  # noqa: F401
-from ambfit.faces.cli.app import app
+from ambfit.faces.cli.app import app, err
 
 
 def main():  # pragma: no cover - entry point
-    app()
+    """Run the command line; an unexpected error (a bug) ends in one line and exit 3, its traceback in a file."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        err.print("[bold red]error:[/] interrupted; no output was written half-way (outputs are written "
+                  "atomically)", highlight=False)
+        raise SystemExit(130) from None
+    except Exception as exc:  # noqa: BLE001 - nothing but a message reaches the user
+        log = _log_traceback()
+        err.print(f"[bold red]error:[/] unexpected {type(exc).__name__}: {exc}. This is a bug in ambfit, not in "
+                  f"your data or options; please report it with the traceback in {log}", highlight=False,
+                  soft_wrap=True)
+        raise SystemExit(3) from None
+
+
+def _log_traceback() -> str:
+    import os
+    import tempfile
+    import traceback
+
+    folder = os.path.join(os.path.expanduser("~"), ".cache", "ambfit")
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        folder = tempfile.gettempdir()
+    path = os.path.join(folder, "last-error.txt")
+    try:
+        with open(path, "w") as f:
+            traceback.print_exc(file=f)
+    except OSError:
+        return "(the traceback could not be written)"
+    return path
 
 
 __all__ = ["app", "main"]
