@@ -183,9 +183,15 @@ def _scan(p: Path, source: str) -> list[str]:
                 raise DataError(f"line longer than {MAX_LINE_CHARS} characters (a contract row has "
                                 f"{len(header)} fields); the file is damaged or not a data file", file=source,
                                 row=row)
+            if not line.strip() or '"' in line:     # blank lines are skipped; quoted fields are left to the parser
+                continue
             fields = line.count(",") + 1
-            if fields > width and '"' not in line:
+            if fields > width:
                 raise DataError(f"{fields} fields where the header has {len(header)}", file=source, row=row)
+            if fields < len(header):
+                cut = "" if line.endswith("\n") else " and no line end: the file was cut short"
+                raise DataError(f"{fields} fields where the header has {len(header)}{cut} (a missing value "
+                                "still needs its comma)", file=source, row=row)
     return [h.strip() for h in header]
 
 

@@ -181,8 +181,12 @@ def test_design_stays_inside_the_bearings_clearance_and_current_limit(tmp_path):
     bearing = tmp_path / "b.toml"
     bearing.write_text("backup_clearance_um = 30.0\nmax_current_A = 1.5\n")
     js = tmp_path / "rec.json"
-    r = CliRunner().invoke(app, ["design", str(ROOT / "data" / "paper_table2.csv"), "--steps", "4",
-                                 "--bearing", str(bearing), "--json", str(js)])
+    args = ["design", str(ROOT / "data" / "paper_table2.csv"), "--steps", "4", "--bearing", str(bearing), "--json",
+            str(js)]
+    r = CliRunner().invoke(app, args)
+    # the data's coil currents reach 1.85 A, beyond 1.2 x this bearing's limit: implausible unless accepted
+    assert r.exit_code == 3 and "coil limit 1.5 A" in r.output, r.output
+    r = CliRunner().invoke(app, [*args, "--accept-implausible"])
     assert r.exit_code == 0, r.output
     steps = json.loads(js.read_text())["steps"]
     assert len(steps) == 4

@@ -1,8 +1,11 @@
-"""Every notebook runs top to bottom in a fresh kernel (fast mode), so none can rot.
+"""Every notebook runs top to bottom in a fresh kernel (fast mode), so none can rot, and shows its figures.
 
 The notebooks are jupytext percent scripts; each is converted in memory and executed by
 nbclient in a new ``python3`` kernel (this interpreter) with the repository root as the
-working directory and ``AMBFIT_FAST=1``.
+working directory and ``AMBFIT_FAST=1``, under Jupyter's own inline backend (as a user
+sees them): every cell that draws (calls ``plots.`` or ``plt.show``) must carry an image,
+so a library call that switched the backend, or a figure that never reaches the page,
+fails here.
 """
 
 from pathlib import Path
@@ -25,7 +28,7 @@ def test_notebook_runs(path, monkeypatch):
     from nbclient import NotebookClient
 
     monkeypatch.setenv("AMBFIT_FAST", "1")
-    monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     nb = jupytext.read(path)
     # no model code in notebooks: they call the package (no function computing forces defined here)
     src = "\n".join(c.source for c in nb.cells if c.cell_type == "code")
@@ -33,3 +36,8 @@ def test_notebook_runs(path, monkeypatch):
     NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}).execute()
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.output_type == "error"]
     assert not errors
+    drawing = [c for c in nb.cells if c.cell_type == "code" and ("plots.plot" in c.source or "plt.show" in c.source)]
+    assert drawing, "every notebook shows at least one figure"
+    blank = [c.source.splitlines()[0] for c in drawing
+             if not any("image/png" in o.get("data", {}) for o in c.get("outputs", []))]
+    assert not blank, f"figure cells without an image: {blank}"

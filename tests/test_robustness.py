@@ -269,8 +269,11 @@ def test_random_corruption_never_silently_changes_the_answer(tmp_path_factory, c
     warned = "warning:" in r.output
     for key, ref in clean_fit["params"].items():
         if key in js["params"]:
-            moved = abs(js["params"][key]["value"] - ref["value"]) > 2 * ref["std"]
-            assert not moved or warned, (key, js["params"][key], ref, r.output)
+            # "larger than the error bars": 2 sigma of the reported result or of the clean one, whichever is
+            # larger (a file cut short has fewer readings and honestly wider bars)
+            new = js["params"][key]
+            moved = abs(new["value"] - ref["value"]) > 2 * max(ref["std"], new["std"])
+            assert not moved or warned, (key, new, ref, r.output)
 
 
 def test_a_corrupted_compilation_cache_entry_is_replaced(tmp_path):

@@ -277,8 +277,10 @@ def _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows
     refits by plain least squares, repeating until no new reading is beyond the bound.
     """
     base = np.asarray(prob.mask, dtype=float)
-    if not np.all(np.isfinite(res.residuals[base > 0])) or not res.converged:
+    if not np.all(np.isfinite(res.residuals[base > 0])):
         return res
+    # (a plain fit dragged by gross outliers may not converge within its step budget; the robust rounds start
+    # from it and are judged by their own convergence)
     plain = res
     if loss in ("huber", "cauchy"):
         res, w = _reweighted(res, prob, meta, df, model, max_steps, thresholds, loss, base)

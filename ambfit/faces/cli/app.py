@@ -124,6 +124,38 @@ def bearing_of(path: Path | None):
     return bearing
 
 
+AcceptOption = Annotated[bool, typer.Option(
+    "--accept-implausible", help="Go on when the bearing description rules the data or the result out (k a "
+                                 "million times off, a negative k, a gap at 40 % of the drawn one, currents beyond "
+                                 "the coil limit) and exit 0 instead of 3.")]
+
+
+def judge(flags, accept: bool, what: str = "the result is"):
+    """Print implausibility flags (:mod:`ambfit.estimation.plausibility`); exit 3 unless ``accept``."""
+    for f in flags:
+        if accept:
+            warn(str(f))
+        else:
+            err.print(f"[bold red]implausible:[/] {f}", highlight=False, soft_wrap=True)
+    if flags and not accept:
+        fail(f"{what} implausible for this bearing (see above); check units and signs, or give the right "
+             "--bearing; --accept-implausible goes on anyway", 3)
+
+
+def read_data(path: Path, bearing, accept: bool = False, max_position_um: float | None = None):
+    """Read and check a data file (exit 2 naming file, row, column and value) and judge it against the bearing
+    (exit 3 unless ``accept``)."""
+    from ambfit.data import DataError, read_csv
+    from ambfit.estimation import plausibility
+
+    try:
+        ds = read_csv(path, max_position_um=max_position_um or bearing.nominal_gap * 1e6)
+    except DataError as exc:
+        fail(str(exc))
+    judge(plausibility.check_data(ds.frame, bearing), accept, f"{Path(path).name}: the data are")
+    return ds
+
+
 def check_output(*paths: Path | None, folder: bool = False):
     """Fail before any work when an output cannot be written: missing or read-only folder, a directory
     where a file should go."""

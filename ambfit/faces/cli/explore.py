@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import (
+    AcceptOption,
     BearingOption,
     app,
     bearing_of,
@@ -18,6 +19,7 @@ from ambfit.faces.cli.app import (
     fail,
     note,
     pair,
+    read_data,
     show_table,
     warn,
     write_json,
@@ -51,18 +53,19 @@ def solution_space_cmd(
     gap_um: Annotated[str, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
     origin_um: Annotated[str, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
     step_um: Annotated[float, typer.Option(help="Grid step [µm].")] = 1.0,
+    accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Map the misfit over a (gap, origin) grid (the paper's Fig. 2), with the least-squares ellipse
     and the weakest Fisher direction drawn on it."""
-    from ambfit.data import DataError, read_csv
+    from ambfit.data import DataError
     from ambfit.estimation import conditioning, fit
     from ambfit.faces import plots
 
     check_output(png)
     desc = bearing_of(bearing)
+    ds = read_data(data, desc, accept_implausible)
     try:
-        ds = read_csv(data)
         sub = ds.frame[ds.frame["axis"] == axis.value]
         try:
             res = fit.fit(sub, bearing=desc)
@@ -88,17 +91,20 @@ def design(
     max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
                                                         "sensor origin [µm] (default: the bearing's back-up "
                                                         "clearance, 60 µm on the paper's rig).")] = None,
+    accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
-    from ambfit.data import DataError, read_csv
+    from ambfit.data import DataError
     from ambfit.estimation import design as design_mod
     from ambfit.estimation import fit
 
     check_output(json_out)
+    desc = bearing_of(bearing)
+    ds = read_data(data, desc, accept_implausible)
     try:
-        rec = design_mod.recommend(read_csv(data), n_steps=steps, target=target.value, criterion=criterion.value,
-                                   max_radius_um=max_radius_um, bearing=bearing_of(bearing))
+        rec = design_mod.recommend(ds, n_steps=steps, target=target.value, criterion=criterion.value,
+                                   max_radius_um=max_radius_um, bearing=desc)
     except DataError as exc:
         fail(str(exc))
     except (fit.FitError, ValueError) as exc:
@@ -113,6 +119,7 @@ def diagnose(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
     bearing: BearingOption = None,
+    accept_implausible: AcceptOption = False,
     pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
                                                "explains the data (off: the pair is reported as best_pair).")] = False,
     report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
@@ -121,7 +128,7 @@ def diagnose(
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
     data, how far the gap shrinks, and how the identified parameters differ from the bearing as drawn."""
-    from ambfit.data import DataError, read_csv
+    from ambfit.data import DataError
     from ambfit.diagnosis import diagnose as run_diagnosis
     from ambfit.estimation.core import FitError
 
@@ -129,8 +136,9 @@ def diagnose(
     check_output(report, folder=True)
     enable_compilation_cache()
     desc = bearing_of(bearing)
+    ds = read_data(data, desc, accept_implausible)
     try:
-        dg = run_diagnosis(read_csv(data), bearing=desc, pair_verdict=pair_verdict)
+        dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict)
     except (DataError, ValueError, OSError) as exc:
         fail(str(exc))
     except FitError as exc:

@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import (
+    AcceptOption,
     BearingOption,
     app,
     bearing_of,
@@ -17,7 +18,9 @@ from ambfit.faces.cli.app import (
     console,
     enable_compilation_cache,
     fail,
+    judge,
     note,
+    read_data,
     show_table,
     warn,
     write_json,
@@ -34,27 +37,6 @@ class Loss(str, Enum):
     linear = "linear"
     huber = "huber"
     cauchy = "cauchy"
-
-
-AcceptOption = Annotated[bool, typer.Option(
-    "--accept-implausible", help="Report results the bearing description rules out (k a million times off, a "
-                                 "negative k, a gap at 40 % of the drawn one, currents beyond the coil limit) and "
-                                 "exit 0 instead of 3.")]
-
-
-def judge(flags, accept: bool, what: str = "the result is"):
-    """Print implausibility flags; exit 3 unless ``accept``."""
-    for f in flags:
-        (warn if accept else lambda m: err_line(m))(str(f))
-    if flags and not accept:
-        fail(f"{what} implausible for this bearing (see above); check units and signs, or give the right "
-             "--bearing; --accept-implausible reports it anyway", 3)
-
-
-def err_line(msg: str):
-    from ambfit.faces.cli.app import err
-
-    err.print(f"[bold red]implausible:[/] {msg}", highlight=False, soft_wrap=True)
 
 
 def drop_duplicates(ds, name: str, keep: bool):
@@ -74,6 +56,20 @@ def drop_duplicates(ds, name: str, keep: bool):
     warn(f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading is a "
          "copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
     return Dataset(frame=frame, source=ds.source), drop
+
+
+def _duplicate_effect(original, record: dict, bearing, loss: str) -> float | None:
+    """How much smaller the gap's error bar would be with the duplicates counted (a fit of the full file)."""
+    from ambfit.estimation import fit
+
+    try:
+        with_dupes = fit.fit(original, bearing=bearing, loss=loss, throw=False)
+    except fit.FitError:
+        return None
+    std, dup = record["params"]["g_v0_um"]["std"], with_dupes.error("g_v0") * 1e6
+    note(f"counted as often as they appear, the duplicates would shrink the error bars {std / dup:.2f} x "
+         f"(g_v0 ± {dup:.3g} µm instead of ± {std:.3g} µm)")
+    return std / dup
 
 
 class By(str, Enum):
@@ -154,23 +150,21 @@ def identify(
     when its iterations cannot be trusted.  Both exit 3 when the bearing description rules
     the result out (unless --accept-implausible).
     """
-    from ambfit.data import DataError, read_csv
     from ambfit.estimation import plausibility
 
     check_output(json_out)
     enable_compilation_cache()
     desc = bearing_of(bearing)
-    try:
-        ds = read_csv(data, max_position_um=max_position_um or desc.nominal_gap * 1e6)
-    except DataError as exc:
-        fail(str(exc))
-    judge(plausibility.check_data(ds.frame, desc), accept_implausible, f"{data.name}: the data are")
+    ds = read_data(data, desc, accept_implausible, max_position_um)
+    original = ds
     ds, dropped = drop_duplicates(ds, data.name, keep_duplicates)
     if method is Method.closed_form:
         record = _identify_closed_form(ds, data.name, by, desc)
     else:
         record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias, desc,
                               loss.value)
+        if dropped and "g_v0_um" in record["params"]:
+            record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, desc, loss.value)
     record["duplicates_dropped"] = [r + 1 for r in dropped]
     flags = [plausibility.Flag(**f) for f in record.get("implausible", [])]
     if json_out is not None:
@@ -261,6 +255,7 @@ def sample(
     gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
     seed: Annotated[int, typer.Option(help="Seed.")] = 0,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
@@ -269,14 +264,14 @@ def sample(
     the cap is reached (and says how long the run should be) or R-hat across the ensembles
     exceeds 1.01.
     """
-    from ambfit.data import DataError, read_csv
+    from ambfit.data import DataError
     from ambfit.estimation import bayes, fit
 
     check_output(out, json_out, pair_png)
     enable_compilation_cache()
     desc = bearing_of(bearing)
+    ds = read_data(data, desc, accept_implausible)
     try:
-        ds = read_csv(data)
         prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
                                          gap_log_sd=gap_prior_log_sd)
         res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,

@@ -8,7 +8,17 @@ from typing import Annotated
 
 import typer
 
-from ambfit.faces.cli.app import BearingOption, app, bearing_of, check_output, console, enable_compilation_cache, fail
+from ambfit.faces.cli.app import (
+    AcceptOption,
+    BearingOption,
+    app,
+    bearing_of,
+    check_output,
+    console,
+    enable_compilation_cache,
+    fail,
+    read_data,
+)
 
 
 @app.command()
@@ -28,6 +38,7 @@ def report(
     posterior: Annotated[bool, typer.Option(help="Sample the posterior (the slowest section).")] = True,
     diagnosis: Annotated[bool, typer.Option(help="Run the sim-to-real gap diagnosis.")] = True,
     seed: Annotated[int, typer.Option(help="Sampler seed.")] = 0,
+    accept_implausible: AcceptOption = False,
 ):
     """One self-contained HTML page: identification table, posterior summary and pair plot, solution-space
     map, design recommendation and diagnosis."""
@@ -36,9 +47,11 @@ def report(
 
     check_output(out, folder=True)
     enable_compilation_cache()
+    desc = bearing_of(bearing)
+    read_data(data, desc, accept_implausible)      # input and plausibility problems end here, before any work
     try:
         path, rec = report_mod.data_report(
-            data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps, bearing=bearing_of(bearing),
+            data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps, bearing=desc,
             max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
             command="ambfit report " + " ".join(sys.argv[2:]))
     except (DataError, OSError) as exc:
