@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install data paper clean
+.PHONY: demo test install data paper notebooks clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 12) else "ambfit needs Python >= 3.12; found " + sys.version.split()[0] + " (install 3.12 or set PYTHON=python3.12)")'
@@ -28,6 +28,11 @@ test: $(STAMP)
 # The seed paper's Tables 1-4 and Figs. 2, 3, 5 rerun on the rig, side by side with the paper (about 6 min).
 paper: $(STAMP)
 	$(BIN)/ambfit paper --out reports/paper --replicates 200 --seed 0
+
+# Opens the notebooks in JupyterLab (installs the `notebooks` extra first); figures show inline.
+notebooks: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[notebooks]'
+	$(BIN)/jupyter lab notebooks/
 
 # Regenerates the bundled default data (the command is also recorded in data/README.md).
 data: $(STAMP)
