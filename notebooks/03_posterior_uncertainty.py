@@ -50,7 +50,7 @@ for name, key in (("g_v0", "g_v0_um"), ("v0", "v0_um"), ("g_w0", "g_w0_um"), ("w
           f"{ls.error(name) * 1e6:.2f} µm, 94 % HDI {p['hdi_low']:.2f}-{p['hdi_high']:.2f}")
 
 # %%
-plots.plot_pair(res)
+plots.plot_pair(res, result=ls)
 plt.show()
 
 # %% [markdown]

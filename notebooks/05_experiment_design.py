@@ -21,6 +21,7 @@
 # %%
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
@@ -28,6 +29,7 @@ import ambfit
 from ambfit import rig
 from ambfit.data import read_csv
 from ambfit.estimation import design
+from ambfit.faces import plots
 from ambfit.rig import protocol as P
 
 ROOT = Path.cwd() if (Path.cwd() / "data").exists() else Path.cwd().parent
@@ -39,6 +41,14 @@ print(f"now: g_v0 = {ls.value('g_v0') * 1e6:.2f} ± {ls.error('g_v0') * 1e6:.2f}
 rec = design.recommend(ds, n_steps=8, target="g_v0", result=ls, max_radius_um=50.0)
 steps = rec.steps.assign(predicted_std_after_um=rec.steps["predicted_std_after"] * 1e6)
 steps
+
+# %% [markdown]
+# Where the steps lie: off the paper's ±20 µm pairs, towards the edge of the allowed disc (a longer lever arm
+# on the gap), at the bias that separates gap and origin best.  The dashed circle is the back-up clearance.
+
+# %%
+plots.plot_recommendation(rec, ds, clearance_um=ambfit.PAPER_BEARING.backup_clearance * 1e6)
+plt.show()
 
 # %% [markdown]
 # ## Run the recommended steps on the rig

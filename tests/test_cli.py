@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -37,9 +38,18 @@ def test_simulate_with_effects_and_toml(tmp_path):
                     'offsets_um = [30]\niterations = 2\nload = "heavy"\nexperiment = "toml"\n\n'
                     '[[effect]]\nname = "current_offset"\ntop = 0.01\nbottom = 0.0\n')
     csv = tmp_path / "d.csv"
+    # ±30 µm about the sensor origin puts the rotor 66.0 µm (hypot(63.3, 18.7)) from the centre of the default rig (true origin
+    # (33.3, -11.3) µm): beyond the 60 µm back-up clearance, refused unless asked for
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml)])
+    assert r.exit_code == 2 and not csv.exists(), r.output
+    assert "step 1 " in r.output and "(30.0, 30.0) µm" in r.output and "66.0 µm from the bearing centre" in r.output
+    assert "back-up clearance of 60.0 µm" in r.output and "4 of 8 steps" in r.output
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml), "--allow-beyond-limits"])
+    assert r.exit_code == 0 and "warning" in r.output and csv.exists(), r.output
+    toml.write_text(toml.read_text().replace('experiment = "toml"', 'experiment = "toml"\ncenter_um = [-33.3, 11.3]'))
     r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml),
                             "--effect", "saturation:b_sat=1.1", "--effect", "hysteresis"])
-    assert r.exit_code == 0, r.output
+    assert r.exit_code == 0 and "warning" not in r.output, r.output
     r = runner.invoke(app, ["identify", str(csv), "--by", "experiment"])
     assert r.exit_code == 0 and "toml" in r.output
     r = runner.invoke(app, ["simulate", "-o", str(csv), "--protocol", str(toml),
@@ -107,7 +117,9 @@ def test_by_experiment_table(tmp_path):
     r = runner.invoke(app, ["identify", str(csv), "--by", "experiment", "--json", str(out)])
     assert r.exit_code == 0, r.output
     js = json.loads(out.read_text())
-    assert set(js["experiments"]) == {"1", "2"} and all(e["converged"] for e in js["experiments"].values())
+    # one entry per experiment, no pooled fit unless asked for (--pooled)
+    assert [g["group"] for g in js["groups"]] == ["1", "2"] and "pooled" not in js and "params" not in js
+    assert all(g["converged"] and g["status"] == "ok" and g["by"] == "experiment" for g in js["groups"])
 
 
 def _table1_toml(tmp_path):
@@ -192,3 +204,27 @@ def test_design_stays_inside_the_bearings_clearance_and_current_limit(tmp_path):
     assert len(steps) == 4
     for s in steps:
         assert (s["v_set_um"] ** 2 + s["w_set_um"] ** 2) ** 0.5 <= 30.0 and s["bias_A"] < 1.5, s
+
+
+def test_simulate_presets_stay_inside_the_bearings_limits(tmp_path):
+    # the presets are centred on the rig's effective origin (the paper's Table 2 ran after the origin search)
+    for preset in ("table2", "rich"):
+        r = runner.invoke(app, ["simulate", "-o", str(tmp_path / f"{preset}.csv"), "--preset", preset])
+        assert r.exit_code == 0, r.output
+    import pandas as pd
+
+    df = pd.read_csv(tmp_path / "rich.csv")
+    physical = np.hypot(df["v_set_um"] + 33.3, df["w_set_um"] - 11.3)
+    assert physical.max() <= 60.0 and physical.max() > 50.0
+    assert np.allclose([df["v_set_um"].mean(), df["w_set_um"].mean()], [-33.3, 11.3], atol=1e-9)
+    # the rich sweep about the sensor origin reaches 73.3 µm from the centre: refused, the step named
+    r = runner.invoke(app, ["simulate", "-o", str(tmp_path / "x.csv"), "--preset", "rich", "--center-um", "0,0"],
+                      env={"COLUMNS": "400"})
+    assert r.exit_code == 2 and not (tmp_path / "x.csv").exists()
+    assert "beyond the back-up clearance of 60.0 µm" in r.output and "--allow-beyond-limits" in r.output
+    # a bearing with a 1.5 A coil limit refuses the 1.6 A biases of the Table 2 preset
+    bearing = tmp_path / "b.toml"
+    bearing.write_text("max_current_A = 1.5\n")
+    r = runner.invoke(app, ["simulate", "-o", str(tmp_path / "y.csv"), "--bearing", str(bearing)],
+                      env={"COLUMNS": "400"})
+    assert r.exit_code == 2 and "bias of axis v 1.6 A, beyond the coil current limit of 1.5 A" in r.output, r.output

@@ -221,19 +221,104 @@ def test_spread_compares_paper_sd_with_the_rig_range():
     assert "rig: median and 5-95 % of the sd" in labels(ax)
 
 
-def test_pair_plot_shows_the_posterior_draws_of_the_variables_present():
+def small_posterior():
+    """A posterior DataTree in the units a Posterior writes (µm, N·m²/A²): g_v0 and v0 97 % correlated (the Fig. 2
+    valley), k_v independent; 2 chains x 50 draws."""
     import arviz as az
 
     rng = np.random.default_rng(0)
-    g, v = rng.normal(775e-6, 1e-6, (2, 50)), rng.normal(33e-6, 1e-6, (2, 50))     # 2 chains x 50 draws [m]
-    tree = az.from_dict({"posterior": {"g_v0": g, "v0": v}})
-    fig = plots.figure_of(plots.plot_pair(types.SimpleNamespace(datatree=tree)))
+    g = rng.normal(775.0, 1.0, (2, 50))
+    v = 33.0 + 0.3 * (g - 775.0) + rng.normal(0.0, 0.075, (2, 50))
+    k = rng.normal(3.45e-6, 1.5e-8, (2, 50))
+    return types.SimpleNamespace(datatree=az.from_dict({"posterior": {"g_v0": g, "v0": v, "k_v": k}})), (g, v, k)
+
+
+def pair_result():
+    """Least squares' point and covariance (SI) for g_v0, v0, k_v, with a nuisance load first."""
+    names = ["load[x]", "g_v0", "v0", "k_v"]
+    values = np.array([6.9, 774.6e-6, 32.9e-6, 3.44e-6])
+    sd = np.array([0.1, 1.0e-6, 0.3e-6, 1.5e-8])
+    corr = np.eye(4)
+    corr[1, 2] = corr[2, 1] = 0.9
+    return types.SimpleNamespace(names=names, values=values, cov=corr * np.outer(sd, sd))
+
+
+def panel(fig, n, i, j):
+    return fig.axes[i * n + j]
+
+
+def test_pair_plot_shows_the_draws_in_display_units_with_units_in_the_labels():
+    post, (g, v, k) = small_posterior()
+    fig = plots.plot_pair(post, var_names=["g_v0", "v0"])
     assert isinstance(fig, matplotlib.figure.Figure)
-    # k_v and the w axis are absent from this posterior and are left out: a 2 x 2 matrix
-    assert len(fig.axes) == 4
-    cross = next(a for a in fig.axes if a.get_xlabel() == "g_v0" and a.get_ylabel() == "v0")
-    pts = np.concatenate([c.get_offsets() for c in cross.collections])     # one scatter per chain
-    np.testing.assert_array_equal(pts, np.column_stack([g.ravel(), v.ravel()]))
+    assert len(fig.axes) == 4                                            # a 2 x 2 matrix, nothing else
+    cross = panel(fig, 2, 1, 0)
+    assert cross.get_xlabel() == "g_v0 [µm]" and cross.get_ylabel() == "v0 [µm]"
+    pts = np.concatenate([c.get_offsets() for c in cross.collections])   # one scatter per chain
+    np.testing.assert_allclose(pts, np.column_stack([g.ravel(), v.ravel()]), rtol=REL)
+    # all variables present by default; k in 10⁻⁶ N·m²/A², so its ticks read 3.45, not 3.45e-06
+    fig = plots.plot_pair(post)
+    assert len(fig.axes) == 9
+    bottom = [panel(fig, 3, 2, j).get_xlabel() for j in range(3)]
+    assert bottom == ["g_v0 [µm]", "v0 [µm]", "k_v [10⁻⁶ N·m²/A²]"]
+    kv = panel(fig, 3, 2, 0)
+    np.testing.assert_allclose(np.concatenate([c.get_offsets()[:, 1] for c in kv.collections]), k.ravel() * 1e6,
+                               rtol=REL)
+    lo, hi = panel(fig, 3, 2, 2).get_xlim()
+    assert 3.3 < lo < hi < 3.6
+
+
+def test_pair_plot_diagonal_has_no_density_ticks_and_states_mean_and_sd():
+    post, (g, v, k) = small_posterior()
+    fig = plots.plot_pair(post)
+    for j in range(3):
+        assert list(panel(fig, 3, j, j).get_yticks()) == []
+    title = panel(fig, 3, 0, 0).get_title()
+    assert title.startswith("g_v0 = ") and title.endswith(" µm")
+    from ambfit.estimation.results import pm
+
+    assert title == f"g_v0 = {pm(np.mean(g), np.std(g))} µm"
+
+
+def test_pair_plot_upper_triangle_gives_the_correlation_of_the_valley():
+    post, (g, v, k) = small_posterior()
+    res = pair_result()
+    fig = plots.plot_pair(post, result=res)
+    texts = [t.get_text() for t in panel(fig, 3, 0, 1).texts]        # above the (g_v0, v0) panel
+    rho = np.corrcoef(g.ravel(), v.ravel())[0, 1]
+    assert rho > 0.9 and texts[0] == f"ρ = {rho:+.2f}"
+    assert texts[1] == "least squares +0.90"
+    # shaded by |ρ|: the valley's panel is much more opaque than the independent one's
+    assert panel(fig, 3, 0, 1).get_facecolor()[3] > 0.5 > 0.2 > panel(fig, 3, 0, 2).get_facecolor()[3]
+
+
+def test_pair_plot_marks_the_least_squares_estimate_on_every_panel_in_display_units():
+    post, _ = small_posterior()
+    res = pair_result()
+    fig = plots.plot_pair(post, result=res)
+    mu = {"g_v0": 774.6, "v0": 32.9, "k_v": 3.44}                      # µm, µm, 10⁻⁶ N·m²/A²
+    names = ["g_v0", "v0", "k_v"]
+    for i in range(3):
+        diag = panel(fig, 3, i, i)
+        np.testing.assert_allclose(line(diag, "least squares").get_xdata(), [mu[names[i]]] * 2, rtol=REL)
+        for j in range(i):
+            point = line(panel(fig, 3, i, j), "least squares").get_xydata()[0]
+            np.testing.assert_allclose(point, [mu[names[j]], mu[names[i]]], rtol=REL)
+    # the 68 % ellipse of (g_v0, v0): half-widths sqrt(2.3) x (1.0, 0.3) µm
+    ell = next(ln for ln in panel(fig, 3, 1, 0).lines if ln.get_linestyle() == "-" and len(ln.get_xdata()) == 100)
+    np.testing.assert_allclose(np.ptp(ell.get_xydata(), axis=0) / 2, np.sqrt(2.3) * np.array([1.0, 0.3]), rtol=2e-3)
+    # (2e-3: the ellipse is sampled at 100 angles; its extreme is missed by at most 1 - cos(pi/100) ~ 5e-4)
+    # without a result, nothing is marked
+    bare = plots.plot_pair(post)
+    assert not any(ln.get_label() == "least squares" for ax in bare.axes for ln in ax.lines)
+
+
+def test_pair_plot_uses_the_given_figure_and_leaves_the_current_one_alone():
+    post, _ = small_posterior()
+    fig0 = plt.figure()
+    mine = plt.figure()
+    assert plots.plot_pair(post, fig=mine) is mine and not fig0.axes
+    assert plots.plot_pair(post) is not fig0 and not fig0.axes
 
 
 def test_save_writes_a_png_and_figure_of_finds_the_figure():
@@ -309,3 +394,24 @@ def test_plotting_does_not_switch_the_callers_backend():
         print(matplotlib.get_backend(), plt.fignum_exists(fig.number))
     """)
     assert out == "svg True"
+
+
+def test_recommendation_shows_the_steps_inside_the_clearance_and_the_predicted_std():
+    import pandas as pd
+
+    from ambfit.estimation.design import Recommendation
+
+    steps = pd.DataFrame({"v_set_um": [50.0, -50.0], "w_set_um": [0.0, 10.0], "bias_A": [1.2, 1.8],
+                          "predicted_std_after": [1.2e-6, 1.0e-6]})
+    rec = Recommendation(steps=steps, target="g_v0", std_now=1.4e-6, criterion="A")
+    fig0 = plt.figure()
+    fig = plots.plot_recommendation(rec, pd.DataFrame({"v_um": [20.0], "w_um": [20.0]}), clearance_um=60.0)
+    assert fig is not fig0 and not fig0.axes
+    where, std = fig.axes[0], fig.axes[1]
+    pts = where.collections[1].get_offsets()
+    np.testing.assert_array_equal(pts, [[50.0, 0.0], [-50.0, 10.0]])
+    np.testing.assert_allclose(where.collections[1].get_array(), [1.2, 1.8])       # coloured by bias
+    circle = where.lines[0].get_xydata()
+    np.testing.assert_allclose(np.hypot(circle[:, 0], circle[:, 1]), 60.0)
+    np.testing.assert_allclose(std.lines[0].get_ydata(), [1.4, 1.2, 1.0])          # µm, now then after each step
+    assert "µm" in std.get_ylabel()

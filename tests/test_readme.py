@@ -27,7 +27,7 @@ def test_every_command_line_example_runs(tmp_path):
         assert out.returncode == 0, f"{command}\n{out.stdout[-2000:]}\n{out.stderr[-2000:]}"
         assert "Traceback" not in out.stderr, command
     for name in ("sat.csv", "sat.json", "posterior.nc", "bayes.json", "pair.png", "map.png", "diag.json",
-                 "search.json", "reports/sat/index.html"):
+                 "search.json", "reports/sat/index.html", "runs.csv", "runs.json"):
         assert (tmp_path / name).exists(), name
     # what the comments promise: Table 2's protocol cannot see the saturation, the bias sweep names it
     import json
@@ -35,3 +35,7 @@ def test_every_command_line_example_runs(tmp_path):
     assert json.loads((tmp_path / "diag.json").read_text())["verdict"] == "none"
     sweep = json.loads((tmp_path / "sweep_diag.json").read_text())
     assert sweep["verdict"] == "saturation" and sweep["shrink"] > 0.9
+    # several files: one entry per file, no pooled fit unless asked
+    runs = json.loads((tmp_path / "runs.json").read_text())
+    assert [g["group"] for g in runs["groups"]] == ["sat.csv", "sweep.csv"] and "pooled" not in runs
+    assert all(g["status"] == "ok" for g in runs["groups"])

@@ -151,5 +151,6 @@ def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins
             tests.append({"variable": var, "axis": ax, "chi2": stat, "dof": dof, "p_value": float(chi2.sf(stat, dof))})
     threshold = float(norm.isf(alpha / (2 * max(len(cells), 1))))
     regions = sorted([c for c in cells if abs(c.z) > threshold], key=lambda r: -abs(r.z))
-    return Where(tests=pd.DataFrame(tests).sort_values("p_value").reset_index(drop=True), regions=regions,
+    table = pd.DataFrame(tests, columns=["variable", "axis", "chi2", "dof", "p_value"])   # none on tiny designs
+    return Where(tests=table.sort_values("p_value").reset_index(drop=True), regions=regions,
                  threshold=threshold)

@@ -85,13 +85,119 @@ def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.
     return ax
 
 
-def plot_pair(sampling, var_names=None):
-    """ArviZ pair plot of gap, origin and k (matplotlib backend); returns the plot collection."""
-    import arviz as az
+PAIR_UNITS = {"g_v0": ("µm", 1e6), "v0": ("µm", 1e6), "g_w0": ("µm", 1e6), "w0": ("µm", 1e6),
+              "k_v": ("10⁻⁶ N·m²/A²", 1e6), "k_w": ("10⁻⁶ N·m²/A²", 1e6)}
+"""Display unit and factor from SI of each pair-plot variable (k in 10⁻⁶ N·m²/A², so its ticks read 3.45, not 3.45e-06)."""
+
+
+def pair_label(name: str) -> str:
+    """``"g_v0 [µm]"``: a variable's axis label with its display unit."""
+    return f"{name} [{PAIR_UNITS[name][0]}]" if name in PAIR_UNITS else name
+
+
+def plot_pair(sampling, var_names=None, *, result=None, fig=None, max_points: int = 4000):
+    """Pair plot of the posterior of gap, origin and k in display units (µm, 10⁻⁶ N·m²/A²); returns the Figure.
+
+    Diagonal: each marginal (histogram; its height is relative, so no density axis) with the posterior mean ± sd
+    in the title.  Lower triangle: the draws (at most ``max_points`` per chain, evenly thinned; the paper's Fig. 2
+    valley shows as a narrow diagonal cloud when gap and origin are strongly correlated).  Upper triangle: the
+    posterior correlation coefficient ρ, the panel shaded by it (red positive, blue negative), and least squares'
+    ρ below it.  With ``result`` (a :class:`ambfit.FitResult` of the same data) its estimate is marked on every
+    panel (a line on the diagonal, a point with its 68/95 % ellipses below it).
+
+    ``sampling``: a :class:`ambfit.estimation.bayes.Posterior` (anything with ``datatree.posterior`` holding draws
+    in the units the Posterior writes there, :data:`ambfit.estimation.results.DISPLAY`: µm and N·m²/A²);
+    ``var_names``: the variables to show (default: those of g_v0, v0, k_v, g_w0, w0, k_w present).
+    """
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgba
+
+    from ambfit.estimation.results import DISPLAY, pm
 
     post = sampling.datatree.posterior
-    names = var_names or [n for n in ("g_v0", "v0", "k_v", "g_w0", "w0", "k_w") if n in post]
-    return az.plot_pair(sampling.datatree, var_names=names, backend="matplotlib")
+    names = list(var_names or [n for n in ("g_v0", "v0", "k_v", "g_w0", "w0", "k_w") if n in post])
+    n = len(names)
+    factor = [PAIR_UNITS.get(v, ("", 1.0))[1] for v in names]                  # SI -> plotted unit
+    from_tree = [f / DISPLAY.get(v, ("", 1.0))[1] for v, f in zip(names, factor)]   # tree unit -> plotted unit
+    chains = [np.asarray(post[v].values, dtype=float).reshape(-1, np.shape(post[v].values)[-1]) * f
+              for v, f in zip(names, from_tree)]                                # [variable][chain, draw]
+    flat = [c.ravel() for c in chains]
+    ls = None
+    if result is not None:
+        idx = [result.names.index(v) if v in result.names else None for v in names]
+        ls = {"idx": idx, "mu": [None if i is None else float(result.values[i]) * f for i, f in zip(idx, factor)]}
+        cov = np.asarray(result.cov)
+    limits = []
+    for j, x in enumerate(flat):
+        lo, hi = np.percentile(x, [0.5, 99.5])
+        if ls is not None and ls["mu"][j] is not None:
+            sd = np.sqrt(cov[ls["idx"][j], ls["idx"][j]]) * factor[j]
+            lo, hi = min(lo, ls["mu"][j] - 3 * sd), max(hi, ls["mu"][j] + 3 * sd)
+        pad = 0.05 * (hi - lo) if hi > lo else max(abs(lo) * 1e-6, 1e-12)
+        limits.append((lo - pad, hi + pad))
+
+    fig = fig or plt.figure(figsize=(2.3 * n + 1.0, 2.3 * n + 0.6))
+    axes = np.asarray(fig.subplots(n, n, squeeze=False))
+    thin = max(1, int(np.ceil(chains[0].shape[1] / max_points)))
+    for i in range(n):
+        for j in range(n):
+            ax = axes[i, j]
+            if i == j:
+                ax.hist(flat[j], bins=40, range=limits[j], density=True, color="tab:blue", alpha=0.6)
+                ax.set_yticks([])
+                mean, sd = float(np.mean(flat[j])), float(np.std(flat[j]))
+                ax.set_title(f"{names[j]} = {pm(mean, sd)} {PAIR_UNITS.get(names[j], ('', 1))[0]}", fontsize=8)
+                if ls is not None and ls["mu"][j] is not None:
+                    ax.axvline(ls["mu"][j], color="r", lw=1.2, label="least squares")
+            elif i > j:
+                for c in range(chains[j].shape[0]):
+                    ax.scatter(chains[j][c, ::thin], chains[i][c, ::thin], s=2, color="tab:blue", alpha=0.25,
+                               linewidths=0, rasterized=True)
+                if ls is not None and ls["mu"][i] is not None and ls["mu"][j] is not None:
+                    _ellipses(ax, ls, cov, (j, i), (factor[j], factor[i]))
+                ax.set_ylim(limits[i])
+            else:
+                rho = float(np.corrcoef(flat[j], flat[i])[0, 1])
+                ax.set_facecolor(to_rgba("tab:red" if rho > 0 else "tab:blue", alpha=0.6 * abs(rho)))
+                ax.text(0.5, 0.58, f"ρ = {rho:+.2f}", ha="center", va="center", fontsize=11,
+                        transform=ax.transAxes)
+                if ls is not None and None not in (ls["idx"][i], ls["idx"][j]):
+                    a, b = ls["idx"][i], ls["idx"][j]
+                    r_ls = cov[a, b] / np.sqrt(cov[a, a] * cov[b, b])
+                    ax.text(0.5, 0.3, f"least squares {r_ls:+.2f}", ha="center", va="center", fontsize=7,
+                            color="r", transform=ax.transAxes)
+                ax.set_xticks([])
+                ax.set_yticks([])
+            ax.set_xlim(limits[j])
+            ax.tick_params(labelsize=7)
+            if i == n - 1:
+                ax.set_xlabel(pair_label(names[j]), fontsize=8)
+            elif i > j or i == j:
+                ax.tick_params(labelbottom=False)
+            if j == 0 and i > 0:
+                ax.set_ylabel(pair_label(names[i]), fontsize=8)
+            elif i > j:
+                ax.tick_params(labelleft=False)
+    draws = flat[0].size
+    title = f"posterior, {draws} draws ({chains[0].shape[0]} chains)"
+    if ls is not None:
+        title += "; red: least squares (68/95 % ellipses)"
+    fig.suptitle(title, fontsize=9)
+    return fig
+
+
+def _ellipses(ax, ls, cov, pair, factors):
+    """The least-squares point and its 2-D 68/95 % ellipses (Δχ² 2.3 and 6.2) on an (x, y) panel, display units."""
+    j, i = pair
+    a, b = ls["idx"][j], ls["idx"][i]
+    c = cov[np.ix_([a, b], [a, b])] * np.outer(factors, factors)
+    w, v = np.linalg.eigh(c)
+    t = np.linspace(0, 2 * np.pi, 100)
+    mu = np.array([ls["mu"][j], ls["mu"][i]])
+    for d2, style in ((2.3, "-"), (6.2, "--")):
+        ell = (v @ (np.sqrt(np.clip(w, 0, None))[:, None] * np.array([np.cos(t), np.sin(t)]))) * np.sqrt(d2)
+        ax.plot(mu[0] + ell[0], mu[1] + ell[1], "r" + style, lw=0.8)
+    ax.plot(*mu, "r+", ms=9, mew=1.5, label="least squares")
 
 
 def plot_design_comparison(table, ax=None):
@@ -269,3 +375,35 @@ def plot_spread(spread, ax=None):
     ax.legend(fontsize=7)
     ax.set_title("Spread: Table 2 iterations (calibration), table rows (prediction)", fontsize=10)
     return ax
+
+
+def plot_recommendation(rec, data=None, *, clearance_um: float | None = None, fig=None):
+    """A design recommendation: where the next set-points lie (numbered, coloured by bias) next to the
+    readings so far and the back-up clearance, and the target's predicted standard error step by step.
+
+    ``rec`` is a :class:`ambfit.estimation.design.Recommendation`; ``data`` the data set it starts from.
+    """
+    import matplotlib.pyplot as plt
+
+    fig = fig or plt.figure(figsize=(10, 4.5))
+    ax, ax2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.1, 1]})
+    if data is not None:
+        frame = data.frame if hasattr(data, "frame") else data
+        ax.scatter(frame["v_um"], frame["w_um"], s=10, color="0.6", label="readings so far")
+    st = rec.steps
+    sc = ax.scatter(st["v_set_um"], st["w_set_um"], c=st["bias_A"], cmap="viridis", s=60, edgecolor="k",
+                    label="recommended", zorder=3)
+    for i, r in enumerate(st.itertuples(), 1):
+        ax.annotate(str(i), (r.v_set_um, r.w_set_um), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    fig.colorbar(sc, ax=ax, label="bias [A]")
+    if clearance_um:
+        t = np.linspace(0, 2 * np.pi, 200)
+        ax.plot(clearance_um * np.cos(t), clearance_um * np.sin(t), "r--", lw=1, label="back-up clearance")
+    ax.set(xlabel="v set-point [µm]", ylabel="w set-point [µm]", aspect="equal", title="where to measure next")
+    ax.legend(fontsize=8, loc="lower left")
+    f, unit = rec._unit()
+    std = np.concatenate([[rec.std_now], st["predicted_std_after"].to_numpy()]) * f
+    ax2.plot(np.arange(len(std)), std, "o-")
+    ax2.set(xlabel="steps run", ylabel=f"predicted std of {rec.target} [{unit}]", ylim=(0, None),
+            title=f"{rec.criterion}-optimal for {rec.target}")
+    return fig

@@ -96,7 +96,7 @@ def search(
     spec: RigSpec, *, biases=(1.4, 1.6), offset: float = 20e-6, start=(0.0, 0.0), tolerance: float = 1e-6,
     iterations: int = 10, run_all: bool = True, effects: Sequence[Effect] = (), noise: Noise = Noise(),
     seed: int = 0, experiment: str = "origin_search", load: str = "rotor", loads: dict | None = None,
-    state: RigState | None = None,
+    state: RigState | None = None, progress=None,
 ) -> OriginSearch:
     """Run the effective-origin search on the rig.
 
@@ -118,6 +118,9 @@ def search(
         report 10 iterations); otherwise stop at convergence.
     effects, noise, seed, state :
         Passed to :func:`ambfit.rig.simulate`.
+    progress : callable, optional
+        Called as ``progress("origin search", done, iterations)`` after each iteration
+        (:mod:`ambfit.faces.cli.progress`).
     """
     rng = np.random.default_rng(seed)
     center = np.asarray(start, dtype=float)
@@ -144,6 +147,8 @@ def search(
         x0s.append(x)
         offs.append(e)
         frames.append(frame)
+        if progress is not None:
+            progress("origin search", it, iterations)
         if converged_at is None and np.all(np.abs(e) < tolerance):
             converged_at = it
             if not run_all:

@@ -232,15 +232,21 @@ def paper_table4(iterations: int = 10, center=(0.0, 0.0), origin_shift=(-80.7e-6
 def rich(
     biases: Sequence[float] = (1.0, 1.2, 1.4, 1.6), span: float = 40e-6, n_positions: int = 5,
     masses_kg: Sequence[float] = (0.0, 0.5, 1.0, 1.5), rotor_kg: float = 1.0, experiment: str = "rich",
-    dwell_s: float = 5.0,
+    dwell_s: float = 5.0, center=(0.0, 0.0),
 ) -> Protocol:
-    """A rich design: biases swept up and down at v and w set-points over ``±span`` [m]
+    """A rich design: biases swept up and down at v and w set-points over ``center ± span`` [m]
     (v and w moved independently, so non-symmetric pairs are included) under several
-    known loads (rotor plus hung masses)."""
+    known loads (rotor plus hung masses).
+
+    ``center`` [m, sensor coordinates]: where the set-points are centred.  On a real bearing that is the
+    effective origin ``(-v0, -w0)`` the paper's origin search finds: centred on the sensor origin instead, the
+    default ±40 µm reach 73 µm from the centre of the paper's rig, beyond its 60 µm back-up clearance
+    (:func:`ambfit.rig.virtual.limit_violations`).
+    """
     lin = np.linspace(-span, span, n_positions)
     rng = np.random.default_rng(12345)  # fixed, so the design is a constant of the code
     w_pts = rng.permutation(lin)
-    points = list(zip(lin, w_pts))
+    points = [(center[0] + v, center[1] + w) for v, w in zip(lin, w_pts)]
     parts, loads = [], {}
     for j, m in enumerate(masses_kg):
         lid = f"m{j}"
@@ -258,7 +264,8 @@ def from_dict(spec: dict) -> Protocol:
     ``[loads.NAME]`` tables hold ``mass_kg`` (a known vertical weight) or
     ``force_v_N``/``force_w_N`` with ``known = true|false``; ``[[block]]`` entries
     have ``kind`` = ``perturbation`` | ``grid`` | ``bias_sweep`` | ``paper_table2`` |
-    ``rich`` and the keyword arguments of that builder (positions in µm).
+    ``rich`` and the keyword arguments of that builder (positions in µm; ``center_um`` for
+    ``perturbation``, ``paper_table2`` and ``rich``).
     """
     loads = dict(DEFAULT_LOADS)
     for name, d in spec.get("loads", {}).items():
@@ -285,10 +292,11 @@ def from_dict(spec: dict) -> Protocol:
             p = bias_sweep(b.pop("biases_A"), [(v * um, w * um) for v, w in b.pop("points_um", [(0, 0)])],
                            up_down=b.pop("up_down", True), loads=loads, **common)
         elif kind == "paper_table2":
-            p = paper_table2(common.get("iterations", 10))
+            p = paper_table2(common.get("iterations", 10), center=tuple(c * um for c in b.pop("center_um", (0, 0))))
         elif kind == "rich":
             p = rich(span=b.pop("span_um", 40) * um, biases=b.pop("biases_A", (1.0, 1.2, 1.4, 1.6)),
-                     masses_kg=b.pop("masses_kg", (0.0, 0.5, 1.0, 1.5)))
+                     masses_kg=b.pop("masses_kg", (0.0, 0.5, 1.0, 1.5)),
+                     center=tuple(c * um for c in b.pop("center_um", (0, 0))))
         else:
             raise ValueError(f"block {i}: unknown kind {kind!r}; valid: perturbation, grid, bias_sweep, "
                              "paper_table2, rich")

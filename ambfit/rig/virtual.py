@@ -228,6 +228,95 @@ def _records(protocol, bias, it_m, ib_m, v_m, w_m, sets, tt, temp, noise) -> pd.
     return pd.DataFrame(rows)
 
 
+def _physical(protocol: Protocol, effects: Sequence[Effect]) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rotor physically is in sensor coordinates at each step, ``(x, y)`` array[n, 2] [m] (``x``: each
+    axis' own position, ``y``: the other axis'): the controller holds the *measured* positions at the set-points,
+    so physical = unsense(set)."""
+    n = len(protocol)
+    sets = np.stack([protocol.v_set, protocol.w_set], axis=1).astype(float)
+    _, _, x, y = _unsense(effects, np.array([[0, 1]]), np.zeros((n, 2)), np.zeros((n, 2)), sets, sets[:, ::-1])
+    return np.asarray(x), np.asarray(y)
+
+
+def rotor_positions(spec: RigSpec, protocol: Protocol, effects: Sequence[Effect] = ()) -> np.ndarray:
+    """The rotor's position relative to the bearing's geometric centre at each step, array[n, 2] ``(v, w)`` [m].
+
+    The set-point is in sensor coordinates; the rotor sits at the set-point (sensor effects undone) plus the true
+    origin ``x0`` (and the step's reassembly shift).  Its length is what the back-up bearing's clearance bounds.
+    """
+    x, _ = _physical(protocol, effects)
+    shifts = np.array([protocol.assemblies[a] for a in protocol.assembly], dtype=float).reshape(len(protocol), 2)
+    return x + np.asarray(spec.x0)[None, :] + shifts
+
+
+@dataclasses.dataclass(frozen=True)
+class LimitViolation:
+    """One protocol step beyond the bearing's limits: the rotor beyond the back-up clearance, or a coil current
+    beyond the coil current limit.
+
+    ``step`` counts from 1 (its readings are the CSV's rows ``2 step - 1`` and ``2 step``); ``set_point`` [m] is in
+    sensor coordinates; ``value`` and ``limit`` are the rotor's distance from the bearing centre and the clearance
+    [m] (``kind == "clearance"``), or the commanded bias (``"bias"``) or the simulated coil current (``"current"``)
+    and the coil current limit [A].
+    """
+
+    kind: str
+    step: int
+    experiment: str
+    iteration: int
+    set_point: tuple[float, float]
+    value: float
+    limit: float
+    where: str = ""
+
+    def __str__(self) -> str:
+        head = (f"step {self.step} (experiment {self.experiment}, iteration {self.iteration}, set-point "
+                f"({self.set_point[0] * 1e6:.1f}, {self.set_point[1] * 1e6:.1f}) µm)")
+        if self.kind == "clearance":
+            return (f"{head}: the rotor would be {self.value * 1e6:.1f} µm from the bearing centre ({self.where}), "
+                    f"beyond the back-up clearance of {self.limit * 1e6:.1f} µm")
+        return f"{head}: {self.where} {self.value:.3g} A, beyond the coil current limit of {self.limit:g} A"
+
+
+def limit_violations(spec: RigSpec, protocol: Protocol, effects: Sequence[Effect] = (),
+                     currents: np.ndarray | None = None) -> list[LimitViolation]:
+    """Every step of ``protocol`` that would put the rotor beyond the back-up clearance, command a bias beyond
+    the coil current limit, or (given the simulated ``currents``, array[n, 2 axes, 2 coils] [A], e.g.
+    :attr:`Simulation.physical_currents`) drive a coil beyond it.  The limits are ``spec.bearing``'s
+    ``backup_clearance`` and ``max_current``.  Empty when the protocol is safe on this bearing.
+
+    A real rig's operator does not run these steps: the rotor would touch the back-up bearing, or the coils
+    would overheat or saturate beyond what the bearing was designed for.
+    """
+    b = spec.bearing
+    pos = rotor_positions(spec, protocol, effects)
+    r = np.hypot(pos[:, 0], pos[:, 1])
+    origin = np.asarray(spec.x0)
+    bias = np.stack([protocol.bias_v, protocol.bias_w], axis=1).astype(float)
+    out = []
+
+    def violation(kind, s, value, limit, where):
+        return LimitViolation(kind=kind, step=s + 1, experiment=str(protocol.experiment[s]),
+                              iteration=int(protocol.iteration[s]),
+                              set_point=(float(protocol.v_set[s]), float(protocol.w_set[s])), value=float(value),
+                              limit=float(limit), where=where)
+
+    for s in np.flatnonzero(r > b.backup_clearance * (1 + 1e-9)):
+        shift = origin + np.array(protocol.assemblies[protocol.assembly[s]])
+        out.append(violation("clearance", s, r[s], b.backup_clearance,
+                             f"the rig's true origin ({shift[0] * 1e6:.1f}, {shift[1] * 1e6:.1f}) µm plus the "
+                             "set-point"))
+    for s, a in zip(*np.nonzero(bias > b.max_current)):
+        out.append(violation("bias", s, bias[s, a], b.max_current, f"bias of axis {AXES[a]}"))
+    if currents is not None:
+        c = np.asarray(currents)
+        for s in np.flatnonzero(np.any(c > b.max_current * (1 + 1e-9), axis=(1, 2))):
+            a, coil = np.unravel_index(int(np.argmax(c[s])), (2, 2))
+            out.append(violation("current", s, c[s, a, coil], b.max_current,
+                                 f"coil current ({'top' if coil == 0 else 'bottom'} coil of axis {AXES[a]})"))
+    return sorted(out, key=lambda v: (v.step, v.kind))
+
+
 def simulate(
     spec: RigSpec, protocol: Protocol, effects: Sequence[Effect] = (), noise: Noise = Noise(), *,
     seed: int | np.random.Generator = 0, state: RigState | None = None, ambient_C: float = 22.0,
@@ -272,10 +361,7 @@ def simulate(
 
     axis2 = np.array([0, 1])
     sets = np.stack([protocol.v_set, protocol.w_set], axis=1).astype(float)
-    # The controller holds the *measured* positions at the set-points: physical = unsense(set).
-    _, _, x_phys, y_phys = _unsense(effects, axis2[None, :], np.zeros((n, 2)), np.zeros((n, 2)),
-                                    sets, sets[:, ::-1])
-    x_phys, y_phys = np.asarray(x_phys), np.asarray(y_phys)
+    x_phys, y_phys = _physical(protocol, effects)
     u = (x0 + x_phys) * spec.bearing.cos_alpha
     if np.any(np.abs(u) >= 0.95 * g0):
         bad = int(np.argmax(np.any(np.abs(u) >= 0.95 * g0, axis=1)))

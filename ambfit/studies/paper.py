@@ -310,13 +310,14 @@ class Reproduction:
 
 
 def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG, noise: Noise = Noise(),
-              iterations: int = 10, least_squares: bool = True, progress: bool = False) -> Reproduction:
+              iterations: int = 10, least_squares: bool = True, progress=None) -> Reproduction:
     """Run every experiment of Tables 1-4 once (the reproduction) and ``replicates`` more times (the prediction).
 
     Each experiment is the paper's effective-origin search; seeds are drawn from one
     :class:`numpy.random.SeedSequence`, so the result is reproducible.  Replicates
     whose Eq. 7 validity checks reject an iteration are counted in ``failed`` and
-    left out.
+    left out.  ``progress``, if given, is called as ``progress(phase, done, total)`` ("experiments",
+    "replicates").
     """
     import time
 
@@ -327,8 +328,11 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
     ss = np.random.SeedSequence(seed)
     run_seed, *rep_seeds = ss.spawn(1 + replicates)
     run_rngs = run_seed.spawn(len(rs))
-    searches = [run_row(r, spec=spec, noise=noise, seed=np.random.default_rng(s), iterations=iterations)
-                for r, s in zip(rs, run_rngs)]
+    searches = []
+    for j, (r, s) in enumerate(zip(rs, run_rngs), 1):
+        searches.append(run_row(r, spec=spec, noise=noise, seed=np.random.default_rng(s), iterations=iterations))
+        if progress is not None:
+            progress("experiments", j, len(rs))
     run = np.stack([iteration_values(s) for s in searches])
     ls_out = []
     if least_squares:
@@ -344,18 +348,15 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
     else:
         ls_out = [None] * len(rs)
     reps, failed = [], 0
-    it = rep_seeds
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(rep_seeds, desc="replicates", unit="set")
-    for rep in it:
+    for j, rep in enumerate(rep_seeds, 1):
         try:
             reps.append(np.stack([iteration_values(run_row(r, spec=spec, noise=noise, seed=np.random.default_rng(s),
                                                   iterations=iterations))
                                   for r, s in zip(rs, rep.spawn(len(rs)))]))
         except ClosedFormError:
             failed += 1
+        if progress is not None:
+            progress("replicates", j, replicates)
     if len(reps) < 2:
         raise RuntimeError(f"only {len(reps)} of {replicates} replicates ran; the rig's noise is too large for Eq. 7")
     return Reproduction(rows=rs, run=run, replicates=np.stack(reps), searches=searches, least_squares=ls_out,

@@ -61,22 +61,29 @@ def solution_space_cmd(
     from ambfit.data import DataError
     from ambfit.estimation import conditioning, fit
     from ambfit.faces import plots
+    from ambfit.faces.cli.progress import progress_bar
 
     check_output(png)
+    enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
-    try:
-        sub = ds.frame[ds.frame["axis"] == axis.value]
+    with progress_bar(3) as bar:
         try:
-            res = fit.fit(sub, bearing=desc)
-        except fit.FitError as exc:
-            warn(f"least squares not shown: {exc}")
-            res = None
-        space = conditioning.solution_space(ds, axis.value, gap=pair(gap_um, 1e-6), origin=pair(origin_um, 1e-6),
-                                            step=step_um * 1e-6, weights_at=res, bearing=desc)
-    except (DataError, ValueError) as exc:
-        fail(str(exc))
-    plots.save(plots.plot_solution_space(space, result=res), png)
+            sub = ds.frame[ds.frame["axis"] == axis.value]
+            bar.step("least squares")
+            try:
+                res = fit.fit(sub, bearing=desc)
+            except fit.FitError as exc:
+                warn(f"least squares not shown: {exc}")
+                res = None
+            bar.step("χ² map")
+            space = conditioning.solution_space(ds, axis.value, gap=pair(gap_um, 1e-6),
+                                                origin=pair(origin_um, 1e-6), step=step_um * 1e-6, weights_at=res,
+                                                bearing=desc)
+        except (DataError, ValueError) as exc:
+            fail(str(exc))
+        bar.step("drawing")
+        plots.save(plots.plot_solution_space(space, result=res), png)
     note(f"{space.summary()}; wrote {png}")
 
 
@@ -98,13 +105,19 @@ def design(
     from ambfit.data import DataError
     from ambfit.estimation import design as design_mod
     from ambfit.estimation import fit
+    from ambfit.faces.cli.progress import progress_bar
 
     check_output(json_out)
+    enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
     try:
-        rec = design_mod.recommend(ds, n_steps=steps, target=target.value, criterion=criterion.value,
-                                   max_radius_um=max_radius_um, bearing=desc)
+        with progress_bar(2) as bar:
+            bar.step("least squares")
+            res = fit.fit(ds, bearing=desc)
+            bar.step("choosing steps")
+            rec = design_mod.recommend(ds, n_steps=steps, target=target.value, criterion=criterion.value,
+                                       max_radius_um=max_radius_um, bearing=desc, result=res)
     except DataError as exc:
         fail(str(exc))
     except (fit.FitError, ValueError) as exc:
@@ -131,6 +144,7 @@ def diagnose(
     from ambfit.data import DataError
     from ambfit.diagnosis import diagnose as run_diagnosis
     from ambfit.estimation.core import FitError
+    from ambfit.faces.cli.progress import progress_bar
 
     check_output(json_out)
     check_output(report, folder=True)
@@ -138,7 +152,8 @@ def diagnose(
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
     try:
-        dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict)
+        with progress_bar() as bar:
+            dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict, progress=bar)
     except (DataError, ValueError, OSError) as exc:
         fail(str(exc))
     except FitError as exc:

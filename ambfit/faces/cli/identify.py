@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from enum import Enum
 from pathlib import Path
@@ -17,6 +18,7 @@ from ambfit.faces.cli.app import (
     check_output,
     console,
     enable_compilation_cache,
+    err,
     fail,
     judge,
     note,
@@ -40,25 +42,35 @@ class Loss(str, Enum):
 
 
 def drop_duplicates(ds, name: str, keep: bool):
-    """Name exact duplicate readings; unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``."""
+    """Name exact duplicate readings; unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``.
+
+    Rows are named as in the file (counted from 1): a group cut out of a file keeps the file's row numbers.
+    """
     from ambfit.data import Dataset, duplicate_rows
 
     dupes = duplicate_rows(ds.frame)
     if not dupes:
         return ds, []
-    listed = ", ".join(f"{r} repeats {f}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
+    index = ds.frame.index
+    row = (lambda r: int(index[r - 1]) + 1) if is_integer_dtype(index) else (lambda r: r)
+    listed = ", ".join(f"{row(r)} repeats {row(f)}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
     if keep:
         warn(f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; each "
              "counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
         return ds, []
-    drop = [r - 1 for r, _ in dupes]
-    frame = ds.frame.drop(index=ds.frame.index[drop])
+    frame = ds.frame.drop(index=index[[r - 1 for r, _ in dupes]])
     warn(f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading is a "
          "copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
-    return Dataset(frame=frame, source=ds.source), drop
+    return Dataset(frame=frame, source=ds.source), [row(r) for r, _ in dupes]
 
 
-def _duplicate_effect(original, record: dict, bearing, loss: str) -> float | None:
+def is_integer_dtype(index) -> bool:
+    from pandas.api.types import is_integer_dtype as integer
+
+    return integer(index)
+
+
+def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "") -> float | None:
     """How much smaller the gap's error bar would be with the duplicates counted (a fit of the full file)."""
     from ambfit.estimation import fit
 
@@ -67,14 +79,9 @@ def _duplicate_effect(original, record: dict, bearing, loss: str) -> float | Non
     except fit.FitError:
         return None
     std, dup = record["params"]["g_v0_um"]["std"], with_dupes.error("g_v0") * 1e6
-    note(f"counted as often as they appear, the duplicates would shrink the error bars {std / dup:.2f} x "
+    note(f"{prefix}counted as often as they appear, the duplicates would shrink the error bars {std / dup:.2f} x "
          f"(g_v0 ± {dup:.3g} µm instead of ± {std:.3g} µm)")
     return std / dup
-
-
-class By(str, Enum):
-    none = "none"
-    experiment = "experiment"
 
 
 @app.command()
@@ -113,13 +120,22 @@ def check(
 
 @app.command()
 def identify(
-    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    data: Annotated[list[Path], typer.Argument(help="Perturbation data, contract CSV: one or more files or quoted "
+                                               "globs ('runs/*.csv'); with several, one estimate per file.")],
     method: Annotated[Method, typer.Option(help="Estimator: 'least-squares' (all readings, weighted by their "
                                            "propagated noise; k from known loads) or 'closed-form' (the "
                                            "paper's Eq. 5-7 per iteration, averaged).")] = Method.least_squares,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON here.")] = None,
-    by: Annotated[By, typer.Option(help="'experiment': one estimate per experiment (like the paper's "
-                                   "tables); 'none': one estimate from all rows.")] = By.none,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON here (with several "
+                                                  "files or --by: one entry per group under 'groups').")] = None,
+    by: Annotated[str, typer.Option(metavar="COLUMN", help="Split each file by this column, one estimate per value: "
+                                    "'experiment' (like the paper's tables) or any other column ('bearing', "
+                                    "'date', ...); 'none': one estimate per file.")] = "none",
+    table: Annotated[Path | None, typer.Option("--table", help="Write one row per group (file, or file and --by "
+                                               "value) as CSV here: estimates and standard errors [µm, N·m²/A²], "
+                                               "χ²/dof, health, outliers, plausibility, error.")] = None,
+    pooled: Annotated[bool, typer.Option("--pooled", help="With several files or --by: also fit all rows together "
+                                         "(the 'pooled' entry; a file's unknown loads stay its own). Off by "
+                                         "default: a pooled fit of different bearings or runs is neither.")] = False,
     current_noise_ma: Annotated[float | None, typer.Option(
         "--current-noise-ma", help="Declared current noise std [mA] (default: the std columns, else "
                                    "estimated from the residuals).")] = None,
@@ -139,6 +155,9 @@ def identify(
                                        "robust losses.")] = Loss.auto,
     keep_duplicates: Annotated[bool, typer.Option(help="Count exact duplicate readings as often as they appear "
                                                   "(default: once, with a warning naming them).")] = False,
+    force_check: Annotated[bool, typer.Option(help="With two or more distinct known loads: leave each out, fit the "
+                                              "rest, and compare the force predicted for its readings with it "
+                                              "(contract force_check).")] = True,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -149,52 +168,100 @@ def identify(
     parameters.  closed-form: mean over iterations ± standard error of that mean; exits 3
     when its iterations cannot be trusted.  Both exit 3 when the bearing description rules
     the result out (unless --accept-implausible).
-    """
-    from ambfit.estimation import plausibility
 
-    check_output(json_out)
+    Several files (or --by COLUMN): one estimate per group, each judged on its own; a group
+    that fails does not stop the others.  Exit 0 when every group is fine, 2 when a file
+    cannot be read, else 3; the last line names the groups that are not fine.
+    """
+    check_output(json_out, table)
     enable_compilation_cache()
     desc = bearing_of(bearing)
-    ds = read_data(data, desc, accept_implausible, max_position_um)
-    original = ds
-    ds, dropped = drop_duplicates(ds, data.name, keep_duplicates)
-    if method is Method.closed_form:
-        record = _identify_closed_form(ds, data.name, by, desc)
+    paths, unmatched = _expand(data)
+    column = None if by.strip().lower() in ("", "none") else by.strip()
+    opts = _Options(method=method, current_noise_ma=current_noise_ma, position_noise_um=position_noise_um,
+                    require_k=require_k, debias=debias, loss=loss.value, keep_duplicates=keep_duplicates,
+                    accept=accept_implausible, bearing=desc, force_check=force_check)
+    if len(paths) == 1 and not unmatched and column is None and not pooled:
+        _identify_file(paths[0], opts, max_position_um, json_out, table)
     else:
-        record = _identify_ls(ds, data.name, by, current_noise_ma, position_noise_um, require_k, debias, desc,
-                              loss.value)
+        _identify_groups(paths, unmatched, column, opts, max_position_um, pooled, json_out, table)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Options:
+    """The fit settings of one ``identify`` run, the same for every group."""
+
+    method: Method
+    current_noise_ma: float | None
+    position_noise_um: float | None
+    require_k: bool
+    debias: int
+    loss: str
+    keep_duplicates: bool
+    accept: bool
+    bearing: object
+    force_check: bool = True
+
+    def fit_kw(self) -> dict:
+        return dict(sigma_i=None if self.current_noise_ma is None else self.current_noise_ma * 1e-3,
+                    sigma_x=None if self.position_noise_um is None else self.position_noise_um * 1e-6,
+                    require_k=self.require_k, debias=self.debias, bearing=self.bearing, loss=self.loss)
+
+
+def _identify_file(data: Path, opts: _Options, max_position_um, json_out, table):
+    """One file, one estimate: the contract's section-2 JSON."""
+    from ambfit.estimation import plausibility
+
+    ds = read_data(data, opts.bearing, opts.accept, max_position_um)
+    original = ds
+    ds, dropped = drop_duplicates(ds, data.name, opts.keep_duplicates)
+    if opts.method is Method.closed_form:
+        record = _identify_closed_form(ds, data.name, opts.bearing)
+    else:
+        record = _identify_ls(ds, data.name, opts)
         if dropped and "g_v0_um" in record["params"]:
-            record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, desc, loss.value)
-    record["duplicates_dropped"] = [r + 1 for r in dropped]
+            record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, opts.bearing, opts.loss)
+    record["duplicates_dropped"] = dropped
     flags = [plausibility.Flag(**f) for f in record.get("implausible", [])]
     if json_out is not None:
         write_json(record, json_out)
+    if table is not None:
+        status = _status(record, flags, opts.accept)
+        _write_table([_table_row({"group": data.name, "file": str(data), "status": status, **record})], None, table)
     if not record["converged"]:
         raise typer.Exit(3)
-    judge(flags, accept_implausible)
+    judge(flags, opts.accept)
     if record.get("trusted") is False:
         raise typer.Exit(3)
 
 
-def _identify_closed_form(ds, name, by, bearing) -> dict:
-    from ambfit.estimation import closed_form, plausibility
+def _identify_closed_form(ds, name, bearing, *, show: bool = True) -> dict:
+    from ambfit.estimation import closed_form
 
     try:
-        result = closed_form.identify(ds, by_experiment=by is By.experiment, bearing=bearing)
+        result = closed_form.identify(ds, bearing=bearing)
     except closed_form.ClosedFormError as exc:
         fail(str(exc), 3)
     show_table(result.display_rows(), f"closed form (Eq. 5-7), {name}, {result.n_rows} rows",
                left=("experiment", "axis"))
+    record = _closed_form_record(result, bearing, name="")
+    if not result.trusted:
+        warn("the closed-form result cannot be trusted (see above); ambfit identify exits 3")
+    return record
+
+
+def _closed_form_record(result, bearing, name: str) -> dict:
+    """The closed form's contract record with its plausibility flags; its rejections and health as warnings."""
+    from ambfit.estimation import plausibility
+
     for line in result.rejections():
-        warn(line)
+        warn(name + line)
     for line in result.health():
-        warn(line)
+        warn(name + line)
     record = result.to_json()
     keys = {e for e, _ in result.estimates}
     record["implausible"] = [f.to_json() for key in sorted(keys) for f in plausibility.check_result(
-        {name: est_value for name, est_value in _si_values(result.params(key)).items()}, bearing)]
-    if not result.trusted:
-        warn("the closed-form result cannot be trusted (see above); ambfit identify exits 3")
+        _si_values(result.params(key)), bearing)]
     return record
 
 
@@ -205,35 +272,297 @@ def _si_values(params: dict) -> dict:
     return {name: params[key]["value"] / f for name, key, f in CONTRACT_PARAMS if key in params}
 
 
-def _identify_ls(ds, name, by, current_noise_ma, position_noise_um, require_k, debias, bearing, loss) -> dict:
+def _identify_ls(ds, name, opts: _Options) -> dict:
     from ambfit.estimation import fit
 
-    kw = dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
-              sigma_x=None if position_noise_um is None else position_noise_um * 1e-6, require_k=require_k,
-              debias=debias, bearing=bearing, loss=loss)
     try:
-        pooled = fit.fit(ds, **kw)
+        res = fit.fit(ds, **opts.fit_kw())
     except fit.FitError as exc:
-        if by is By.none:
-            fail(str(exc), 3)
-        pooled = exc
-    results = fit.fit_by(ds, "experiment", **kw) if by is By.experiment else {"all": pooled}
-    show_table([{"experiment": key, **(r.display_row() if not isinstance(r, fit.FitError) else {"g_v0 [µm]": f"failed: {r}"})}
-                for key, r in results.items()], f"least squares, {name}, {len(ds)} rows", left=("experiment",))
-    if isinstance(pooled, fit.FitError):
-        record = {"method": "least_squares", "params": {}, "converged": False, "n_rows": len(ds), "error": str(pooled)}
-    else:
-        for line in pooled.notes():
-            note(line)
-        for check, ok, text in pooled.checks():
-            if ok is False and check not in ("k_identified", "plausible"):   # plausibility: judge() says it
-                warn(text)
-        record = pooled.to_json()
-    if by is By.experiment:
-        record["experiments"] = {k: (r.to_json() if not isinstance(r, fit.FitError) else
-                                     {"converged": False, "error": str(r)}) for k, r in results.items()}
-        record["converged"] = record["converged"] and all(not isinstance(r, fit.FitError) for r in results.values())
+        fail(str(exc), 3)
+    show_table([{"experiment": "all", **res.display_row()}], f"least squares, {name}, {len(ds)} rows",
+               left=("experiment",))
+    for line in res.notes():
+        note(line)
+    _warn_health(res)
+    record = res.to_json()
+    if opts.force_check and res.converged:
+        from ambfit.estimation.measure import force_check
+
+        kw = opts.fit_kw()
+        fc = force_check(ds, res.effects, bearing=opts.bearing, base=res, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"],
+                         loss=opts.loss)
+        if fc is not None:
+            record["force_check"] = fc
+            note(f"force check (each of {fc['n_loads']} known loads left out and predicted): "
+                 f"{100 * fc['rms_rel']:.2f} % RMS, {100 * fc['max_rel']:.2f} % worst")
     return record
+
+
+def _warn_health(res, prefix: str = ""):
+    for check, ok, text in res.checks():
+        if ok is False and check not in ("k_identified", "plausible"):   # plausibility: judge() says it
+            warn(prefix + text)
+
+
+# --- several files, or one file split by a column ---------------------------------------------------------------
+
+GLOB_CHARACTERS = "*?["
+
+
+def _expand(args: list[Path]) -> tuple[list[Path], list[str]]:
+    """The files named, quoted globs expanded (sorted); a file named twice counted once.
+
+    Returns ``(paths, patterns that matched no file)``.  A path that exists is taken as it is, even when its name
+    contains glob characters.
+    """
+    import glob
+
+    found, unmatched = [], []
+    for arg in args:
+        text = str(arg)
+        if arg.exists() or not any(c in text for c in GLOB_CHARACTERS):
+            found.append(arg)
+            continue
+        hits = sorted(h for h in glob.glob(text, recursive=True) if Path(h).is_file())
+        if not hits:
+            unmatched.append(text)
+        found += [Path(h) for h in hits]
+    paths, seen = [], set()
+    for p in found:
+        key = p.resolve()
+        if key in seen:
+            warn(f"{p}: named more than once; identified once")
+            continue
+        seen.add(key)
+        paths.append(p)
+    return paths, unmatched
+
+
+def _split(frame, column: str | None):
+    """``(value, rows)`` for each value of ``column`` in order of first appearance; ``(None, frame)`` without one.
+
+    Values are compared as text (as :func:`ambfit.estimation.fit.fit_by` does); rows with an empty cell form the
+    group ``"(empty)"``.  Each group keeps the file's row index, so messages name the file's rows.
+    """
+    if column is None:
+        return [(None, frame)]
+    keys = frame[column].astype("string").fillna("(empty)").astype(str)
+    return [(str(value), frame[keys == value]) for value in dict.fromkeys(keys)]
+
+
+STATUS_TEXT = {"ok": "ok", "failed": "fit failed", "implausible": "implausible", "untrusted": "not trusted",
+               "unreadable": "unreadable"}
+
+
+def _status(record: dict, flags, accept: bool) -> str:
+    """ok, failed (no estimate or not converged), implausible (ruled out by the bearing), untrusted (closed form)."""
+    if record.get("error") or not record.get("converged"):
+        return "failed"
+    if flags and not accept:
+        return "implausible"
+    if record.get("trusted") is False:
+        return "untrusted"
+    return "ok"
+
+
+def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, pooled, json_out, table):
+    """One estimate per file (and per value of ``column``), each judged on its own; exit 2 if a file is unreadable,
+    3 if a group is not fine, else 0."""
+    from ambfit.data import DataError, Dataset, read_csv
+    from ambfit.faces.cli.progress import progress_bar
+
+    several = len(paths) + len(unmatched) > 1
+    limit = max_position_um or opts.bearing.nominal_gap * 1e6
+    jobs, readable = [], []       # jobs: (file, value, Dataset or the reason it cannot be read)
+    for pattern in unmatched:
+        jobs.append((pattern, None, f"{pattern}: no file matches this pattern"))
+    for path in paths:
+        try:
+            ds = read_csv(path, max_position_um=limit)
+        except (DataError, OSError) as exc:
+            jobs.append((str(path), None, str(exc)))
+            continue
+        if column is not None and column not in ds.frame.columns:
+            cols = ", ".join(map(str, ds.frame.columns))
+            jobs.append((str(path), None, f"{path}: no column {column!r} to split by (--by); columns: {cols}"))
+            continue
+        readable.append((path, ds))
+        jobs += [(str(path), value, Dataset(frame=rows, source=ds.source)) for value, rows in _split(ds.frame, column)]
+
+    def label(file, value):
+        name = file if several else Path(file).name
+        return name if value is None else (f"{name}:{value}" if several else value)
+
+    entries = []
+    with progress_bar() as bar:
+        for file, value, ds in bar.iterate(jobs, "groups"):
+            head = {"group": label(file, value), "file": file, **({} if column is None else {"by": column,
+                                                                                           "value": value})}
+            if isinstance(ds, str):
+                err.print(f"[bold red]error:[/] {ds}", highlight=False, soft_wrap=True)
+                entries.append({**head, "status": "unreadable", "error": ds})
+            else:
+                entries.append({**head, **_identify_group(ds, head["group"], opts)})
+        pooled_entry = None
+        if pooled and readable:
+            bar("pooled fit", 0, 1)
+            pooled_entry = {"group": "(pooled)", "file": "; ".join(str(p) for p, _ in readable),
+                            **_identify_group(_pooled(readable), "pooled", opts)}
+            bar("pooled fit", 1, 1)
+
+    shown = entries + ([pooled_entry] if pooled_entry else [])
+    what = "closed form (Eq. 5-7)" if opts.method is Method.closed_form else "least squares"
+    files = len(paths) + len(unmatched)
+    show_table([_display_row(e) for e in shown],
+               f"{what}, {len(entries)} group(s) from {files} file(s)" + (f" by {column}" if column else ""),
+               left=("group", "status"))
+    if json_out is not None:
+        record = {"method": "closed_form" if opts.method is Method.closed_form else "least_squares",
+                  "by": column, "files": [str(p) for p in paths] + unmatched, "n_groups": len(entries),
+                  "n_ok": sum(e["status"] == "ok" for e in entries), "groups": entries}
+        if pooled_entry is not None:
+            record["pooled"] = pooled_entry
+        write_json(record, json_out)
+    if table is not None:
+        _write_table([_table_row(e) for e in shown], column, table)
+    bad = [e for e in shown if e["status"] != "ok"]
+    if not bad:
+        note(f"all {len(shown)} group(s) fine")
+        return
+    listed = "; ".join(f"{e['group']} ({STATUS_TEXT[e['status']]})" for e in bad[:10]) + (" ..." if len(bad) > 10
+                                                                                          else "")
+    unreadable = any(e["status"] == "unreadable" for e in bad)
+    written = " and ".join(str(p) for p in (json_out, table) if p is not None)
+    rest = "" if len(bad) == len(shown) else "; the other groups' results stand" + (f" (in {written})" if written
+                                                                                     else "")
+    fail(f"{len(bad)} of {len(shown)} group(s) not fine: {listed}{rest}", 2 if unreadable else 3)
+
+
+def _identify_group(ds, name: str, opts: _Options) -> dict:
+    """Plausibility of the data, duplicates, the fit and the plausibility of its result for one group, as the
+    single-file path does them, but reported instead of ending the run."""
+    from ambfit.data import DataError
+    from ambfit.estimation import closed_form, fit, plausibility
+
+    prefix = f"{name}: "
+    data_flags = plausibility.check_data(ds.frame, opts.bearing)
+    original = ds
+    ds, dropped = drop_duplicates(ds, name, opts.keep_duplicates)
+    try:
+        if opts.method is Method.closed_form:
+            record = _closed_form_record(closed_form.identify(ds, bearing=opts.bearing), opts.bearing, prefix)
+        else:
+            res = fit.fit(ds, **opts.fit_kw())
+            _warn_health(res, prefix)
+            record = res.to_json()
+            if dropped and "g_v0_um" in record["params"]:
+                record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, opts.bearing, opts.loss,
+                                                                          prefix)
+    except (fit.FitError, closed_form.ClosedFormError, DataError, ValueError) as exc:
+        err.print(f"[bold red]error:[/] {prefix}{exc}", highlight=False, soft_wrap=True)
+        record = {"method": "closed_form" if opts.method is Method.closed_form else "least_squares", "params": {},
+                  "converged": False, "n_rows": len(ds), "error": str(exc)}
+    flags = [*data_flags, *(plausibility.Flag(**f) for f in record.get("implausible", []))]
+    record["implausible"] = [f.to_json() for f in flags]
+    record["duplicates_dropped"] = dropped
+    for f in flags:
+        if opts.accept:
+            warn(f"{prefix}{f}")
+        else:
+            err.print(f"[bold red]implausible:[/] {prefix}{f}", highlight=False, soft_wrap=True)
+    return {"status": _status(record, flags, opts.accept), **record}
+
+
+def _pooled(readable):
+    """All rows of all files as one data set; a file's loads stay its own (``load_id`` and ``experiment`` are
+    prefixed with the file when there are several)."""
+    import pandas as pd
+
+    from ambfit.data import Dataset
+
+    if len(readable) == 1:
+        return readable[0][1]
+    parts = []
+    for path, ds in readable:
+        f = ds.frame.copy()
+        exp = f["experiment"].astype(str) if "experiment" in f else None
+        base = (f["load_id"].astype(str) if "load_id" in f else
+                ("experiment:" + exp) if exp is not None else pd.Series("all", index=f.index))
+        f["load_id"] = f"{path}|" + base
+        f["experiment"] = f"{path}|" + (exp if exp is not None else "all")
+        parts.append(f)
+    return Dataset(frame=pd.concat(parts, ignore_index=True), source="pooled")
+
+
+def _display_row(entry: dict) -> dict:
+    """One console-table row: the group, its rows, each parameter ± its error in display units, χ²/dof, status."""
+    from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, pm
+
+    params = entry.get("params", {})
+    row = {"group": entry["group"], "rows": str(entry.get("n_rows", "–"))}
+    for name, key, _ in CONTRACT_PARAMS:
+        p = params.get(key)
+        std = p.get("std") if p else None
+        row[f"{name} [{DISPLAY[name][0]}]"] = "–" if p is None else pm(p["value"], float("nan") if std is None
+                                                                          else std)
+    chi2 = entry.get("reduced_chi2")
+    row["χ²/dof"] = "–" if chi2 is None else f"{chi2:.2f}"
+    row["status"] = STATUS_TEXT[entry["status"]]
+    return row
+
+
+TABLE_PARAMS = (("g_v0", "um"), ("v0", "um"), ("g_w0", "um"), ("w0", "um"), ("k_v", "Nm2_per_A2"),
+                ("k_w", "Nm2_per_A2"))
+
+
+def _table_row(entry: dict) -> dict:
+    """One ``--table`` row (file units in the column names, blank where a value does not apply)."""
+    params = entry.get("params", {})
+    row = {"group": entry["group"], "file": entry.get("file", ""), "_value": entry.get("value"),
+           "n_rows": entry.get("n_rows")}
+    for name, unit in TABLE_PARAMS:
+        p = params.get(f"{name}_{unit}", {})
+        row[f"{name}_{unit}"] = p.get("value")
+        row[f"{name}_std_{unit}"] = p.get("std")
+    gof = entry.get("goodness_of_fit", {})
+    flags = entry.get("implausible", [])
+    row |= {"reduced_chi2": entry.get("reduced_chi2"), "dof": entry.get("dof"), "p_value": gof.get("p_value"),
+            "converged": entry.get("converged"), "well_conditioned": entry.get("well_conditioned"),
+            "adequate": gof.get("adequate"), "trusted": entry.get("trusted"),
+            "outliers": len(entry.get("outliers", [])), "duplicates_dropped": len(entry.get("duplicates_dropped", [])),
+            "implausible": bool(flags), "implausible_why": "; ".join(f"{f['quantity']}: {f['cause']}" for f in flags),
+            "status": entry["status"], "error": entry.get("error", "")}
+    return row
+
+
+def _write_table(rows: list[dict], column: str | None, path: Path):
+    """Write the groups table as CSV (atomically: a temporary file in the same folder, then a rename)."""
+    import os
+    import tempfile
+
+    import pandas as pd
+
+    frame = pd.DataFrame(rows)
+    value_name = column if column and column not in frame.columns else "by_value"
+    if column is None:
+        frame = frame.drop(columns="_value")
+    else:
+        frame = frame.rename(columns={"_value": value_name})
+    for c in ("n_rows", "dof", "outliers", "duplicates_dropped"):
+        frame[c] = frame[c].astype("Int64")
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            frame.to_csv(f, index=False)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    console.print(f"wrote {path} ({len(frame)} row(s))")
 
 
 @app.command()
@@ -290,7 +619,7 @@ def sample(
     if pair_png is not None:
         from ambfit.faces import plots
 
-        plots.save(plots.plot_pair(res), pair_png)
+        plots.save(plots.plot_pair(res, result=res.ls), pair_png, close=True)
         console.print(f"wrote {pair_png}")
     if not record["converged"]:
         raise typer.Exit(3)

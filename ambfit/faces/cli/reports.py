@@ -44,16 +44,18 @@ def report(
     map, design recommendation and diagnosis."""
     from ambfit.data import DataError
     from ambfit.faces import report as report_mod
+    from ambfit.faces.cli.progress import progress_bar
 
     check_output(out, folder=True)
     enable_compilation_cache()
     desc = bearing_of(bearing)
     read_data(data, desc, accept_implausible)      # input and plausibility problems end here, before any work
     try:
-        path, rec = report_mod.data_report(
-            data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps, bearing=desc,
-            max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
-            command="ambfit report " + " ".join(sys.argv[2:]))
+        with progress_bar() as bar:
+            path, rec = report_mod.data_report(
+                data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
+                bearing=desc, max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
+                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar)
     except (DataError, OSError) as exc:
         fail(str(exc))
     console.print(f"wrote {path}")
@@ -74,11 +76,13 @@ def paper(
     """Rerun the seed paper's Tables 1-4 and Figs. 2, 3 and 5 on the virtual rig; write the side-by-side
     report (index.html, README.md, comparison.csv, spread.csv, reproduction.json, PNG figures)."""
     from ambfit.faces import report as report_mod
+    from ambfit.faces.cli.progress import progress_bar
 
     check_output(out, folder=True)
     enable_compilation_cache()
-    path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,
-                                   command="ambfit paper " + " ".join(sys.argv[2:]), progress=sys.stderr.isatty())
+    with progress_bar() as bar:
+        path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,
+                                       command="ambfit paper " + " ".join(sys.argv[2:]), progress=bar)
     console.print(f"wrote {path}")
     # the summary and the spread table (paper vs prediction); every row of Tables 1-4 is in the report
     console.print((Path(out) / "README.md").read_text().split("## Table 1")[0], highlight=False)

@@ -19,6 +19,7 @@ from ambfit.faces.cli.app import (
     pair,
     parse_effect,
     show_table,
+    warn,
     write_json,
 )
 
@@ -35,14 +36,18 @@ def simulate(
     preset: Annotated[Preset, typer.Option(help="Protocol: 'table2' (paper's Table 2: 1.4/1.6 A, ±20 µm, "
                                            "10 iterations), 'rich' (biases 1.0-1.6 A up and down, "
                                            "±40 µm, four known loads), or 'perturbation' (built from "
-                                           "--biases-a/--offsets-um/--center-um/--iterations).")] = Preset.table2,
+                                           "--biases-a/--offsets-um/--iterations); each centred on "
+                                           "--center-um.")] = Preset.table2,
     protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset): "
                                                    "[[block]] and [loads.NAME] tables as in "
                                                    "ambfit.rig.protocol.from_dict, plus optional [[effect]] "
                                                    "tables (name = ..., parameters in SI units).")] = None,
     biases_a: Annotated[str, typer.Option("--biases-a", help="Bias currents [A], comma separated.")] = "1.4,1.6",
     offsets_um: Annotated[str, typer.Option(help="Symmetric position offsets [µm], comma separated.")] = "20",
-    center_um: Annotated[str, typer.Option(help="Centre of the position pairs 'v,w' [µm].")] = "0,0",
+    center_um: Annotated[str, typer.Option(help="Centre of the preset's set-points 'v,w' [µm, sensor "
+                                           "coordinates], or 'origin': the rig's effective origin (-v0, -w0), "
+                                           "where the paper's origin search puts them (its Table 2 ran there), "
+                                           "so the rotor moves about the bearing centre.")] = "origin",
     iterations: Annotated[int, typer.Option(help="Repetitions of the perturbation.")] = 10,
     effect: Annotated[list[str] | None, typer.Option(
         help="Unmodelled effect the rig applies, 'NAME' or 'NAME:param=value,...' in SI units "
@@ -56,9 +61,17 @@ def simulate(
     seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
     truth: Annotated[Path | None, typer.Option(help="Also write the truth (parameters, effects, noise) "
                                                "as JSON here.")] = None,
+    allow_beyond_limits: Annotated[bool, typer.Option(
+        "--allow-beyond-limits", help="Run steps that put the rotor beyond the bearing's back-up clearance (from "
+                                      "the bearing centre: set-point plus the rig's true origin) or drive a coil "
+                                      "beyond its current limit (--bearing); refused by default.")] = False,
     bearing: BearingOption = None,
 ):
-    """Simulate a perturbation experiment on the virtual rig and write contract CSV."""
+    """Simulate a perturbation experiment on the virtual rig and write contract CSV.
+
+    Refuses (exit 2, naming the step) a protocol that would put the rotor beyond the bearing's back-up clearance
+    or drive a coil beyond its current limit, as an operator of a real rig would; --allow-beyond-limits runs it.
+    """
     from ambfit import data as data_mod
     from ambfit import rig
     from ambfit.physics.effects import effect_by_name
@@ -69,6 +82,7 @@ def simulate(
     try:
         effects = [parse_effect(e) for e in (effect or [])]
         spec = rig.RigSpec(bearing=bearing_of(bearing)).with_truth(g0=pair(gap_um, 1e-6), x0=pair(origin_um, 1e-6))
+        center = ((-spec.x0[0], -spec.x0[1]) if center_um.strip().lower() == "origin" else pair(center_um, 1e-6))
         if protocol is not None:
             with open(protocol, "rb") as f:
                 desc = tomllib.load(f)
@@ -77,15 +91,17 @@ def simulate(
                 effects.append(effect_by_name(e.pop("name", ""), **e))
             proto = proto_mod.from_dict(desc)
         elif preset is Preset.table2:
-            proto = proto_mod.paper_table2(iterations)
+            proto = proto_mod.paper_table2(iterations, center=center)
         elif preset is Preset.rich:
-            proto = proto_mod.rich()
+            proto = proto_mod.rich(center=center)
         else:
             proto = proto_mod.perturbation(
                 [float(b) for b in biases_a.split(",")], [float(o) * 1e-6 for o in offsets_um.split(",")],
-                center=pair(center_um, 1e-6), iterations=iterations)
+                center=center, iterations=iterations)
+        within_limits(spec, proto, effects, allow_beyond_limits)
         sim = rig.simulate(spec, proto, effects, rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6),
                            seed=seed)
+        within_limits(spec, proto, effects, allow_beyond_limits, sim.physical_currents)
     except (ValueError, OSError, tomllib.TOMLDecodeError, rig.RigError) as exc:
         fail(str(exc))
     data_mod.write_csv(sim.data, out)
@@ -94,6 +110,30 @@ def simulate(
     console.print(f"wrote {len(sim.data)} rows to {out}")
 
 
+
+
+def within_limits(spec, proto, effects, allow: bool, currents=None):
+    """Refuse (exit 2) a protocol beyond the bearing's back-up clearance or coil current limit, naming the first
+    step, its set-point and how far it goes; with ``allow``, warn instead."""
+    from ambfit.rig.virtual import limit_violations
+
+    found = limit_violations(spec, proto, effects, currents)
+    if currents is not None:       # the set-points and biases were judged before the run
+        found = [v for v in found if v.kind == "current"]
+    if not found:
+        return
+    steps = sorted({v.step for v in found})
+    limits = {"clearance": "the back-up clearance", "bias": "the coil current limit", "current": "the coil current limit"}
+    kinds = " and ".join(dict.fromkeys(limits[v.kind] for v in found))
+    text = (f"{found[0]}; {len(steps)} of {len(proto)} steps go beyond {kinds} of the bearing "
+            f"({spec.bearing.name})")
+    if allow:
+        warn(f"{text}; run anyway (--allow-beyond-limits)")
+        return
+    hint = ("centre the set-points on the effective origin (--center-um origin, the default), use smaller offsets, "
+            if any(v.kind == "clearance" for v in found) else "use lower biases or loads, ")
+    fail(f"{text}. A real rig would put the rotor on its back-up bearing or overload its coils: {hint}give the "
+         "bearing's real limits (--bearing), or run it anyway with --allow-beyond-limits")
 
 
 @app.command("origin-search")
@@ -114,22 +154,36 @@ def origin_search(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write all readings as contract CSV.")] = None,
     truth: Annotated[Path | None, typer.Option(help="Write the rig's truth as JSON here.")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the trajectory as JSON.")] = None,
+    allow_beyond_limits: Annotated[bool, typer.Option(
+        "--allow-beyond-limits", help="Start even when the first position pair puts the rotor beyond the "
+                                      "bearing's back-up clearance or a bias beyond its coil current limit.")] = False,
     bearing: BearingOption = None,
 ):
-    """Run the paper's effective-origin search on the virtual rig and print its trajectory."""
+    """Run the paper's effective-origin search on the virtual rig and print its trajectory.
+
+    Refuses (exit 2) a first position pair beyond the bearing's back-up clearance (the search then moves
+    towards the bearing centre) unless --allow-beyond-limits.
+    """
     from ambfit import data as data_mod
     from ambfit import rig
     from ambfit.estimation import closed_form
+    from ambfit.faces.cli.progress import progress_bar
     from ambfit.rig import origin
+    from ambfit.rig import protocol as proto_mod
 
     check_output(out, truth, json_out)
     try:
-        res = origin.search(
-            rig.RigSpec(bearing=bearing_of(bearing)), biases=tuple(float(b) for b in biases_a.split(",")),
-            offset=offset_um * 1e-6,
-            start=pair(start_um, 1e-6), tolerance=tolerance_um * 1e-6, iterations=iterations,
-            run_all=not stop_at_tolerance, effects=[parse_effect(e) for e in (effect or [])],
-            noise=rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6), seed=seed, experiment=experiment)
+        spec = rig.RigSpec(bearing=bearing_of(bearing))
+        biases = tuple(float(b) for b in biases_a.split(","))
+        effects = [parse_effect(e) for e in (effect or [])]
+        first = proto_mod.perturbation(biases, (offset_um * 1e-6,), center=pair(start_um, 1e-6))
+        within_limits(spec, first, effects, allow_beyond_limits)
+        with progress_bar() as bar:
+            res = origin.search(
+                spec, biases=biases, offset=offset_um * 1e-6, start=pair(start_um, 1e-6),
+                tolerance=tolerance_um * 1e-6, iterations=iterations, run_all=not stop_at_tolerance,
+                effects=effects, noise=rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6), seed=seed,
+                experiment=experiment, progress=bar)
     except (ValueError, rig.RigError, closed_form.ClosedFormError) as exc:
         fail(str(exc))
     show_table(res.display_rows(), res.title)

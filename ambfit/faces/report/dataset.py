@@ -74,7 +74,7 @@ def posterior(result, *, draw: bool = True) -> dict:
     if draw:
         from ambfit.faces import plots
 
-        pair = figure(plots.plot_pair(result))
+        pair = figure(plots.plot_pair(result, result=result.ls))
     return {"table": table(post, 4), "n_ensembles": int(result.draws.shape[0]), "n_steps": result.n_steps,
             "n_walkers": result.n_walkers, "tau_max": float(np.max(result.tau)), "message": result.message,
             "converged": rec["converged"], "figure": pair}
@@ -154,12 +154,22 @@ def _attempt(what: str, compute) -> dict:
         return failed(what, exc)
 
 
+SECTIONS = ("least squares", "closed form", "posterior", "solution space", "design", "diagnosis", "writing")
+"""The report's steps in order, as its ``progress`` callback names them."""
+
+
+def _step(progress, name: str) -> None:
+    if progress is not None:
+        progress(f"report: {name}", SECTIONS.index(name), len(SECTIONS))
+
+
 def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
-              do_diagnosis, seed) -> dict:
+              do_diagnosis, seed, progress=None) -> dict:
     """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON."""
     from ambfit.estimation import bayes, closed_form, conditioning
     from ambfit.estimation import design as design_mod
 
+    _step(progress, "closed form")
     try:
         closed = closed_form.identify(ds, bearing=bearing)
         record["closed_form"] = closed.to_json()
@@ -173,7 +183,9 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         record["bayes"] = sr.to_json()
         return posterior(sr)
 
+    _step(progress, "posterior")
     out["posterior"] = _attempt("Posterior sampling", sample) if do_posterior else skipped("--no-posterior")
+    _step(progress, "solution space")
     spaces = {}
     for axis in ("v", "w"):
         try:
@@ -188,26 +200,30 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         record["design"] = {k: v for k, v in rec.to_json().items() if k in ("std_now", "steps")}
         return design(rec, max_radius_um=max_radius_um)
 
+    _step(progress, "design")
     out["design"] = _attempt("Design recommendation", recommend)
 
     def diagnose():
         from ambfit import diagnosis as gap
 
-        dg = gap.diagnose(ds, bearing=bearing, baseline=res)
+        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress)
         record["diagnosis"] = dg.to_json()
         return diagnosis(dg)
 
+    _step(progress, "diagnosis")
     out["diagnosis"] = _attempt("Diagnosis", diagnose) if do_diagnosis else skipped("--no-diagnosis")
     return out
 
 
 def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
                 bearing=PAPER_BEARING, max_radius_um: float | None = 50.0, do_posterior: bool = True,
-                do_diagnosis: bool = True, seed: int = 0, command: str = "") -> tuple[Path, dict]:
+                do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None) -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
     and ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the
     closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
-    the page says why and the record's ``least_squares`` holds the ``error``.
+    the page says why and the record's ``least_squares`` holds the ``error``.  ``progress``, if given, is
+    called as ``progress("report: <section>", done, total)`` as each section starts (and by the diagnosis as
+    ``progress("candidate effects", done, total)``).
 
     Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
     """
@@ -220,6 +236,7 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
     ds = read_csv(data_path)
     record = {"data": str(data_path), "n_rows": len(ds.frame)}
     sections = {"overview": overview(data_path, ds)}
+    _step(progress, "least squares")
     try:
         res = fit(ds, bearing=bearing)
     except FitError as exc:
@@ -229,7 +246,8 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
         record["least_squares"] = res.to_json()
         sections |= _sections(ds, res, record, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                               bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
-                              do_diagnosis=do_diagnosis, seed=seed)
+                              do_diagnosis=do_diagnosis, seed=seed, progress=progress)
+    _step(progress, "writing")
     (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
     html_path = out / "index.html"
     command = command or f"ambfit report {data_path} --out {out}"

@@ -90,10 +90,11 @@ def readme(s: dict, *, replicates: int, seconds: float) -> str:
 
 
 def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, demonstration: bool = True,
-                 command: str = "", progress: bool = False) -> Path:
+                 command: str = "", progress=None) -> Path:
     """Reproduce the seed paper on the rig and write ``out/``: ``index.html`` (self-contained),
     ``README.md``, ``comparison.csv`` (every row of Tables 1-4), ``spread.csv``, ``reproduction.json`` and
-    the figures as PNG.  Returns the HTML path."""
+    the figures as PNG.  Returns the HTML path.  ``progress``, if given, is called as ``progress(phase, done,
+    total)`` (:func:`ambfit.studies.paper.reproduce`'s phases, then ``"paper: <step>"``)."""
     from ambfit.estimation import conditioning
     from ambfit.estimation.fit import FitError, fit
 
@@ -104,16 +105,26 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     spread = rep.spread()
     rep.comparison().to_csv(out / "comparison.csv", index=False)
     spread.to_csv(out / "spread.csv", index=False)
+    steps = ("Fig. 2", "figures", "gap demonstration", "writing")
+
+    def step(name):
+        if progress is not None:
+            progress(f"paper: {name}", steps.index(name), len(steps))
+
+    step("Fig. 2")
     f2 = study.fig2_data()
     space = conditioning.solution_space(f2, "v")
     try:
         fig2_fit = fit(f2)
     except FitError as exc:
         fig2_fit = exc
+    step("figures")
     figs = _figures(out, rep, space, fig2_fit, spread)
     bias_check = paper_gap.bias_pair_check()
     published = paper_gap.published_gap()
+    step("gap demonstration")
     demo = paper_gap.gap_demonstration(seed=seed) if demonstration else None
+    step("writing")
     record = _record(rep, seed=seed, space=space, fig2_fit=fig2_fit, bias_check=bias_check, published=published,
                      demo=demo)
     (out / "reproduction.json").write_text(json.dumps(record, indent=2, default=float))

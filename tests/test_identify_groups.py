@@ -1,0 +1,143 @@
+"""``ambfit identify`` on many files and groups: one estimate per group, each judged on its own, a table and a JSON
+entry per group, a pooled fit only when asked, and an exit code that says whether every group is fine."""
+
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from ambfit.faces.cli import app
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLE2 = ROOT / "data" / "paper_table2.csv"
+WIDE = {"COLUMNS": "400"}
+
+
+def runs(table2, *labels):
+    """The default data once per label, as separate runs (experiment and column ``run`` = the label)."""
+    return pd.concat([table2.assign(run=x, experiment=f"table2-{x}") for x in labels])
+
+
+def run(*args):
+    return CliRunner().invoke(app, ["identify", *map(str, args)], env=WIDE)
+
+
+@pytest.fixture(scope="module")
+def table2():
+    return pd.read_csv(TABLE2)
+
+
+@pytest.fixture
+def bearings(tmp_path, table2):
+    """One file, three bearings: A (the default data), B (loads typed in mN: implausible), C (two readings at one
+    position: the design does not identify the gap)."""
+    a = table2.assign(bearing="A")
+    b = table2.assign(bearing="B", load_N=table2["load_N"] * 1e3, load_id="B" + table2["load_id"].astype(str),
+                      experiment="B")
+    c = table2[table2["axis"] == "v"].head(2).assign(bearing="C", experiment="C", load_id="C")
+    path = tmp_path / "bearings.csv"
+    pd.concat([a, b, c]).to_csv(path, index=False)
+    return path
+
+
+def test_one_file_without_by_keeps_the_contract_json(tmp_path):
+    out = tmp_path / "o.json"
+    r = run(TABLE2, "--json", out)
+    assert r.exit_code == 0, r.output
+    js = json.loads(out.read_text())
+    assert "groups" not in js and js["method"] == "least_squares" and js["n_rows"] == 80
+    assert set(js["params"]) >= {"g_v0_um", "v0_um", "g_w0_um", "w0_um"}
+
+
+def test_several_files_and_a_glob_give_one_row_each_and_an_unreadable_file_exits_2(tmp_path, table2):
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    table2.to_csv(runs / "a.csv", index=False)
+    table2[table2["iteration"] <= 5].to_csv(runs / "b.csv", index=False)
+    (runs / "c.csv").write_text("axis,bias_A,i_top_A,i_bottom_A,v_um,w_um\nq,1.4,1.5,1.3,20,20\n")
+    table, out = tmp_path / "t.csv", tmp_path / "g.json"
+    # the glob quoted (as a shell would pass 'runs/*.csv'), a.csv also named on its own: identified once
+    r = run(runs / "a.csv", str(runs / "*.csv"), "--table", table, "--json", out)
+    assert r.exit_code == 2, r.output
+    assert "c.csv" in r.output and "row 1" in r.output and "'q'" in r.output          # the DataError, in full
+    assert "1 of 3 group(s) not fine" in r.output and "(unreadable)" in r.output
+    t = pd.read_csv(table)
+    assert [Path(f).name for f in t["file"]] == ["a.csv", "b.csv", "c.csv"]
+    assert t["status"].tolist() == ["ok", "ok", "unreadable"] and t["n_rows"].tolist()[:2] == [80, 40]
+    assert {"g_v0_um", "g_v0_std_um", "v0_um", "k_v_Nm2_per_A2", "k_v_std_Nm2_per_A2", "reduced_chi2", "converged",
+            "well_conditioned", "adequate", "outliers", "implausible", "error"} <= set(t.columns)
+    js = json.loads(out.read_text())
+    assert "pooled" not in js and js["n_groups"] == 3 and js["n_ok"] == 2
+    a = js["groups"][0]
+    assert a["params"]["g_v0_um"]["value"] == pytest.approx(t["g_v0_um"][0])
+    assert a["params"]["g_v0_um"]["std"] == pytest.approx(t["g_v0_std_um"][0])
+    # fewer iterations, larger error bar: each file is its own fit
+    assert t["g_v0_std_um"][1] > 1.3 * t["g_v0_std_um"][0]
+    assert "c.csv" in js["groups"][2]["error"]
+
+
+def test_a_pattern_that_matches_nothing_is_named(tmp_path):
+    r = run(TABLE2, str(tmp_path / "nothing*.csv"))
+    assert r.exit_code == 2 and "no file matches this pattern" in r.output
+
+
+def test_by_any_column_judges_each_group_on_its_own(bearings, tmp_path):
+    table, out = tmp_path / "t.csv", tmp_path / "g.json"
+    r = run(bearings, "--by", "bearing", "--table", table, "--json", out)
+    assert r.exit_code == 3, r.output
+    t = pd.read_csv(table)
+    assert t["group"].tolist() == ["A", "B", "C"] and t["bearing"].tolist() == ["A", "B", "C"]
+    assert t["status"].tolist() == ["ok", "implausible", "failed"]
+    assert t["implausible"].tolist() == [False, True, False] and "kN" in t["implausible_why"][1]
+    assert "does not identify" in t["error"][2]
+    # A is the default data's fit, untouched by B and C; B's gap is estimated (only its loads are wrong)
+    assert run(TABLE2, "--json", tmp_path / "a.json").exit_code == 0
+    alone = json.loads((tmp_path / "a.json").read_text())
+    assert t["g_v0_um"][0] == pytest.approx(alone["params"]["g_v0_um"]["value"], rel=1e-9)
+    assert abs(t["g_v0_um"][1] - t["g_v0_um"][0]) < 1e-6
+    assert "2 of 3 group(s) not fine: B (implausible); C (fit failed)" in r.output
+    js = json.loads(out.read_text())
+    assert js["by"] == "bearing" and [g["value"] for g in js["groups"]] == ["A", "B", "C"]
+    # --accept-implausible lets B pass; C still fails the fit
+    r = run(bearings, "--by", "bearing", "--accept-implausible")
+    assert r.exit_code == 3 and "1 of 3 group(s) not fine: C (fit failed)" in r.output
+
+
+def test_pooled_only_when_asked(bearings, tmp_path, table2):
+    out = tmp_path / "g.json"
+    data = tmp_path / "two.csv"
+    runs(table2, "1", "2").to_csv(data, index=False)
+    r = run(data, "--by", "run", "--pooled", "--json", out)
+    assert r.exit_code == 0, r.output
+    js = json.loads(out.read_text())
+    assert [g["group"] for g in js["groups"]] == ["1", "2"]
+    pooled = js["pooled"]
+    assert pooled["group"] == "(pooled)" and pooled["n_rows"] == 160 and pooled["status"] == "ok"
+
+
+def test_a_missing_by_column_names_the_columns(tmp_path):
+    r = run(TABLE2, "--by", "operator")
+    assert r.exit_code == 2 and "no column 'operator'" in r.output and "experiment" in r.output
+
+
+def test_duplicates_in_a_group_are_named_by_their_file_rows(tmp_path, table2):
+    both = runs(table2, "1", "2").drop(columns="time_s")     # a repeat at the end would run time backwards
+    data = tmp_path / "d.csv"
+    pd.concat([both, both.iloc[[80]]]).to_csv(data, index=False)          # file row 161 repeats row 81
+    r = run(data, "--by", "run")
+    assert r.exit_code == 0, r.output
+    assert "rows 161 repeats 81" in r.output
+
+
+def test_closed_form_per_group(tmp_path, table2):
+    data = tmp_path / "two.csv"
+    runs(table2, "1", "2").to_csv(data, index=False)
+    out = tmp_path / "g.json"
+    r = run(data, "--by", "run", "--method", "closed-form", "--json", out)
+    assert r.exit_code == 0, r.output
+    js = json.loads(out.read_text())
+    assert js["method"] == "closed_form"
+    g1, g2 = (g["params"]["g_v0_um"]["value"] for g in js["groups"])
+    assert g1 == pytest.approx(g2, rel=1e-12)         # the same data twice: the same estimate
