@@ -330,6 +330,25 @@ def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -
     return out
 
 
+def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The other axis' ``(i_top_A, i_bottom_A)`` read at the same moment as each row (NaN where none).
+
+    Rows of both axes taken at one moment share ``time_s`` (and ``experiment``, contract section 1);
+    without a ``time_s`` column every entry is NaN.
+    """
+    n = len(df)
+    nan = np.full(n, np.nan)
+    if "time_s" not in df.columns:
+        return nan, nan.copy()
+    exp = df["experiment"].astype(str) if "experiment" in df.columns else pd.Series("", index=df.index)
+    key = pd.DataFrame({"exp": exp.to_numpy(), "t": df["time_s"].to_numpy(float), "axis": df["axis"].to_numpy(),
+                        "it": df["i_top_A"].to_numpy(float), "ib": df["i_bottom_A"].to_numpy(float)})
+    first = key.dropna(subset=["t"]).drop_duplicates(subset=["exp", "t", "axis"])
+    other = key.assign(axis=key["axis"].map({"v": "w", "w": "v"}))
+    merged = other.merge(first, on=["exp", "t", "axis"], how="left", suffixes=("", "_o"))
+    return merged["it_o"].to_numpy(float), merged["ib_o"].to_numpy(float)
+
+
 def readings(data: Dataset | pd.DataFrame):
     """The rows as :class:`ambfit.physics.model.Readings` in SI units."""
     from ambfit.physics.model import Readings
@@ -344,4 +363,5 @@ def readings(data: Dataset | pd.DataFrame):
         time=df["time_s"].to_numpy(float) if "time_s" in df.columns else None,
         temperature=df["temperature_C"].to_numpy(float) if "temperature_C" in df.columns else None,
         dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
+        **dict(zip(("i_top_other", "i_bottom_other"), other_axis_currents(df))),
     )

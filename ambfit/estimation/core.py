@@ -97,7 +97,8 @@ def to_theta(g0, x0, k, loads=(), q=()) -> np.ndarray:
 class Model(eqx.Module):
     """What is fitted beyond gap, origin, k and loads: effects whose ``RANGES`` fields are free.
 
-    ``fields`` lists ``(effect index, field name)``; each free field is a ``(v, w)`` pair with
+    ``fields`` lists ``(effect index, field name, shared)``; each free field is a ``(v, w)`` pair, or one
+    value for both axes when the effect class sets ``SHARED`` (a property of the whole stator), with
     prior centre and width from the effect's ``RANGES`` (zero-centred for signed parameters).
     """
 
@@ -111,15 +112,16 @@ class Model(eqx.Module):
     def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING) -> Model:
         fields, centre, width = [], [], []
         for i, e in enumerate(effects):
-            for name, (lo, hi) in type(e).RANGES.items():
+            shared = getattr(type(e), "SHARED", False)
+            for name, (lo, hi) in e.ranges().items():
                 if lo == hi:
                     continue
-                fields.append((i, name))
+                fields.append((i, name, shared))
                 signed = name in type(e).SIGNED
                 c = 0.0 if signed else 0.5 * (lo + hi)
                 wd = hi if signed else max(hi - lo, 1e-12)
-                centre += [c, c]
-                width += [wd, wd]
+                centre += [c] if shared else [c, c]
+                width += [wd] if shared else [wd, wd]
         return cls(tuple(effects), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
                    jnp.asarray(width, dtype=float).reshape(-1), bearing)
 
@@ -134,14 +136,22 @@ class Model(eqx.Module):
         return "+".join(type(e).name for e in self.effects) or "ideal"
 
     def names(self) -> list[str]:
-        return [f"{type(self.effects[i]).name}.{f}[{ax}]" for i, f in self.fields for ax in AXES]
+        """``effect.field[axis]`` per axis, or ``effect.field`` for a field both axes share (one stator)."""
+        out = []
+        for i, f, shared in self.fields:
+            base = f"{type(self.effects[i]).name}.{f}"
+            out += [base] if shared else [f"{base}[{ax}]" for ax in AXES]
+        return out
 
     def build(self, q) -> tuple:
         """Effects with their free fields set from the scaled vector ``q`` (value = centre + width * q)."""
         vals = self.centre + self.width * q
         effects = list(self.effects)
-        for j, (i, f) in enumerate(self.fields):
-            effects[i] = eqx.tree_at(lambda e, f=f: getattr(e, f), effects[i], vals[2 * j:2 * j + 2])
+        j = 0
+        for i, f, shared in self.fields:
+            v = jnp.broadcast_to(vals[j:j + 1], (2,)) if shared else vals[j:j + 2]
+            effects[i] = eqx.tree_at(lambda e, f=f: getattr(e, f), effects[i], v)
+            j += 1 if shared else 2
         return tuple(effects)
 
 

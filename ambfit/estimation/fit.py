@@ -231,6 +231,11 @@ def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0
     if not edm < EDM_MAX and max_steps > first:  # a far start: give Levenberg-Marquardt room
         theta, result, more, edm, jac, z = solve_and_measure(theta, prob, model, max_steps=max_steps)
         steps = steps + more
+    if not edm < EDM_MAX and model.n and steps < max_steps:
+        # the effective-variance weights moved after the last round (strongly nonlinear models): one more
+        # solve with the same compiled function settles them
+        theta, result, more, edm, jac, z = solve_and_measure(theta, prob, model, max_steps=max_steps)
+        steps = steps + more
     lm = "successful" if result == optx.RESULTS.successful else str(result)
     theta = np.asarray(theta)
     correction = None

@@ -35,8 +35,8 @@ from ambfit.physics.model import Context, _set
 
 __all__ = [
     "Effect", "Saturation", "IronReluctance", "Fringing", "Leakage", "CurrentOffset",
-    "CurrentGain", "PositionGain", "CrossCoupling", "Hysteresis", "ThermalDrift",
-    "EFFECTS", "effect_by_name",
+    "CurrentGain", "PositionGain", "CrossCoupling", "Hysteresis", "ThermalDrift", "MagneticCircuit",
+    "EFFECTS", "CIRCUITS", "effect_by_name",
 ]
 
 
@@ -53,6 +53,10 @@ class Effect(eqx.Module):
     SIGNED: ClassVar[tuple[str, ...]] = ()
     UNITS: ClassVar[dict[str, str]] = {}
     stateful: ClassVar[bool] = False
+
+    def ranges(self) -> dict[str, tuple[float, float]]:
+        """The free parameters of this instance and their ranges (``RANGES``; an instance may fix some)."""
+        return type(self).RANGES
 
     def sense(self, axis, i_top, i_bottom, x, y):
         """Physical currents [A] and positions [m] -> what the sensors report."""
@@ -365,20 +369,104 @@ class ThermalDrift(Effect):
         return ambient_C + self.heating_K * (1.0 - jnp.exp(-jnp.asarray(time_s) / self.tau_s))
 
 
+class MagneticCircuit(Effect):
+    """The whole stator and rotor as a nonlinear magnetic equivalent circuit, in place of Eq. 4.
+
+    One physics for what :class:`Saturation`, :class:`IronReluctance`, :class:`Fringing`,
+    :class:`Leakage` and :class:`CrossCoupling` patch one by one: iron with the bearing's B-H curve
+    in every pole, yoke and rotor branch; Roters fringing permeances at every pole side; slot
+    leakage permeances between neighbouring poles; and the four horseshoes sharing back iron, so
+    that this axis' displacement changes the gaps of the other axis' poles 22.5° away and flux
+    crosses between horseshoes as the polarity (NNSS/NSNS) dictates
+    (:mod:`ambfit.physics.circuit`, with its references).  The circuit is solved per reading
+    with both axes' currents (rows paired by ``time_s``); the gap of each row is its axis'
+    effective gap ``g0`` (the air gap as drawn when this physics is right), the displacement
+    ``x0 + x``, and the force is scaled by ``k`` over the geometric force constant (1 when the
+    turns and pole face are as drawn).
+
+    Parameters a designer recognises (their ranges are the priors' scale):
+
+    ``fringe_depth`` [m]
+        Depth of the fringing field beside each pole side (Roters' "half annulus"): about half
+        the slot opening at the bore, 1-5 mm for radial bearings of 20-100 mm bore.
+    ``leakage`` [-]
+        Slot-leakage shape factor λ: permeance ``MU_0 l λ`` between neighbouring pole bodies,
+        0.2-1 for open slots (Meeker, Maslen & Noh 1996).
+    ``iron_scale`` [-]
+        The B-H curve's field strength times this: 1 for datasheet iron over the drawn iron
+        path; stress from punching, joints and a longer mean path raise it (0.5-2).
+    ``pole_area_ratio`` [-]
+        Pole-body cross-section over the pole face (< 1 under pole shoes; 0.5-1).
+    """
+
+    fringe_depth: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(3.0e-3))
+    leakage: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.5))
+    iron_scale: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.0))
+    pole_area_ratio: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.8))
+    off: tuple = eqx.field(static=True, default=())
+    """Pieces of the physics switched off (``PIECES`` names): to measure what each one contributes."""
+    name: ClassVar[str] = "magnetic_circuit"
+    PIECES: ClassVar = {"saturation": (), "iron": ("iron_scale", "pole_area_ratio"), "fringing": ("fringe_depth",),
+                        "leakage": ("leakage",), "coupling": ()}
+    """Each piece of the physics and the parameters that only it uses.  ``saturation`` off: the iron keeps a
+    constant permeability (the B-H curve's initial slope, scaled by ``iron_scale``); ``iron`` off: ideal iron."""
+    RANGES: ClassVar = {"fringe_depth": (1.0e-3, 5.0e-3), "leakage": (0.2, 1.0), "iron_scale": (0.5, 2.0),
+                        "pole_area_ratio": (0.5, 1.0)}
+    UNITS: ClassVar = {"fringe_depth": "m", "leakage": "-", "iron_scale": "-", "pole_area_ratio": "-"}
+    needs_other_axis: ClassVar[bool] = True
+    SHARED: ClassVar[bool] = True          # one stator: the same parameters for both axes
+    FAMILIES: ClassVar = ("saturation", "iron_reluctance", "fringing", "leakage", "cross_coupling")
+
+    def ranges(self):
+        fixed = {f for piece in self.off for f in self.PIECES[piece]}
+        return {k: v for k, v in self.RANGES.items() if k not in fixed}
+
+    def without(self, piece: str) -> MagneticCircuit:
+        """The same circuit with one more piece (``iron``, ``fringing``, ``leakage``, ``coupling``) switched off."""
+        if piece not in self.PIECES:
+            raise ValueError(f"unknown piece {piece!r}; pieces: {', '.join(self.PIECES)}")
+        return dataclasses.replace(self, off=tuple(sorted({*self.off, piece})))
+
+    def force(self, ctx, force):
+        from ambfit.physics import circuit
+
+        a = ctx.axis
+        off = set(self.off)
+        params = circuit.MECParams.drawing(ctx.bearing).replace(
+            gap=ctx.g0, fringe_depth=0.0 if "fringing" in off else _ax(self.fringe_depth, a),
+            leakage=0.0 if "leakage" in off else _ax(self.leakage, a),
+            iron_h_scale=0.0 if "iron" in off else _ax(self.iron_scale, a),
+            pole_area_ratio=1.0 if "iron" in off else _ax(self.pole_area_ratio, a),
+            link=0.0 if "coupling" in off else 1.0)
+        bearing = ctx.bearing
+        if "saturation" in off and bearing.b_curve:
+            # linear iron at the curve's initial permeability (iron_scale still scales it)
+            b, h = bearing.b_curve, bearing.h_curve
+            mu_r = (b[1] - b[0]) / ((h[1] - h[0]) * 4e-7 * 3.141592653589793)
+            bearing = bearing.with_(b_curve=(0.0, 10.0), h_curve=(0.0, 10.0 / (4e-7 * 3.141592653589793 * mu_r)))
+        f = circuit.row_axis_force(params, bearing, a, ctx.m_top, ctx.m_bottom, ctx.i_top_other,
+                                   ctx.i_bottom_other, ctx.x, ctx.y, ctx.x0, ctx.y0)
+        return f * ctx.k / ctx.bearing.force_constant(1.0)
+
+
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Saturation, IronReluctance, Fringing, Leakage, CurrentOffset, CurrentGain,
                 PositionGain, CrossCoupling, Hysteresis, ThermalDrift)
 }
-"""Every effect class by its contract name."""
+"""Every effect class of the contract (section 3) by its name."""
+
+CIRCUITS: dict[str, type[Effect]] = {MagneticCircuit.name: MagneticCircuit}
+"""Models that replace Eq. 4 by a magnetic circuit of the whole bearing (they need both axes' currents)."""
 
 
 def effect_by_name(name: str, **params) -> Effect:
     """An effect from its contract name and parameters (SI units; defaults otherwise)."""
+    known = {**EFFECTS, **CIRCUITS}
     try:
-        cls = EFFECTS[name]
+        cls = known[name]
     except KeyError:
-        raise ValueError(f"unknown effect {name!r}; valid names: {', '.join(EFFECTS)}") from None
+        raise ValueError(f"unknown effect {name!r}; valid names: {', '.join(known)}") from None
     fields = {f.name for f in dataclasses.fields(cls)}
     bad = set(params) - fields
     if bad:

@@ -103,6 +103,10 @@ class Readings(eqx.Module):
         Direction from which each coil current was approached: +1 rising, -1 falling,
         0 unknown (derived from the order of readings, see
         :func:`ambfit.data.approach_direction`).
+    i_top_other, i_bottom_other : array[n] or None
+        The other axis' coil currents at the same moment [A] (the row of the other axis with the
+        same ``experiment`` and ``time_s``, :func:`ambfit.data.other_axis_currents`); NaN where
+        there is none.  Only effects coupling the axes through the stator need them.
     """
 
     axis: jnp.ndarray
@@ -115,11 +119,13 @@ class Readings(eqx.Module):
     temperature: jnp.ndarray
     dir_top: jnp.ndarray
     dir_bottom: jnp.ndarray
+    i_top_other: jnp.ndarray | None = None
+    i_bottom_other: jnp.ndarray | None = None
 
     @classmethod
     def build(
         cls, axis, i_top, i_bottom, x, y=None, bias=None, time=None, temperature=None,
-        dir_top=None, dir_bottom=None,
+        dir_top=None, dir_bottom=None, i_top_other=None, i_bottom_other=None,
     ) -> Readings:
         """Readings from array-likes; optional fields default to 'unknown'."""
         axis = jnp.asarray(axis, dtype=int)
@@ -131,6 +137,7 @@ class Readings(eqx.Module):
             axis=axis, i_top=i_top, i_bottom=arr(i_bottom, 0.0), x=arr(x, 0.0), y=arr(y, 0.0),
             bias=arr(bias, np.nan), time=arr(time, 0.0), temperature=arr(temperature, np.nan),
             dir_top=arr(dir_top, 0.0), dir_bottom=arr(dir_bottom, 0.0),
+            i_top_other=arr(i_top_other, np.nan), i_bottom_other=arr(i_bottom_other, np.nan),
         )
 
     def __len__(self) -> int:
@@ -170,6 +177,8 @@ class Context(eqx.Module):
     k_bottom: jnp.ndarray
     m_prev_top: jnp.ndarray
     m_prev_bottom: jnp.ndarray
+    i_top_other: jnp.ndarray
+    i_bottom_other: jnp.ndarray
 
     def b_top(self) -> jnp.ndarray:
         """Ideal-circuit flux density in the top gaps [T] (:meth:`Bearing.flux_density`)."""
@@ -201,6 +210,8 @@ def make_context(
         g_top=nan, g_bottom=nan, m_top=nan, m_bottom=nan, k_top=nan, k_bottom=nan,
         m_prev_top=nan if m_prev_top is None else jnp.asarray(m_prev_top, dtype=float),
         m_prev_bottom=nan if m_prev_bottom is None else jnp.asarray(m_prev_bottom, dtype=float),
+        i_top_other=nan if readings.i_top_other is None else readings.i_top_other,
+        i_bottom_other=nan if readings.i_bottom_other is None else readings.i_bottom_other,
     )
 
 

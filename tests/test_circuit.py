@@ -1,0 +1,240 @@
+"""The magnetic equivalent circuit (ambfit.physics.circuit) against the ideal law and the physics it adds.
+
+Every call below uses batches of ``BATCH`` readings so that the jitted solver compiles once per
+bearing (compilation dominates the run time of this file).
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
+from ambfit.physics.circuit import MECParams, _residual, _unpack, mec_axis_force, mec_forces, mec_solve, row_axis_force
+from ambfit.physics.model import ideal_force
+
+BATCH = 8
+# An 8-pole bearing with a lamination B-H curve (the FEM development bearing's datasheet numbers).
+FEM_BEARING = PAPER_BEARING.with_(
+    name="fem-like", turns_per_pole=160.0, pole_area=116e-6, pole_width=5.8e-3,
+    b_curve=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.3, 1.4, 1.5, 1.6, 1.7, 1.8, 1.9),
+    h_curve=(0.0, 31.9, 63.8, 96.0, 129.0, 166.0, 225.4, 291.3, 442.3, 844.7, 2032.8, 5818.9, 18703.1, 65355.4),
+)
+REAL = MECParams.drawing(FEM_BEARING, fringe_axial=0.0, fringe_depth=3.4e-3, pole_area_ratio=0.67)
+
+
+def batch(*cols):
+    """Columns padded/broadcast to ``BATCH`` rows."""
+    return [jnp.resize(jnp.asarray(c, dtype=float), (BATCH,)) for c in cols]
+
+
+def random_readings(seed, bias=1.5, reach=50e-6):
+    rng = np.random.default_rng(seed)
+    i_vt, i_vb, i_wt, i_wb = (bias + rng.uniform(-0.9, 0.9, BATCH) for _ in range(4))
+    dv, dw = rng.uniform(-reach, reach, BATCH), rng.uniform(-reach, reach, BATCH)
+    return batch(i_vt, i_vb, i_wt, i_wb, dv, dw)
+
+
+@pytest.mark.parametrize("bearing", [PAPER_BEARING, FEM_BEARING], ids=["linear-iron", "bh-curve"])
+def test_ideal_assumptions_give_the_ideal_law(bearing):
+    # Ideal iron, no fringing, no leakage, isolated horseshoes: each horseshoe is two gaps in series
+    # and Eq. 3 holds exactly for both axes, also with the rotor off-centre on the other axis.
+    # The only departure is the MU_R_MAX = 1e12 ceiling, ~1e-10 relative.
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(1)
+    fv, fw = mec_forces(MECParams.ideal(bearing), bearing, i_vt, i_vb, i_wt, i_wb, dv, dw)
+    k = bearing.force_constant(lamination=1.0)
+    g = bearing.nominal_gap
+    np.testing.assert_allclose(fv, ideal_force(g, 0.0, k, i_vt, i_vb, dv, bearing.cos_alpha), rtol=1e-9)
+    np.testing.assert_allclose(fw, ideal_force(g, 0.0, k, i_wt, i_wb, dw, bearing.cos_alpha), rtol=1e-9)
+
+
+def test_force_is_odd_under_the_mirror_of_an_axis():
+    # Mirroring v -> -v maps the v top horseshoe onto the bottom one (and every N pole onto an S
+    # pole, which the force does not see): F_v(-dv, i_vb, i_vt) = -F_v(dv, i_vt, i_vb), F_w unchanged.
+    # Holds for the full nonlinear circuit; a wrong pole angle, polarity or coil map breaks it.
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(2, bias=2.0)
+    s = mec_solve(REAL, FEM_BEARING, i_vt, i_vb, i_wt, i_wb, dv, dw)
+    m = mec_solve(REAL, FEM_BEARING, i_vb, i_vt, i_wt, i_wb, -dv, dw)
+    assert float(jnp.max(s.residual)) < 1e-12
+    np.testing.assert_allclose(m.force[:, 0], -s.force[:, 0], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(m.force[:, 1], s.force[:, 1], rtol=1e-9, atol=1e-9)
+    # and the same for w
+    m = mec_solve(REAL, FEM_BEARING, i_vt, i_vb, i_wb, i_wt, dv, -dw)
+    np.testing.assert_allclose(m.force[:, 1], -s.force[:, 1], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(m.force[:, 0], s.force[:, 0], rtol=1e-9, atol=1e-9)
+
+
+def test_saturation_lowers_the_force_at_high_current():
+    # One coil energised, rotor centred: the B-H curve's iron against ideal iron.  Far below the
+    # knee the ratio is the (small) constant iron-reluctance loss; it falls steeply once the pole
+    # body passes ~1.4 T.
+    currents = jnp.linspace(0.5, 8.0, BATCH)
+    zero = jnp.zeros(BATCH)
+    iron = mec_forces(REAL, FEM_BEARING, currents, zero, zero, zero, zero, zero)[0]
+    ideal_iron = mec_forces(REAL.replace(iron_h_scale=0.0), FEM_BEARING, currents, zero, zero, zero, zero, zero)[0]
+    ratio = np.asarray(iron / ideal_iron)
+    assert np.all(np.diff(ratio) < 0)
+    assert 0.95 < ratio[0] < 1.0
+    assert ratio[-1] < 0.6
+    b_pole = np.abs(np.asarray(mec_solve(REAL, FEM_BEARING, currents, zero, zero, zero, zero, zero).b_pole)).max(1)
+    assert b_pole[0] < 0.5 and b_pole[-1] > 1.6
+
+
+def test_the_other_axis_bias_adds_negative_stiffness_growing_with_its_square():
+    # With a solid back-iron ring the w horseshoes' poles (22.5 deg off the w axis, i.e. 67.5 deg
+    # from v) pull the rotor along v when it moves on v: extra negative stiffness (dF_v/ddv > 0)
+    # proportional to the w bias squared (linear iron).  Isolated horseshoes (link 0) have none:
+    # each horseshoe's two gaps stay in series and the ideal law holds.
+    h = 1e-7
+    zero, v_bias = jnp.zeros(BATCH), jnp.full(BATCH, 1.0)
+    w_bias = jnp.array([0.0, 1.0, 2.0, 0.0, 0.0, 1.0, 2.0, 0.0])
+    link = jnp.array([1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+
+    def stiffness(link_value, rows):
+        p = MECParams.ideal(PAPER_BEARING, link=link_value)
+        f = lambda d: mec_forces(p, PAPER_BEARING, v_bias, v_bias, w_bias, w_bias, d, zero)[0]  # noqa: E731
+        return np.asarray((f(jnp.full(BATCH, h)) - f(jnp.full(BATCH, -h))) / (2 * h))[rows]
+
+    ring = stiffness(1.0, [0, 1, 2])
+    isolated = stiffness(0.0, [4, 5, 6])
+    extra = ring[1:] - ring[0]
+    assert np.all(extra > 0)
+    assert extra[1] / extra[0] == pytest.approx(4.0, rel=1e-4)
+    np.testing.assert_allclose(isolated, isolated[0], rtol=1e-6)
+    k = PAPER_BEARING.force_constant(lamination=1.0)
+    g = PAPER_BEARING.nominal_gap
+    ideal = 4 * k * PAPER_BEARING.cos_alpha * 1.0 / g**3           # d/dx of Eq. 4 at the centre, 1 A / 1 A
+    assert isolated[0] == pytest.approx(ideal, rel=1e-6)
+    assert link[0] == 1.0  # (documentation of the layout above)
+
+
+def test_implicit_derivatives_match_finite_differences():
+    # The solver's derivatives come from one Newton step with a frozen Jacobian; check them against
+    # central differences of the converged solution in a parameter (gap) and an input (current).
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(3, bias=2.0)
+
+    def fv(gap, i_top):
+        return mec_forces(REAL.replace(gap=gap), FEM_BEARING, i_top, i_vb, i_wt, i_wb, dv, dw)[0]
+
+    g0 = REAL.gap
+    jac_g, jac_i = jax.jacfwd(fv, argnums=(0, 1))(g0, i_vt)     # one trace for both
+    jac_i = jnp.diag(jac_i)
+    hg, hi = 1e-9, 1e-6
+    fd_g = (fv(g0 + hg, i_vt) - fv(g0 - hg, i_vt)) / (2 * hg)
+    fd_i = (fv(g0, i_vt + hi) - fv(g0, i_vt - hi)) / (2 * hi)
+    np.testing.assert_allclose(jac_g, fd_g, rtol=2e-6)
+    np.testing.assert_allclose(jac_i, fd_i, rtol=2e-6)
+
+
+def test_axis_force_picks_each_rows_axis_and_origin():
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(4)
+    fv, fw = mec_forces(REAL, FEM_BEARING, i_vt, i_vb, i_wt, i_wb, dv, dw)
+    x0, y0 = 12e-6, -7e-6
+    axis = jnp.array([0, 1] * (BATCH // 2))
+    is_v = axis == 0
+    row = mec_axis_force(REAL, FEM_BEARING, axis, jnp.where(is_v, i_vt, i_wt), jnp.where(is_v, i_vb, i_wb),
+                         jnp.where(is_v, i_wt, i_vt), jnp.where(is_v, i_wb, i_vb),
+                         jnp.where(is_v, dv, dw) - x0, jnp.where(is_v, dw, dv) - y0, x0, y0)
+    np.testing.assert_allclose(row, jnp.where(is_v, fv, fw), rtol=1e-12)
+    assert math.isfinite(float(row[0]))
+
+
+def test_bearing_without_a_bh_curve_uses_linear_iron():
+    assert isinstance(PAPER_BEARING, Bearing) and PAPER_BEARING.b_curve == ()
+    zero = jnp.zeros(BATCH)
+    currents = jnp.linspace(0.5, 8.0, BATCH)
+    p = MECParams.drawing(PAPER_BEARING, fringe_depth=0.0, leakage=0.0)
+    f = np.asarray(mec_forces(p, PAPER_BEARING, currents, zero, zero, zero, zero, zero)[0])
+    np.testing.assert_allclose(f / np.asarray(currents) ** 2, f[0] / 0.25, rtol=1e-9)   # no saturation
+
+
+# --- the loop-flux solver against the nodal form it replaced ---------------------------------------------
+
+# Forces of the previous solver (Newton on the 64 nodal unknowns of ``_residual`` with a traced Jacobian)
+# at a saturating operating point (pole iron up to 1.74 T), with dF_v / d(fringe_depth, leakage,
+# iron_h_scale, pole_area_ratio): the solver must reproduce them to round-off.
+SAVED_PARAMS = dict(fringe_axial=0.0, fringe_depth=1e-2, leakage=0.53, iron_h_scale=0.68, pole_area_ratio=0.71,
+                    leakage_height=0.7, link=0.6)
+SAVED_FV = [-47.5040158452094, 9.005810381898895, 10.068835424461755, -34.35992306945397, -21.28050037028682,
+            20.52710130562216, 6.308101858882579, -39.931738017498354]
+SAVED_FW = [-0.09006775666608473, -15.727653250826329, 23.795311392848614, -12.27694638354736, 14.478158066946026,
+            8.429502830584081, -1.1717888505185825, -5.09820798184407]
+SAVED_DFV = [[899.0930438233453, 8.88421004160588, 7.2790781025813205, -138.50580093574695],
+             [-120.40292166875503, -1.1942894112671814, -1.6181214696799426, 19.327600144733182],
+             [-117.20612005290083, -1.1995395989569935, -1.3494852898289615, 17.08306174376793],
+             [183.8464919804422, 1.5442567492854848, 3.2313455418955783, -30.267315936906215],
+             [167.501720813237, 1.2843683504869854, 2.159562780869211, -24.052156875562883],
+             [-610.000523030257, -7.578914306057402, -4.106506984046255, 84.67373573968271],
+             [-11.711075952222327, -0.152323510506004, -0.49759941545273656, 1.995700639383274],
+             [659.6220472006829, 7.13160417010159, 5.926174711902079, -100.39520796936823]]
+
+
+def test_reproduces_the_saved_nodal_forces_and_derivatives():
+    p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
+    args = random_readings(11, bias=2.5, reach=100e-6)
+    fv, fw = mec_forces(p, FEM_BEARING, *args)
+    np.testing.assert_allclose(fv, SAVED_FV, rtol=1e-10)
+    np.testing.assert_allclose(fw, SAVED_FW, rtol=1e-10, atol=1e-12)
+
+    def f(fd, lk, ih, par):
+        return mec_forces(p.replace(fringe_depth=fd, leakage=lk, iron_h_scale=ih, pole_area_ratio=par), FEM_BEARING,
+                          *args)[0]
+
+    jac = jax.jacfwd(f, argnums=(0, 1, 2, 3))(p.fringe_depth, p.leakage, p.iron_h_scale, p.pole_area_ratio)
+    np.testing.assert_allclose(np.stack(jac, 1), SAVED_DFV, rtol=1e-8)
+    # and the same derivatives against central differences of the converged solution
+    base = np.array([float(p.fringe_depth), float(p.leakage), float(p.iron_h_scale), float(p.pole_area_ratio)])
+    for j in range(4):
+        h = 1e-6 * base[j]
+        up, dn = base.copy(), base.copy()
+        up[j] += h
+        dn[j] -= h
+        fd = (f(*up) - f(*dn)) / (2 * h)
+        np.testing.assert_allclose(jac[j], fd, rtol=1e-5, atol=1e-6 * float(jnp.max(jnp.abs(jac[j]))))
+
+
+@jax.jit
+def _nodal_solution(p, currents, gaps):
+    """The nodal form solved directly: Newton on ``_residual``'s 64 unknowns (rows of ``currents``, ``gaps``)."""
+    def one(c, g):
+        fun = lambda z: _residual(z, p, FEM_BEARING, c, g)  # noqa: E731
+        return jax.lax.fori_loop(0, 25, lambda _, z: z - jnp.linalg.solve(jax.jacfwd(fun)(z), fun(z)), jnp.zeros(64))
+    return jax.vmap(one)(currents, gaps)
+
+
+@pytest.mark.parametrize("params", [SAVED_PARAMS, dict(leakage=0.0, link=0.0, iron_h_scale=3.0)],
+                         ids=["saturating", "no-leakage-isolated"])
+def test_loop_fluxes_solve_the_nodal_equations(params):
+    p = MECParams.drawing(FEM_BEARING, **params)
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(12, bias=2.5, reach=100e-6)
+    s = mec_solve(p, FEM_BEARING, i_vt, i_vb, i_wt, i_wb, dv, dw)
+    assert float(jnp.max(s.residual)) < 1e-12           # the nodal residual of the loop-flux solution
+    currents = jnp.stack([i_vt, i_vb, i_wt, i_wb], axis=1)
+    z = _nodal_solution(p, currents, s.gaps)
+    (_, _, ut, ur), (f_root, f_tip, fr, fy) = jax.vmap(lambda zz: _unpack(zz, FEM_BEARING))(z)
+    np.testing.assert_allclose(s.mmf_gap, ut - ur, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(ut - ur))))
+    area = FEM_BEARING.pole_area * p.lamination
+    a_pole, a_back = area * p.pole_area_ratio, area * p.iron_area_ratio
+    for mine, ref in ((s.b_pole, f_root / a_pole), (s.b_tip, f_tip / a_pole), (s.b_rotor, fr / a_back),
+                      (s.b_yoke, fy / a_back)):
+        np.testing.assert_allclose(mine, ref, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(ref))))
+
+
+def test_row_parameters_give_the_shared_parameters_forces_and_derivatives():
+    # row_axis_force (parameters broadcast per row, the fit's path) against mec_axis_force.
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(13, bias=2.0)
+    axis = jnp.array([0, 1] * (BATCH // 2))
+    is_v = axis == 0
+    cols = (jnp.where(is_v, i_vt, i_wt), jnp.where(is_v, i_vb, i_wb), jnp.where(is_v, i_wt, i_vt),
+            jnp.where(is_v, i_wb, i_vb), jnp.where(is_v, dv, dw), jnp.where(is_v, dw, dv))
+
+    def force(fn, gap, iron):
+        return fn(REAL.replace(gap=gap, iron_h_scale=iron), FEM_BEARING, axis, *cols, 0.0, 0.0)
+
+    np.testing.assert_allclose(force(row_axis_force, REAL.gap, 1.2), force(mec_axis_force, REAL.gap, 1.2), rtol=1e-12)
+    ja = jax.jacfwd(lambda g, i: force(row_axis_force, g, i), argnums=(0, 1))(REAL.gap, 1.2)
+    jb = jax.jacfwd(lambda g, i: force(mec_axis_force, g, i), argnums=(0, 1))(REAL.gap, 1.2)
+    for a, b in zip(ja, jb):
+        np.testing.assert_allclose(a, b, rtol=1e-10)
