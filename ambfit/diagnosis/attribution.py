@@ -152,6 +152,8 @@ class Diagnosis:
     operating: pd.DataFrame
     parameter_gap: list
     best_pair: dict | None = None
+    families: list | None = None
+    force_check: dict | None = None
 
     @property
     def residuals_before(self) -> np.ndarray:
@@ -183,6 +185,18 @@ class Diagnosis:
         }
         if self.best_pair is not None:
             rec["best_pair"] = self.best_pair
+        if self.families is not None:
+            rec["verdict_model"] = "magnetic_circuit"
+            rec["families"] = self.families
+        if self.verdict_fit is not None and self.verdict_fit.effects:
+            rec["verdict_params"] = {n: {"value": v, "std": s} for n, v, s in zip(
+                self.verdict_fit.names, self.verdict_fit.values, self.verdict_fit.std) if not n.startswith("load[")}
+        if self.force_check is not None:
+            rec["force_check"] = self.force_check
+        # what ambfit force needs to measure with either model
+        rec["baseline_fit"] = {"model_state": self.baseline.model_state()}
+        if self.verdict_fit is not None:
+            rec["verdict_fit"] = {"model": self.verdict_fit.model, "model_state": self.verdict_fit.model_state()}
         return rec
 
     def to_dataframe(self) -> pd.DataFrame:
@@ -218,6 +232,11 @@ class Diagnosis:
         if failed:
             text += (f"\nnot converged within the candidate fits' step budget (scored as they stand): "
                      f"{', '.join(failed)}")
+        if self.families is not None:
+            text += ("\nthe magnetic circuit of the whole bearing explains it; what each piece contributes (χ² rise "
+                     "when it is switched off): " + ", ".join(
+                         f"{f['piece']} ({f['family']}) {f['delta_chi2']:.0f}{'' if f['significant'] else ' (not significant)'}"
+                         for f in self.families))
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
@@ -253,9 +272,56 @@ class Diagnosis:
                 f"<th>shrink</th></tr>{rows}</table>")
 
 
+def default_candidates(data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> list:
+    """Every contract effect; plus the magnetic circuit of the whole bearing when the bearing description gives
+    the lamination's B-H curve and every row has the other axis' currents read at the same moment."""
+    from ambfit.data import other_axis_currents
+    from ambfit.physics.effects import EFFECTS, MagneticCircuit
+
+    cands = [cls() for cls in EFFECTS.values()]
+    if bearing.b_curve and np.isfinite(other_axis_currents(data)[0]).all():
+        cands.append(MagneticCircuit())
+    return cands
+
+
+SIGNIFICANT_DCHI2 = 3.0
+"""A piece of the circuit counts in the verdict when removing it raises χ² by more than this many of χ²'s
+standard deviations ``sqrt(2 dof)``."""
+
+
+def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_steps: int = 200, **noise) -> list:
+    """What each piece of the magnetic circuit contributes, as contract families, largest first.
+
+    Each piece is switched off in turn and the circuit refitted to every row; its contribution is the rise
+    of χ².  ``saturation``: the B-H curve replaced by a constant permeability (what the curve's knee adds);
+    ``iron_reluctance``: ideal iron instead, less the saturation part (what a finite constant permeability
+    adds); ``fringing``, ``leakage``, ``cross_coupling`` (the horseshoes' shared back iron).  Returns
+    ``[{"piece", "family", "delta_chi2", "significant", "converged"}]``.
+    """
+    from ambfit.physics.effects import MagneticCircuit
+
+    mec = next(e for e in full.effects if isinstance(e, MagneticCircuit))
+    threshold = SIGNIFICANT_DCHI2 * np.sqrt(2.0 * max(full.dof, 1))
+    names = {"saturation": "saturation", "iron": "iron_reluctance", "fringing": "fringing", "leakage": "leakage",
+             "coupling": "cross_coupling"}
+    rise, converged = {}, {}
+    for piece in MagneticCircuit.PIECES:
+        if piece == "saturation" and not bearing.b_curve:
+            continue
+        f = fit(data, [mec.without(piece)], bearing=bearing, start_from=full, max_steps=max_steps, throw=False,
+                **noise)
+        rise[piece], converged[piece] = float(f.chi2 - full.chi2), bool(f.converged)
+    if "saturation" in rise:
+        rise["iron"] = rise["iron"] - rise["saturation"]
+    out = [{"piece": p, "family": names[p], "delta_chi2": d, "significant": bool(d > threshold),
+            "converged": converged[p]} for p, d in rise.items()]
+    return sorted(out, key=lambda r: -r["delta_chi2"])
+
+
 def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing = PAPER_BEARING,
              floor_tolerance: float = 1.0, min_shrink: float = 0.5, pairs: bool = True, pair_verdict: bool = False,
-             max_steps: int = 60, baseline: FitResult | None = None, **noise) -> Diagnosis:
+             max_steps: int = 60, baseline: FitResult | None = None, progress=None, check_force: bool = True,
+             **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
     Verdict: ``none`` when the baseline's held-out residuals sit on the noise floor
@@ -266,25 +332,31 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     plus each other candidate are tried the same way (``pairs=True``) and a pair can be
     the verdict (``pair_verdict=True``, else it is reported as ``best_pair``); otherwise
     ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
-    ``baseline`` is the ideal fit of these data when the caller already has it.
+    ``baseline`` is the ideal fit of these data when the caller already has it.  ``progress``, if given, is
+    called as ``progress("candidate effects", done, total)`` after each model's held-out fits.
     """
-    from ambfit.physics.effects import EFFECTS
-
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
     fold_name, tests = folds(df)
-    cands = list(candidates) if candidates is not None else [cls() for cls in EFFECTS.values()]
+    cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
+    count = {"done": 0, "total": 1 + len(cands)}
 
     def heldout(effects, before):
+        # the model on every row first; each fold starts from it (the same model, so its effect parameters too)
+        # (a circuit of the whole bearing starts further from the ideal law: it gets the default step budget)
+        steps = max(max_steps, 200) if any(getattr(e, "needs_other_axis", False) for e in effects) else max_steps
+        full = base if not effects else fit(df, effects, bearing=bearing, start_from=base, max_steps=steps,
+                                            throw=False, **noise)
         zs = []
         for test in tests:
-            f = fit(df, effects, bearing=bearing, mask=(~test).astype(float), start_from=base, max_steps=max_steps,
+            f = fit(df, effects, bearing=bearing, mask=(~test).astype(float), start_from=full, max_steps=steps,
                     throw=False, **noise)
             zs.append(heldout_residuals(f, df, test))
-        full = base if not effects else fit(df, effects, bearing=bearing, start_from=base, max_steps=max_steps,
-                                            throw=False, **noise)
         name = "+".join(type(e).name for e in effects) or "ideal"
         z = np.concatenate(zs)
+        count["done"] += 1
+        if progress is not None:
+            progress("candidate effects", count["done"], count["total"])
         return Candidate(name, z, excess(z) if before is None else before, full)
 
     ideal = heldout((), None)
@@ -300,7 +372,11 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         # no single effect removes the structure: forward selection, the best single plus each other candidate
         first = ranking[0].effect
         best_single = next(e for e in cands if type(e).name == first)
-        ranking += [heldout((best_single, e), before) for e in cands if type(e).name != first]
+        # the circuit already holds iron, fringing, leakage and coupling: it is not paired
+        partners = [e for e in cands if type(e).name != first and not getattr(e, "needs_other_axis", False)]
+        if not getattr(best_single, "needs_other_axis", False):
+            count["total"] += len(partners)
+            ranking += [heldout((best_single, e), before) for e in partners]
         ranking.sort(key=lambda c: c.score)
     pair_list = [c for c in ranking if "+" in c.effect]
     singles = [c for c in ranking if "+" not in c.effect]
@@ -320,10 +396,32 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         best_pair = {"effect": bp.effect, "heldout_excess_after": bp.after, "shrink": bp.shrink,
                      "explains": bool(explains(bp))}
     verdict_fit = next((c.fit for c in ranking if c.effect == verdict), None)
+    families = None
+    if verdict == "magnetic_circuit":
+        # the circuit is physics, the verdict names its families: each piece's contribution, largest first
+        families = circuit_families(df, verdict_fit, bearing, **noise)
+        named = [f["family"] for f in families if f["significant"]]
+        verdict = "+".join(dict.fromkeys(named)) or verdict
     return Diagnosis(
         baseline=base, noise_floor=noise_floor(base), where=loc, folds=fold_name, ideal=ideal, ranking=ranking,
         verdict=verdict, confounded_with=confounded,
         # for "unexplained" this is the best candidate's partial shrink; for "none" there is nothing to shrink
         shrink=0.0 if verdict == "none" or best is None else best.shrink,
         verdict_fit=verdict_fit, operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing),
-        best_pair=best_pair)
+        best_pair=best_pair, families=families,
+        force_check=_force_checks(df, base, verdict_fit, bearing, noise) if check_force else None)
+
+
+def _force_checks(df, base, verdict_fit, bearing, noise) -> dict | None:
+    """Contract section 3's ``force_check``: leave-one-load-out for the ideal law and the verdict's model."""
+    from ambfit.estimation.measure import force_check
+
+    ideal = force_check(df, (), bearing=bearing, base=base, **noise)
+    if ideal is None:
+        return None
+    out = {"method": ideal["method"], "ideal": {k: ideal[k] for k in ("rms_rel", "max_rel", "n_loads")}}
+    if verdict_fit is not None and verdict_fit.effects:
+        v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, **noise)
+        if v is not None:
+            out["verdict"] = {"model": verdict_fit.model, **{k: v[k] for k in ("rms_rel", "max_rel", "n_loads")}}
+    return out

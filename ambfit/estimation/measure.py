@@ -8,6 +8,8 @@ measurement noise of the inputs.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -58,3 +60,189 @@ def force(result: FitResult, axis: str, i_top, i_bottom, x, *, y=0.0, sigma_i: f
                      tuple(ones if j == k else 0 * ones for j in range(3)))[1] for k in range(3)]
         var = var + ((d[0] * sigma_i) ** 2 + (d[1] * sigma_i) ** 2 + (d[2] * sigma_x) ** 2).reshape(val.shape)
     return np.asarray(val), np.sqrt(np.asarray(var))
+
+
+def predict(result: FitResult, data) -> np.ndarray:
+    """The force [N] the fitted model gives for every row of ``data`` (its own axis, both axes' currents),
+    at the fit's gap, origin, k and effect parameters.  Rows of an axis whose k was not identified are NaN."""
+    from ambfit.data import Dataset, readings
+
+    df = data.frame if isinstance(data, Dataset) else data
+    vals = dict(zip(result.names, result.values))
+    nominal = result.bearing.nominal_gap
+    params = BearingParams(jnp.asarray([vals.get("g_v0", nominal), vals.get("g_w0", nominal)]),
+                           jnp.asarray([vals.get("v0", 0.0), vals.get("w0", 0.0)]),
+                           jnp.asarray([vals.get("k_v", np.nan), vals.get("k_w", np.nan)]))
+    return np.asarray(evaluate(params, readings(df), result.effects, bearing=result.bearing)[0])
+
+
+def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None, max_steps: int = 200,
+                **fit_kw) -> dict | None:
+    """Leave-one-load-out force measurement (contract sections 2 and 3, ``force_check``).
+
+    Each distinct known load of an axis in turn is left out, the model (the ideal law plus ``effects``)
+    is fitted on the rest, and the force it predicts for the left-out readings is compared with the
+    known load: the RMS and the largest of ``(F_predicted - load_N) / load_N`` over all left-out
+    readings, and per load.  A load is skipped when leaving it out leaves its axis without a known load
+    (k could not be calibrated).  None when fewer than two distinct known loads exist.
+
+    ``base`` is the fit of all rows with the same model (its estimate starts each refit).
+    """
+    from ambfit.data import Dataset
+    from ambfit.estimation.fit import fit
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    bearing = PAPER_BEARING if bearing is None else bearing
+    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    if "load_N" not in df.columns:
+        return None
+    known = df["load_N"].notna().to_numpy()
+    keys = df["axis"].astype(str) + ":" + df["load_N"].map(lambda v: f"{v:.9g}")
+    groups = list(dict.fromkeys(keys[known]))
+    if len(groups) < 2:
+        return None
+    if base is None:
+        base = fit(df, effects, bearing=bearing, max_steps=max_steps, throw=False, **fit_kw)
+    rel, per_load, skipped = [], [], []
+    for g in groups:
+        out = (keys == g).to_numpy() & known
+        ax = g.split(":")[0]
+        if not (known & ~out & (df["axis"] == ax).to_numpy()).any():
+            skipped.append(g)
+            continue
+        res = fit(df, effects, bearing=bearing, mask=(~out).astype(float), start_from=base, max_steps=max_steps,
+                  throw=False, **fit_kw)
+        load = df.loc[out, "load_N"].to_numpy(float)
+        r = (predict(res, df)[out] - load) / load          # all rows: the other axis' currents pair by time_s
+        rel.append(r)
+        per_load.append({"axis": ax, "load_N": float(load[0]), "rows": int(out.sum()),
+                         "rms_rel": float(np.sqrt(np.mean(r**2))), "mean_rel": float(np.mean(r)),
+                         "converged": bool(res.converged)})
+    if not rel:
+        return None
+    r = np.concatenate(rel)
+    return {"method": "leave-one-load-out", "model": base.model, "n_loads": len(per_load),
+            "rms_rel": float(np.sqrt(np.mean(r**2))), "max_rel": float(np.max(np.abs(r))),
+            "loads": per_load, "skipped": skipped}
+
+
+class ModelFileError(ValueError):
+    """A model JSON that cannot be used for force measurement; the message says why."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FittedModel:
+    """A fitted force model, as ``ambfit identify``/``ambfit diagnose`` write it (``model_state``), ready to
+    measure forces: parameters and covariance in SI units, the effects, the bearing.
+
+    :meth:`force` gives the force on each reading's axis and its standard error (delta method over every
+    estimated parameter, effect parameters included, plus the readings' own noise if given).
+    """
+
+    names: tuple
+    values: np.ndarray
+    cov: np.ndarray
+    effects: tuple
+    bearing: object
+    model: str
+
+    @classmethod
+    def from_result(cls, result: FitResult) -> FittedModel:
+        return cls.from_state(result.model_state(), result.bearing)
+
+    @classmethod
+    def from_json(cls, record: dict, bearing, source: str = "<json>") -> FittedModel:
+        """From an identify JSON (its ``model_state``) or a diagnose JSON (the verdict's model, else the ideal
+        law's)."""
+        state = record.get("model_state")
+        if state is None:
+            fitted = record.get("verdict_fit") or record.get("baseline_fit") or {}
+            state = fitted.get("model_state")
+        if state is None:
+            raise ModelFileError(f"{source}: no fitted model in this JSON (write it with ambfit identify --json or "
+                                 "ambfit diagnose --json of this version)")
+        return cls.from_state(state, bearing, source)
+
+    @classmethod
+    def from_state(cls, state: dict, bearing, source: str = "<json>") -> FittedModel:
+        from ambfit.physics.effects import effect_by_name
+
+        names, values = list(state["names"]), np.asarray(state["values"], dtype=float)
+        cov = np.asarray(state["covariance"], dtype=float)
+        if cov.shape != (len(names), len(names)) or len(values) != len(names):
+            raise ModelFileError(f"{source}: model_state has {len(names)} names, {len(values)} values and a "
+                                 f"{cov.shape} covariance")
+        vals = dict(zip(names, values))
+        effects = []
+        for spec in state.get("effects", []):
+            try:
+                e = effect_by_name(spec["name"])
+            except ValueError as exc:
+                raise ModelFileError(f"{source}: {exc}") from None
+            if spec.get("off"):
+                e = dataclasses.replace(e, off=tuple(spec["off"]))
+            for field in e.ranges():
+                shared = f"{spec['name']}.{field}"
+                per_axis = [vals.get(f"{shared}[{ax}]") for ax in AXES]
+                if shared in vals:
+                    e = _set_field(e, field, jnp.full(2, vals[shared]))
+                elif all(v is not None for v in per_axis):
+                    e = _set_field(e, field, jnp.asarray(per_axis, dtype=float))
+            effects.append(e)
+        model = "+".join(s["name"] for s in state.get("effects", [])) or "ideal"
+        return cls(names=tuple(names), values=values, cov=cov, effects=tuple(effects), bearing=bearing, model=model)
+
+    def _params(self, theta):
+        """Bearing parameters and effects at the parameter vector ``theta`` (SI, ordered as ``names``)."""
+        v = dict(zip(self.names, theta))
+        nominal = self.bearing.nominal_gap
+        params = BearingParams(jnp.stack([v.get("g_v0", nominal), v.get("g_w0", nominal)]),
+                               jnp.stack([v.get("v0", 0.0), v.get("w0", 0.0)]),
+                               jnp.stack([v.get("k_v", jnp.nan), v.get("k_w", jnp.nan)]))
+        effects = []
+        for e in self.effects:
+            for field in e.ranges():
+                shared = f"{type(e).name}.{field}"
+                if shared in v:
+                    e = _set_field(e, field, jnp.stack([v[shared], v[shared]]))
+                elif f"{shared}[v]" in v:
+                    e = _set_field(e, field, jnp.stack([v[f"{shared}[v]"], v[f"{shared}[w]"]]))
+            effects.append(e)
+        return params, tuple(effects)
+
+    def force(self, readings: Readings, *, sigma_i: float = 0.0, sigma_x: float = 0.0):
+        """Force [N] on each reading's own axis and its standard error [N]."""
+        def f(theta):
+            params, effects = self._params(theta)
+            return evaluate(params, readings, effects, bearing=self.bearing)[0]
+
+        theta = jnp.asarray(self.values)
+        val = f(theta)
+        jac = jax.jacfwd(f)(theta)
+        var = jnp.einsum("ni,ij,nj->n", jac, jnp.asarray(self.cov), jac)
+        if sigma_i or sigma_x:
+            params, effects = self._params(theta)
+
+            def g(it, ib, x):
+                r = eqx_tree_replace(readings, i_top=it, i_bottom=ib, x=x)
+                return evaluate(params, r, effects, bearing=self.bearing)[0]
+
+            ones = jnp.ones_like(readings.x)
+            zeros = jnp.zeros_like(readings.x)
+            prim = (readings.i_top, readings.i_bottom, readings.x)
+            d = [jax.jvp(g, prim, tuple(ones if j == k else zeros for j in range(3)))[1] for k in range(3)]
+            var = var + (d[0] * sigma_i) ** 2 + (d[1] * sigma_i) ** 2 + (d[2] * sigma_x) ** 2
+        return np.asarray(val), np.sqrt(np.asarray(var))
+
+
+def _set_field(effect, field, value):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda e: getattr(e, field), effect, value)
+
+
+def eqx_tree_replace(readings: Readings, **fields) -> Readings:
+    import equinox as eqx
+
+    names = tuple(fields)
+    return eqx.tree_at(lambda r: tuple(getattr(r, n) for n in names), readings, tuple(fields.values()))

@@ -300,9 +300,19 @@ class FitResult:
             "nuisance_loads_N": {n[5:-1]: {"value": self.value(n), "std": self.error(n)}
                                  for n in self.names if n.startswith("load[")},
             "bias_correction": self.bias_correction,
+            "model_state": self.model_state(),
             "loss": self.loss, "outliers": [o.to_json() for o in self.outliers],
             "outlier_shift_sigma": self.plain_shift, "implausible": [f.to_json() for f in self.implausible],
         }
+
+    def model_state(self) -> dict:
+        """Everything ``ambfit force`` needs to predict forces with errors from this fit, in SI units: the
+        estimated parameters and their covariance, and the model's effects (name, switched-off pieces)."""
+        keep = [j for j, n in enumerate(self.names) if not n.startswith("load[")]
+        return {"names": [self.names[j] for j in keep], "values": [float(self.values[j]) for j in keep],
+                "covariance": [[float(self.cov[i, j]) for j in keep] for i in keep],
+                "effects": [{"name": type(e).name, "off": list(getattr(e, "off", ()))} for e in self.effects],
+                "bearing": self.bearing.name, "units": "SI (m, N·m²/A², effect parameters as named)"}
 
     def to_dataframe(self):
         """One row per estimated parameter: name, value and std in SI and in the display unit."""

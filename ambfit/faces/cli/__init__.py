@@ -12,6 +12,7 @@ from ambfit.faces.cli import simulate  # noqa: F401, I001  (registers its comman
 from ambfit.faces.cli import identify  # noqa: F401
 from ambfit.faces.cli import explore  # noqa: F401
 from ambfit.faces.cli import reports  # noqa: F401
+from ambfit.faces.cli import force  # noqa: F401
 from ambfit.faces.cli.app import app, err
 
 

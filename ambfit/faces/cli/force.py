@@ -1,0 +1,129 @@
+"""``ambfit force``: force measurement with a fitted model, the paper's end goal."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ambfit.faces.cli.app import BearingOption, app, bearing_of, check_output, console, fail, show_table, write_json
+from ambfit.faces.cli.explore import Axis
+
+
+@app.command()
+def force(
+    model: Annotated[Path, typer.Argument(help="Fitted model: the JSON of ambfit identify --json (its model_state) "
+                                          "or of ambfit diagnose --json (the verdict's model).")],
+    data: Annotated[Path | None, typer.Option(help="Readings to measure: contract CSV (axis, i_top_A, i_bottom_A, "
+                                              "v_um, w_um; time_s pairs the axes for models that need both "
+                                              "axes' currents).")] = None,
+    axis: Annotated[Axis | None, typer.Option(help="One reading instead of --data: its axis.")] = None,
+    i_top: Annotated[float | None, typer.Option("--i-top", help="Top-coil current [A].")] = None,
+    i_bottom: Annotated[float | None, typer.Option("--i-bottom", help="Bottom-coil current [A].")] = None,
+    x_um: Annotated[float, typer.Option(help="Position on the reading's axis [µm], sensor coordinates.")] = 0.0,
+    y_um: Annotated[float, typer.Option(help="Position on the other axis [µm].")] = 0.0,
+    i_top_other: Annotated[float | None, typer.Option("--i-top-other", help="The other axis' top-coil current [A] "
+                                                      "(models coupling the axes).")] = None,
+    i_bottom_other: Annotated[float | None, typer.Option("--i-bottom-other", help="The other axis' bottom-coil "
+                                                         "current [A].")] = None,
+    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Noise of the given currents [mA], "
+                                                    "added to the model's error.")] = 0.0,
+    position_noise_um: Annotated[float, typer.Option(help="Noise of the given positions [µm].")] = 0.0,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the readings with force_N and "
+                                             "force_std_N as CSV here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the forces as JSON here.")] = None,
+    bearing: BearingOption = None,
+):
+    """Force [N] the bearing applies along each reading's axis, with its standard error, from a fitted model.
+
+    The error propagates the model's parameter covariance (every parameter, effects included) and, if
+    given, the noise of the readings.  Needs k, i.e. a model fitted with known loads.
+    """
+    import numpy as np
+
+    from ambfit.estimation.measure import FittedModel, ModelFileError
+
+    check_output(out, json_out)
+    desc = bearing_of(bearing)
+    try:
+        record = json.loads(Path(model).read_text())
+    except FileNotFoundError:
+        fail(f"{model}: no such file")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        fail(f"{model}: not a model JSON ({exc})")
+    try:
+        fm = FittedModel.from_json(record, desc, str(model))
+    except ModelFileError as exc:
+        fail(str(exc))
+    frame = _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bottom_other)
+    missing_k = sorted({ax for ax in frame["axis"] if f"k_{ax}" not in fm.names})
+    if missing_k:
+        fail(f"{model}: k_{' and k_'.join(missing_k)} not identified in this model (it was fitted without known "
+             "loads on that axis): it gives gap and origin, not forces", 3)
+    from ambfit.data import readings
+
+    if any(getattr(e, "needs_other_axis", False) for e in fm.effects):
+        r = readings(frame)
+        if not np.isfinite(np.asarray(r.i_top_other)).all():
+            fail(f"the {fm.model} model needs both axes' currents at each moment: give rows of both axes sharing "
+                 "time_s (or --i-top-other/--i-bottom-other)")
+    f, s = fm.force(readings(frame), sigma_i=current_noise_ma * 1e-3, sigma_x=position_noise_um * 1e-6)
+    if not np.all(np.isfinite(f)):
+        bad = int(np.argmax(~np.isfinite(f))) + 1
+        fail(f"the model gives no finite force for reading {bad} (a pole gap closed, or a current out of its range)",
+             3)
+    result = frame.assign(force_N=f, force_std_N=s)
+    if data is None:                     # one reading (a second row only carried the other axis' currents)
+        result, f, s = result.iloc[:1], f[:1], s[:1]
+    shown = result.head(20)
+    show_table([{"#": str(j + 1), "axis": r.axis, "force [N]": _pm(r.force_N, r.force_std_N)}
+                for j, r in enumerate(shown.itertuples())], f"force from the {fm.model} model ({len(result)} "
+               f"reading(s){', first 20' if len(result) > 20 else ''})")
+    if out is not None:
+        from ambfit.data import write_csv
+
+        write_csv(result, out)
+        console.print(f"wrote {out}")
+    if json_out is not None:
+        write_json({"model": fm.model, "source": str(model), "n": len(result),
+                    "force_N": [float(v) for v in f], "force_std_N": [float(v) for v in s]}, json_out)
+
+
+def _pm(v, s):
+    from ambfit.estimation.results import pm
+
+    return pm(float(v), float(s), 2)
+
+
+def _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bottom_other):
+    """The readings as a contract table: from --data, or one row from the options."""
+    import pandas as pd
+
+    from ambfit.data import DataError, check
+
+    if data is not None:
+        if axis is not None or i_top is not None:
+            fail("give either --data or one reading (--axis, --i-top, --i-bottom, ...), not both")
+        from ambfit.data import _read_raw
+
+        try:
+            raw = _read_raw(data)
+            if "bias_A" not in raw.columns:      # the bias is not needed to measure a force
+                raw["bias_A"] = "0"
+            return check(raw, source=str(data)).frame
+        except DataError as exc:
+            fail(str(exc))
+    if axis is None or i_top is None or i_bottom is None:
+        fail("give --data FILE, or one reading with --axis, --i-top and --i-bottom (and --x-um, --y-um)")
+    own, other = ("v", "w") if axis.value == "v" else ("w", "v")
+    rows = [{"axis": own, "bias_A": 0.0, "i_top_A": i_top, "i_bottom_A": i_bottom, f"{own}_um": x_um,
+             f"{other}_um": y_um, "time_s": 0.0}]
+    if i_top_other is not None and i_bottom_other is not None:
+        rows.append({"axis": other, "bias_A": 0.0, "i_top_A": i_top_other, "i_bottom_A": i_bottom_other,
+                     f"{own}_um": x_um, f"{other}_um": y_um, "time_s": 0.0})
+    try:
+        return check(pd.DataFrame(rows)).frame
+    except DataError as exc:
+        fail(str(exc))

@@ -1,0 +1,129 @@
+"""Force measurement as a product: the fitted model's JSON, ``ambfit force``, leave-one-load-out checks,
+and the axis pairing and magnetic circuit the force needs on a real bearing."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+import ambfit
+from ambfit.data import other_axis_currents, read_csv, readings
+from ambfit.estimation.core import Model
+from ambfit.estimation.measure import FittedModel, force_check, predict
+from ambfit.faces.cli import app
+from ambfit.physics.effects import MagneticCircuit, Saturation
+from ambfit.physics.model import BearingParams, Readings, evaluate, ideal_force
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT = ROOT / "data" / "paper_table2.csv"
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def table2():
+    return read_csv(DEFAULT)
+
+
+@pytest.fixture(scope="module")
+def table2_fit(table2):
+    return ambfit.fit(table2)
+
+
+def test_rows_of_both_axes_read_at_one_moment_are_paired():
+    df = pd.DataFrame({"axis": ["v", "w", "v", "w", "v"], "i_top_A": [1.0, 2.0, 3.0, 4.0, 5.0],
+                       "i_bottom_A": [0.1, 0.2, 0.3, 0.4, 0.5], "time_s": [1.0, 1.0, 2.0, 2.0, 3.0],
+                       "experiment": ["a", "a", "a", "a", "a"]})
+    it, ib = other_axis_currents(df)
+    np.testing.assert_array_equal(it[:4], [2.0, 1.0, 4.0, 3.0])
+    np.testing.assert_array_equal(ib[:4], [0.2, 0.1, 0.4, 0.3])
+    assert np.isnan(it[4]) and np.isnan(ib[4])                    # no w row at t = 3
+    df["experiment"] = ["a", "b", "a", "a", "a"]                  # another experiment's row is not a partner
+    assert np.isnan(other_axis_currents(df)[0][0])
+
+
+def test_shared_effect_parameters_are_one_number_for_both_axes():
+    m = Model.of([MagneticCircuit(), Saturation()])
+    names = m.names()
+    assert names[:4] == ["magnetic_circuit.fringe_depth", "magnetic_circuit.leakage", "magnetic_circuit.iron_scale",
+                         "magnetic_circuit.pole_area_ratio"]
+    assert names[4:] == ["saturation.b_sat[v]", "saturation.b_sat[w]", "saturation.sharpness[v]",
+                         "saturation.sharpness[w]"]
+    mec = m.build(np.eye(m.n)[0])[0]                                   # q = 1 on the first parameter only
+    lo, hi = MagneticCircuit.RANGES["fringe_depth"]
+    np.testing.assert_allclose(np.asarray(mec.fringe_depth), [0.5 * (lo + hi) + (hi - lo)] * 2)
+    # a piece switched off frees none of its parameters
+    assert "magnetic_circuit.fringe_depth" not in Model.of([MagneticCircuit().without("fringing")]).names()
+
+
+def test_the_circuit_with_every_piece_off_is_the_ideal_law():
+    b = ambfit.PAPER_BEARING
+    mec = MagneticCircuit()
+    for piece in MagneticCircuit.PIECES:
+        mec = mec.without(piece)
+    r = Readings.build(axis=[0, 1, 0], i_top=[1.6, 1.5, 2.0], i_bottom=[1.2, 1.4, 0.5], x=[20e-6, -10e-6, 0.0],
+                       y=[-5e-6, 20e-6, 30e-6], i_top_other=[1.5, 1.6, 1.4], i_bottom_other=[1.4, 1.2, 1.4])
+    params = BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], b.force_constant())
+    f = np.asarray(evaluate(params, r, [mec], bearing=b)[0])
+    ref = np.asarray(ideal_force(np.array([775e-6, 763e-6, 775e-6]), np.array([33e-6, -11e-6, 33e-6]),
+                                 b.force_constant(), np.asarray(r.i_top), np.asarray(r.i_bottom), np.asarray(r.x),
+                                 b.cos_alpha))
+    np.testing.assert_allclose(f, ref, rtol=1e-8)
+
+
+def test_fitted_model_round_trip_gives_the_fits_force_and_error(table2, table2_fit):
+    state = json.loads(json.dumps(table2_fit.to_json()))            # through JSON, as ambfit force reads it
+    fm = FittedModel.from_json(state, ambfit.PAPER_BEARING)
+    f, s = fm.force(readings(table2))
+    np.testing.assert_allclose(f, predict(table2_fit, table2), rtol=1e-12)
+    row = table2.frame.iloc[0]
+    f1, s1 = ambfit.force(table2_fit, "v", row.i_top_A, row.i_bottom_A, row.v_um * 1e-6, y=row.w_um * 1e-6)
+    assert f[0] == pytest.approx(float(f1), rel=1e-12) and s[0] == pytest.approx(float(s1), rel=1e-9)
+    # the force reproduces the known load within its error (the data are equilibria at that load)
+    assert abs(f[0] - row.load_N) < 4 * np.hypot(s[0], 0.01)
+
+
+def test_force_check_leaves_each_known_load_out():
+    from ambfit.rig import protocol
+    from ambfit.rig import virtual as rig
+
+    sim = rig.simulate(rig.PAPER_RIG, protocol.rich(), seed=4)
+    fc = force_check(sim.data)
+    assert fc["method"] == "leave-one-load-out" and fc["n_loads"] == len(fc["loads"]) >= 4
+    # the ideal law on ideal-rig data: the force of readings the fit never saw, to a fraction of a percent
+    assert fc["rms_rel"] < 0.005 and fc["max_rel"] < 0.03
+    one = sim.data.assign(load_N=np.where(sim.data["axis"] == "v", 5.0, 2.0))
+    assert force_check(one[one.axis == "v"]) is None                   # one known load: nothing to leave out
+
+
+def test_force_command_single_reading_and_file(tmp_path, table2_fit):
+    model = tmp_path / "m.json"
+    model.write_text(json.dumps(table2_fit.to_json()))
+    r = runner.invoke(app, ["force", str(model), "--axis", "v", "--i-top", "1.6", "--i-bottom", "1.2",
+                            "--x-um", "10", "--json", str(tmp_path / "f.json")])
+    assert r.exit_code == 0, r.output
+    f, s = ambfit.force(table2_fit, "v", 1.6, 1.2, 10e-6)
+    js = json.loads((tmp_path / "f.json").read_text())
+    assert js["force_N"][0] == pytest.approx(float(f), rel=1e-12)
+    assert js["force_std_N"][0] == pytest.approx(float(s), rel=1e-9)
+    out = tmp_path / "forces.csv"
+    r = runner.invoke(app, ["force", str(model), "--data", str(DEFAULT), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    got = pd.read_csv(out)
+    assert len(got) == 80 and {"force_N", "force_std_N", "load_N", "experiment"} <= set(got.columns)
+
+
+def test_force_command_errors(tmp_path, table2):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    r = runner.invoke(app, ["force", str(bad), "--axis", "v", "--i-top", "1", "--i-bottom", "1"])
+    assert r.exit_code == 2 and "not a model JSON" in r.output
+    no_k = tmp_path / "nok.json"
+    nok = ambfit.fit(table2.frame.drop(columns=["load_N"]))
+    no_k.write_text(json.dumps(nok.to_json()))
+    r = runner.invoke(app, ["force", str(no_k), "--axis", "w", "--i-top", "1.6", "--i-bottom", "1.2"])
+    assert r.exit_code == 3 and "k_w not identified" in r.output
+    r = runner.invoke(app, ["force", str(no_k)])
+    assert r.exit_code == 2 and "give --data FILE" in r.output
