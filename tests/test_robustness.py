@@ -292,3 +292,17 @@ def test_a_corrupted_compilation_cache_entry_is_replaced(tmp_path):
         r = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
         assert "Error reading persistent compilation cache" not in r.stderr
     assert not any(e.read_bytes() == b"garbage" for e in (tmp_path / "cache").glob("*-cache"))
+
+
+def test_an_output_into_a_read_only_folder_fails_before_any_work(tmp_path, monkeypatch):
+    import os
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    # (tests may run as root, for whom every folder is writable: the permission answer is what is under test)
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == ro and mode == os.W_OK else real(p, mode))
+    calls = []
+    monkeypatch.setattr("ambfit.estimation.bayes.sample", lambda *a, **k: calls.append(1))
+    r = runner.invoke(app, ["sample", str(DEFAULT), "--out", str(ro / "x.nc")])
+    assert r.exit_code == 2 and f"the folder {ro} is not writable" in r.output and not calls
