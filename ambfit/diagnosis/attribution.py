@@ -307,7 +307,7 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     rise, converged = {}, {}
     for piece in MagneticCircuit.PIECES:
         if piece == "saturation" and not bearing.b_curve:
-            continue
+            continue                       # linear iron already: nothing to switch off
         f = fit(data, [mec.without(piece)], bearing=bearing, start_from=full, max_steps=max_steps, throw=False,
                 **noise)
         rise[piece], converged[piece] = float(f.chi2 - full.chi2), bool(f.converged)

@@ -179,8 +179,8 @@ class FittedModel:
                 e = effect_by_name(spec["name"])
             except ValueError as exc:
                 raise ModelFileError(f"{source}: {exc}") from None
-            if spec.get("off"):
-                e = dataclasses.replace(e, off=tuple(spec["off"]))
+            for piece in spec.get("off", []):
+                e = e.without(piece)
             for field in e.ranges():
                 shared = f"{spec['name']}.{field}"
                 per_axis = [vals.get(f"{shared}[{ax}]") for ax in AXES]

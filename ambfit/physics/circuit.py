@@ -143,6 +143,11 @@ class _BH(eqx.Module):
         return s * jnp.where(b_abs > bk[-1], beyond, inside)
 
 
+def _iron_h(p, bh: _BH, b):
+    """``H(B)`` with ``p.saturation`` blending the curve (1) with its initial slope (0)."""
+    return p.saturation * bh(b) + (1.0 - p.saturation) * b * bh.d[0]
+
+
 @functools.lru_cache(maxsize=32)
 def bh_curve(bearing: Bearing) -> _BH:
     """The bearing's ``H(B)`` (monotone cubic through its B-H table; linear ``DEFAULT_MU_R`` without one).
@@ -202,6 +207,9 @@ class MECParams(eqx.Module):
         Magnetic link of the yoke between neighbouring horseshoes: 1 a solid ring, 0 isolated
         horseshoes (the ideal law's assumption); in between, the link carries an extra
         reluctance ``(1 - link) / link`` times that of one gap.
+    saturation : float [0, 1]
+        1: the iron follows its B-H curve; 0: a constant permeability, the curve's initial slope (what
+        the knee of the curve adds is then switched off, finite permeability stays); in between, a blend.
 
     Examples
     --------
@@ -221,6 +229,7 @@ class MECParams(eqx.Module):
     leakage_height: jnp.ndarray
     lamination: jnp.ndarray
     link: jnp.ndarray
+    saturation: jnp.ndarray
 
     @classmethod
     def drawing(cls, bearing: Bearing = PAPER_BEARING, **overrides) -> MECParams:
@@ -234,7 +243,7 @@ class MECParams(eqx.Module):
             "fringe_depth": min(max(pitch - bearing.pole_width, 0.0) / 2.0, 3e-3),
             "fringe_axial": 1.0, "leakage": 0.5, "iron_h_scale": 1.0, "iron_path": bearing.iron_path,
             "iron_area_ratio": 1.0, "pole_area_ratio": 1.0, "leakage_height": 1.0, "lamination": 1.0,
-            "link": 1.0,
+            "link": 1.0, "saturation": 1.0,
         }
         values.update(overrides)
         return cls(**{k: jnp.asarray(v, dtype=float) for k, v in values.items()})
@@ -329,7 +338,7 @@ def _residual(z, p: MECParams, bearing: Bearing, currents, gaps):
     l_pole, l_yoke, l_rotor = POLE_SPLIT * p.iron_path, YOKE_SPLIT * p.iron_path, ROTOR_SPLIT * p.iron_path
 
     def drop(length, b):                                 # l H(B); iron never better than MU_R_MAX
-        return length * (p.iron_h_scale * bh(b) + b / (MU_0 * MU_R_MAX))
+        return length * (p.iron_h_scale * _iron_h(p, bh, b) + b / (MU_0 * MU_R_MAX))
 
     perm, _ = _gap_permeance(p, bearing, gaps)
     fg = perm * (ut - ur)                                # gap flux, tip -> rotor
@@ -412,9 +421,9 @@ def _loop_system(x, p: MECParams, bearing: Bearing, currents, gaps, with_jacobia
     def drop(length, a, flux):                          # l H(Φ/A) [A] and its slope d/dΦ [A/Wb]
         b = flux / a
         if with_jacobian:
-            h, dh = jax.jvp(bh, (b,), (jnp.ones_like(b),))
+            h, dh = jax.jvp(lambda bb: _iron_h(p, bh, bb), (b,), (jnp.ones_like(b),))
             return length * (p.iron_h_scale * h + b * mu_max), length * (p.iron_h_scale * dh + mu_max) / a
-        return length * (p.iron_h_scale * bh(b) + b * mu_max), None
+        return length * (p.iron_h_scale * _iron_h(p, bh, b) + b * mu_max), None
 
     perm, _ = _gap_permeance(p, bearing, gaps)
     mmf = jnp.asarray(sign) * bearing.turns_per_pole * currents[jnp.asarray(_COIL)]
@@ -495,7 +504,8 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     u_ref, _, f_ref = _scales(bearing)
     bh = bh_curve(bearing)
     a_back = bearing.pole_area * p.lamination * p.iron_area_ratio
-    d_rot = ROTOR_SPLIT * p.iron_path * (p.iron_h_scale * bh(fr / a_back) + fr / a_back / (MU_0 * MU_R_MAX))
+    d_rot = ROTOR_SPLIT * p.iron_path * (p.iron_h_scale * _iron_h(p, bh, fr / a_back)
+                                          + fr / a_back / (MU_0 * MU_R_MAX))
     ur = jnp.concatenate([jnp.zeros(1), -jnp.cumsum(d_rot[:-1])])
     z = jnp.concatenate([(u_yr + ur) / u_ref, (u_mr + ur) / u_ref, (drop + ur) / u_ref, ur / u_ref,
                          f_root / f_ref, fg / f_ref, fr / f_ref, fy / f_ref])

@@ -403,13 +403,15 @@ class MagneticCircuit(Effect):
     leakage: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     iron_scale: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(1.0))
     pole_area_ratio: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(0.8))
-    off: tuple = eqx.field(static=True, default=())
-    """Pieces of the physics switched off (``PIECES`` names): to measure what each one contributes."""
+    on: jnp.ndarray = eqx.field(default_factory=lambda: jnp.ones(5))
+    """1 for each piece of the physics (``PIECES`` order) that is on, 0 when switched off to measure what it
+    contributes.  An array, not a static setting, so every variant runs the same compiled fit; the
+    parameters of a piece that is off stay in the fit, held at their prior centre by the prior."""
     name: ClassVar[str] = "magnetic_circuit"
-    PIECES: ClassVar = {"saturation": (), "iron": ("iron_scale", "pole_area_ratio"), "fringing": ("fringe_depth",),
-                        "leakage": ("leakage",), "coupling": ()}
-    """Each piece of the physics and the parameters that only it uses.  ``saturation`` off: the iron keeps a
-    constant permeability (the B-H curve's initial slope, scaled by ``iron_scale``); ``iron`` off: ideal iron."""
+    PIECES: ClassVar = ("saturation", "iron", "fringing", "leakage", "coupling")
+    """``saturation`` off: the iron keeps a constant permeability (the B-H curve's initial slope, scaled by
+    ``iron_scale``); ``iron`` off: ideal iron; ``fringing``, ``leakage`` off: no such permeances;
+    ``coupling`` off: isolated horseshoes (the ideal law's assumption)."""
     RANGES: ClassVar = {"fringe_depth": (1.0e-3, 5.0e-3), "leakage": (0.2, 1.0), "iron_scale": (0.5, 2.0),
                         "pole_area_ratio": (0.5, 1.0)}
     UNITS: ClassVar = {"fringe_depth": "m", "leakage": "-", "iron_scale": "-", "pole_area_ratio": "-"}
@@ -417,33 +419,27 @@ class MagneticCircuit(Effect):
     SHARED: ClassVar[bool] = True          # one stator: the same parameters for both axes
     FAMILIES: ClassVar = ("saturation", "iron_reluctance", "fringing", "leakage", "cross_coupling")
 
-    def ranges(self):
-        fixed = {f for piece in self.off for f in self.PIECES[piece]}
-        return {k: v for k, v in self.RANGES.items() if k not in fixed}
+    @property
+    def off(self) -> tuple:
+        """The pieces switched off (concrete values only, not inside a traced function)."""
+        return tuple(p for p, flag in zip(self.PIECES, np.asarray(self.on)) if flag == 0)
 
     def without(self, piece: str) -> MagneticCircuit:
-        """The same circuit with one more piece (``iron``, ``fringing``, ``leakage``, ``coupling``) switched off."""
+        """The same circuit with one more piece (``PIECES``) switched off."""
         if piece not in self.PIECES:
             raise ValueError(f"unknown piece {piece!r}; pieces: {', '.join(self.PIECES)}")
-        return dataclasses.replace(self, off=tuple(sorted({*self.off, piece})))
+        return eqx.tree_at(lambda e: e.on, self, jnp.asarray(self.on).at[self.PIECES.index(piece)].set(0.0))
 
     def force(self, ctx, force):
         from ambfit.physics import circuit
 
         a = ctx.axis
-        off = set(self.off)
+        sat, iron, fringing, leak, coupling = (self.on[j] for j in range(5))
         params = circuit.MECParams.drawing(ctx.bearing).replace(
-            gap=ctx.g0, fringe_depth=0.0 if "fringing" in off else _ax(self.fringe_depth, a),
-            leakage=0.0 if "leakage" in off else _ax(self.leakage, a),
-            iron_h_scale=0.0 if "iron" in off else _ax(self.iron_scale, a),
-            pole_area_ratio=1.0 if "iron" in off else _ax(self.pole_area_ratio, a),
-            link=0.0 if "coupling" in off else 1.0)
+            gap=ctx.g0, fringe_depth=fringing * _ax(self.fringe_depth, a), leakage=leak * _ax(self.leakage, a),
+            iron_h_scale=iron * _ax(self.iron_scale, a),
+            pole_area_ratio=iron * _ax(self.pole_area_ratio, a) + (1.0 - iron), link=coupling, saturation=sat)
         bearing = ctx.bearing
-        if "saturation" in off and bearing.b_curve:
-            # linear iron at the curve's initial permeability (iron_scale still scales it)
-            b, h = bearing.b_curve, bearing.h_curve
-            mu_r = (b[1] - b[0]) / ((h[1] - h[0]) * 4e-7 * 3.141592653589793)
-            bearing = bearing.with_(b_curve=(0.0, 10.0), h_curve=(0.0, 10.0 / (4e-7 * 3.141592653589793 * mu_r)))
         f = circuit.row_axis_force(params, bearing, a, ctx.m_top, ctx.m_bottom, ctx.i_top_other,
                                    ctx.i_bottom_other, ctx.x, ctx.y, ctx.x0, ctx.y0)
         return f * ctx.k / ctx.bearing.force_constant(1.0)
