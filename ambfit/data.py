@@ -129,7 +129,7 @@ def inspect(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_POS
         return [exc]
     problems = _Problems(str(path), lazy=True)
     _check(raw, problems, max_position_um)
-    return problems.items
+    return sorted(problems.items, key=lambda e: -1 if e.row is None else e.row)   # file problems, then by row
 
 
 def _read_raw(path) -> pd.DataFrame:

@@ -115,6 +115,15 @@ def test_force_command_single_reading_and_file(tmp_path, table2_fit):
     assert r.exit_code == 0, r.output
     got = pd.read_csv(out)
     assert len(got) == 80 and {"force_N", "force_std_N", "load_N", "experiment"} <= set(got.columns)
+    # the error uses the file's std columns: against the known load the pulls are about unit (only the
+    # parameters' covariance gave pulls of ~11 on the FEM file)
+    pull = (got.force_N - got.load_N) / got.force_std_N
+    assert 0.6 < np.sqrt(np.mean(pull**2)) < 1.6
+    other = tmp_path / "other.toml"
+    other.write_text('name = "another bearing"\nturns_per_pole = 160\n')
+    r = runner.invoke(app, ["force", str(model), "--axis", "v", "--i-top", "1.6", "--i-bottom", "1.2",
+                            "--bearing", str(other)])
+    assert r.exit_code == 2 and "fitted with the bearing 'paper rig'" in r.output
 
 
 def test_force_command_errors(tmp_path, table2):

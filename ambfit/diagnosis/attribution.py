@@ -236,7 +236,21 @@ class Diagnosis:
             text += ("\nthe magnetic circuit of the whole bearing explains it; what each piece contributes (χ² rise "
                      "when it is switched off): " + ", ".join(
                          f"{f['piece']} ({f['family']}) {f['delta_chi2']:.0f}{'' if f['significant'] else ' (not significant)'}"
+                         f"{'' if f['converged'] else ' (refit without it not converged: a bound)'}"
                          for f in self.families))
+        if self.families is not None and self.verdict_fit is not None:
+            vf = self.verdict_fit
+            shown = [n for n in ("g_v0", "v0", "g_w0", "w0") if n in vf.names]
+            text += ("\nthe circuit's gap and origin [µm]: " + ", ".join(
+                f"{n} {vf.value(n) * 1e6:.2f} ± {vf.error(n) * 1e6:.2f}" for n in shown)
+                + f" (χ²/dof {vf.reduced_chi2:.2f}; the ideal law's are compared with the drawing below)")
+        if self.force_check is not None:
+            fc = self.force_check
+            text += (f"\nforce check (each of {fc['ideal']['n_loads']} known loads left out and predicted): ideal law "
+                     f"{100 * fc['ideal']['rms_rel']:.2f} % RMS ({100 * fc['ideal']['max_rel']:.2f} % worst)")
+            if "verdict" in fc:
+                text += (f", {fc['verdict']['model']} {100 * fc['verdict']['rms_rel']:.2f} % RMS "
+                         f"({100 * fc['verdict']['max_rel']:.2f} % worst)")
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "

@@ -210,8 +210,20 @@ class FittedModel:
             effects.append(e)
         return params, tuple(effects)
 
-    def force(self, readings: Readings, *, sigma_i: float = 0.0, sigma_x: float = 0.0):
-        """Force [N] on each reading's own axis and its standard error [N]."""
+    @staticmethod
+    def bearing_name(record: dict) -> str | None:
+        """The name of the bearing the model in ``record`` was fitted with (None when not recorded)."""
+        state = record.get("model_state") or (record.get("verdict_fit") or record.get("baseline_fit") or {}).get(
+            "model_state") or {}
+        return state.get("bearing")
+
+    def force(self, readings: Readings, *, sigma_i=0.0, sigma_x=0.0, sigma_i_bottom=None):
+        """Force [N] on each reading's own axis and its standard error [N].
+
+        ``sigma_i`` (top coil; ``sigma_i_bottom`` for the bottom coil, default the same) [A] and ``sigma_x`` [m]
+        are the readings' own noise std, a number or one per reading; they add to the parameters' error.
+        """
+        sigma_i_bottom = sigma_i if sigma_i_bottom is None else sigma_i_bottom
         def f(theta):
             params, effects = self._params(theta)
             return evaluate(params, readings, effects, bearing=self.bearing)[0]
@@ -220,7 +232,7 @@ class FittedModel:
         val = f(theta)
         jac = jax.jacfwd(f)(theta)
         var = jnp.einsum("ni,ij,nj->n", jac, jnp.asarray(self.cov), jac)
-        if sigma_i or sigma_x:
+        if np.any(sigma_i) or np.any(sigma_i_bottom) or np.any(sigma_x):
             params, effects = self._params(theta)
 
             def g(it, ib, x):
@@ -231,7 +243,8 @@ class FittedModel:
             zeros = jnp.zeros_like(readings.x)
             prim = (readings.i_top, readings.i_bottom, readings.x)
             d = [jax.jvp(g, prim, tuple(ones if j == k else zeros for j in range(3)))[1] for k in range(3)]
-            var = var + (d[0] * sigma_i) ** 2 + (d[1] * sigma_i) ** 2 + (d[2] * sigma_x) ** 2
+            si, sb, sx = (jnp.asarray(v, dtype=float) for v in (sigma_i, sigma_i_bottom, sigma_x))
+            var = var + (d[0] * si) ** 2 + (d[1] * sb) ** 2 + (d[2] * sx) ** 2
         return np.asarray(val), np.sqrt(np.asarray(var))
 
 

@@ -49,7 +49,7 @@ def _main(version: Annotated[bool, typer.Option("--version", callback=_version, 
 
 BearingOption = Annotated[Path | None, typer.Option(
     "--bearing", help="Bearing description TOML (pole angle, turns, pole area, nominal gap, clearance, current "
-                      "limit, ...; DATA-CONTRACT.md section 4). Default: the seed paper's rig.")]
+                      "limit, ...; see ambfit/docs/data-format.md). Default: the seed paper's rig.")]
 
 
 def enable_compilation_cache():

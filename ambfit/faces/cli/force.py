@@ -29,8 +29,10 @@ def force(
     i_bottom_other: Annotated[float | None, typer.Option("--i-bottom-other", help="The other axis' bottom-coil "
                                                          "current [A].")] = None,
     current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Noise of the given currents [mA], "
-                                                    "added to the model's error.")] = 0.0,
-    position_noise_um: Annotated[float, typer.Option(help="Noise of the given positions [µm].")] = 0.0,
+                                                    "added to the model's error (default: the file's "
+                                                    "i_*_std_A columns, else 0).")] = 0.0,
+    position_noise_um: Annotated[float, typer.Option(help="Noise of the given positions [µm] (default: the file's "
+                                                     "v_std_um/w_std_um, else 0).")] = 0.0,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the readings with force_N and "
                                              "force_std_N as CSV here.")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the forces as JSON here.")] = None,
@@ -57,6 +59,10 @@ def force(
         fm = FittedModel.from_json(record, desc, str(model))
     except ModelFileError as exc:
         fail(str(exc))
+    fitted_with = FittedModel.bearing_name(record)
+    if fitted_with is not None and fitted_with != desc.name:
+        fail(f"{model}: the model was fitted with the bearing {fitted_with!r}, this run describes {desc.name!r}; "
+             "give the same --bearing as the fit (forces depend on its turns, pole face and iron)")
     frame = _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bottom_other)
     missing_k = sorted({ax for ax in frame["axis"] if f"k_{ax}" not in fm.names})
     if missing_k:
@@ -69,7 +75,8 @@ def force(
         if not np.isfinite(np.asarray(r.i_top_other)).all():
             fail(f"the {fm.model} model needs both axes' currents at each moment: give rows of both axes sharing "
                  "time_s (or --i-top-other/--i-bottom-other)")
-    f, s = fm.force(readings(frame), sigma_i=current_noise_ma * 1e-3, sigma_x=position_noise_um * 1e-6)
+    st, sb, sx = _reading_noise(frame, current_noise_ma, position_noise_um)
+    f, s = fm.force(readings(frame), sigma_i=st, sigma_i_bottom=sb, sigma_x=sx)
     if not np.all(np.isfinite(f)):
         bad = int(np.argmax(~np.isfinite(f))) + 1
         fail(f"the model gives no finite force for reading {bad} (a pole gap closed, or a current out of its range)",
@@ -89,6 +96,26 @@ def force(
     if json_out is not None:
         write_json({"model": fm.model, "source": str(model), "n": len(result),
                     "force_N": [float(v) for v in f], "force_std_N": [float(v) for v in s]}, json_out)
+
+
+def _reading_noise(frame, current_noise_ma: float, position_noise_um: float):
+    """Each reading's noise std [A, A, m]: the options when given, else the file's std columns, else 0."""
+    import numpy as np
+
+    n = len(frame)
+
+    def column(name: str, scale: float):
+        return np.nan_to_num(frame[name].to_numpy(float) * scale, nan=0.0) if name in frame.columns else np.zeros(n)
+
+    if current_noise_ma:
+        st = sb = np.full(n, current_noise_ma * 1e-3)
+    else:
+        st, sb = column("i_top_std_A", 1.0), column("i_bottom_std_A", 1.0)
+    if position_noise_um:
+        sx = np.full(n, position_noise_um * 1e-6)
+    else:
+        sx = np.where(frame["axis"].to_numpy() == "v", column("v_std_um", 1e-6), column("w_std_um", 1e-6))
+    return st, sb, sx
 
 
 def _pm(v, s):
