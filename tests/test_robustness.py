@@ -190,7 +190,9 @@ def test_plausibility_names_the_cause():
     assert [f.quantity for f in flags] == ["k_v", "g_v0 [µm]"]
     assert "mA" in flags[0].cause
     assert plausibility.check_result({"k_v": k, "g_v0": PAPER_BEARING.nominal_gap, "v0": 33e-6}, PAPER_BEARING) == []
-    assert "kN" in plausibility.check_result({"k_w": k * 1e3}, PAPER_BEARING)[0].cause
+    # loads typed in mN are 1000 x larger numbers, so k comes out 1000 x larger; kN the other way
+    assert "mN" in plausibility.check_result({"k_w": k * 1e3}, PAPER_BEARING)[0].cause
+    assert "kN" in plausibility.check_result({"k_w": k * 1e-3}, PAPER_BEARING)[0].cause
 
 
 def test_outlier_bound_and_false_alarms():
@@ -306,3 +308,28 @@ def test_an_output_into_a_read_only_folder_fails_before_any_work(tmp_path, monke
     monkeypatch.setattr("ambfit.estimation.bayes.sample", lambda *a, **k: calls.append(1))
     r = runner.invoke(app, ["sample", str(DEFAULT), "--out", str(ro / "x.nc")])
     assert r.exit_code == 2 and f"the folder {ro} is not writable" in r.output and not calls
+
+
+def test_a_fit_with_effects_still_names_the_outliers_it_inherits(clean):
+    import ambfit
+    from ambfit.physics.effects import CurrentGain
+
+    d = clean.copy()
+    d.loc[4, "v_um"] = 0.0
+    res = ambfit.fit(d, [CurrentGain()], throw=False)
+    checks = {name: ok for name, ok, _ in res.checks()}
+    assert [o.row for o in res.outliers] == [5] and checks["no_outliers"] is False     # named, and it says so
+
+
+def test_robust_losses_judge_the_fit_by_the_weighted_chi2(clean):
+    import ambfit
+
+    d = clean.copy()
+    d.loc[4, "v_um"] = 0.0
+    # χ² is Σ w z²: the down-weighted reading no longer makes the model look inadequate (unweighted: χ²/dof 78).
+    cauchy = ambfit.fit(d, loss="cauchy")
+    assert cauchy.reduced_chi2 < 1.5 and cauchy.adequate
+    # Huber's weight c/|z| still lets a 70 σ reading add c|z| ≈ 100 to χ² (its loss grows linearly): far below
+    # the unweighted 5800, not on the floor
+    huber = ambfit.fit(d, loss="huber")
+    assert 1.0 < huber.reduced_chi2 < 5.0

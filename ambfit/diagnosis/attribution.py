@@ -244,11 +244,13 @@ class Diagnosis:
             text += ("\nthe circuit's gap and origin [µm]: " + ", ".join(
                 f"{n} {vf.value(n) * 1e6:.2f} ± {vf.error(n) * 1e6:.2f}" for n in shown)
                 + f" (χ²/dof {vf.reduced_chi2:.2f}; the ideal law's are compared with the drawing below)")
-        if self.force_check is not None:
+        if self.force_check is not None and "error" in self.force_check:
+            text += f"\nforce check not possible: {self.force_check['error']}"
+        elif self.force_check is not None:
             fc = self.force_check
             text += (f"\nforce check (each of {fc['ideal']['n_loads']} known loads left out and predicted): ideal law "
                      f"{100 * fc['ideal']['rms_rel']:.2f} % RMS ({100 * fc['ideal']['max_rel']:.2f} % worst)")
-            if "verdict" in fc:
+            if "verdict" in fc and "error" not in fc["verdict"]:
                 text += (f", {fc['verdict']['model']} {100 * fc['verdict']['rms_rel']:.2f} % RMS "
                          f"({100 * fc['verdict']['max_rel']:.2f} % worst)")
         if self.best_pair is not None:
@@ -322,8 +324,10 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     for piece in MagneticCircuit.PIECES:
         if piece == "saturation" and not bearing.b_curve:
             continue                       # linear iron already: nothing to switch off
+        # the same rows as the full fit, none dropped by an outlier test: χ² must compare like with like
+        keep = None if full.weights is None else (np.asarray(full.weights) > 0).astype(float)
         f = fit(data, [mec.without(piece)], bearing=bearing, start_from=full, max_steps=max_steps, throw=False,
-                **noise)
+                mask=keep, loss="linear", **noise)
         rise[piece], converged[piece] = float(f.chi2 - full.chi2), bool(f.converged)
     if "saturation" in rise:
         rise["iron"] = rise["iron"] - rise["saturation"]
@@ -428,14 +432,22 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
 
 def _force_checks(df, base, verdict_fit, bearing, noise) -> dict | None:
     """Contract section 3's ``force_check``: leave-one-load-out for the ideal law and the verdict's model."""
+    from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
-    ideal = force_check(df, (), bearing=bearing, base=base, **noise)
+    try:
+        ideal = force_check(df, (), bearing=bearing, base=base, **noise)
+    except FitError as exc:
+        return {"method": "leave-one-load-out", "error": str(exc)}
     if ideal is None:
         return None
-    out = {"method": ideal["method"], "ideal": {k: ideal[k] for k in ("rms_rel", "max_rel", "n_loads")}}
+    keys = ("rms_rel", "max_rel", "n_loads", "n_not_converged")
+    out = {"method": ideal["method"], "ideal": {k: ideal[k] for k in keys}}
     if verdict_fit is not None and verdict_fit.effects:
-        v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, **noise)
+        try:
+            v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, **noise)
+        except FitError as exc:
+            v, out["verdict"] = None, {"model": verdict_fit.model, "error": str(exc)}
         if v is not None:
-            out["verdict"] = {"model": verdict_fit.model, **{k: v[k] for k in ("rms_rel", "max_rel", "n_loads")}}
+            out["verdict"] = {"model": verdict_fit.model, **{k: v[k] for k in keys}}
     return out

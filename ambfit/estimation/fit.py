@@ -205,15 +205,20 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask)
     if require_k:
         _require_k(meta)
+    inherited = ()
     if start_from is None and model.n:
         start_from = fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask, max_steps=max_steps,
                          loss=loss, alpha=alpha, throw=False)
         if start_from.outliers and loss == "auto":     # the extended model starts without the ideal fit's outliers
             prob = prob.with_mask(np.asarray(prob.mask) * np.asarray(start_from.weights > 0, dtype=float))
+            # (that fit numbered rows of the re-indexed table: back to file rows)
+            inherited = tuple(dataclasses.replace(o, row=int(rows[o.row - 1])) for o in start_from.outliers)
     thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
                             max_steps=max_steps)
     res = _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias, seed)
     res = _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows)
+    if inherited:       # left out before this model was fitted: still named (as the ideal fit judged them)
+        res = dataclasses.replace(res, outliers=inherited + tuple(res.outliers))
     res = dataclasses.replace(res, implausible=tuple(plausibility.check_result(dict(zip(res.names, res.values)),
                                                                                 bearing)))
     if throw:
@@ -410,7 +415,8 @@ def _finish(theta, jac, z, edm, lm, steps, prob, meta, model, how, thresholds) -
                        "values the force law cannot handle; check units and extreme values (ambfit check)") from None
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
     scale, offset = si_scale(prob, model)
-    chi2 = float(np.sum(z[used] ** 2))
+    weight = np.asarray(prob.mask, dtype=float) ** 2     # 1, a robust loss's weight, or 0 for a left-out row
+    chi2 = float(np.sum(weight[used] * z[used] ** 2))
     if cond < 1e15:
         cov_s = np.linalg.pinv(js.T @ js) / np.outer(norms, norms)
     else:

@@ -96,7 +96,9 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     if "load_N" not in df.columns:
         return None
-    known = df["load_N"].notna().to_numpy()
+    # a known load of 0 N has no relative error: its rows are left out of the figure (and counted)
+    known = (df["load_N"].notna() & (df["load_N"].abs() > 0)).to_numpy()
+    zero = int((df["load_N"] == 0).sum())
     keys = df["axis"].astype(str) + ":" + df["load_N"].map(lambda v: f"{v:.9g}")
     groups = list(dict.fromkeys(keys[known]))
     if len(groups) < 2:
@@ -123,6 +125,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     r = np.concatenate(rel)
     return {"method": "leave-one-load-out", "model": base.model, "n_loads": len(per_load),
             "rms_rel": float(np.sqrt(np.mean(r**2))), "max_rel": float(np.max(np.abs(r))),
+            "n_not_converged": sum(not p["converged"] for p in per_load), "zero_load_rows": zero,
             "loads": per_load, "skipped": skipped}
 
 

@@ -85,8 +85,8 @@ def _k_cause(factor: float, bearing: Bearing) -> str:
     n = _decades(factor)
     causes = {-6: "currents given in mA instead of A (k scales as 1/i^2)",
               6: "currents given in kA instead of A, or a bearing description with 1000x too many turns",
-              -3: "loads given in mN, or currents in units 30x too large",
-              3: "loads given in kN instead of N",
+              3: "loads given in mN instead of N (k scales with the load)",
+              -3: "loads given in kN instead of N, or currents in a unit about 30x too small",
               -12: "positions and gap read in a unit 1e6 too small (metres for µm?)",
               12: "positions and gap read in a unit 1e6 too large"}
     if n in causes:

@@ -289,12 +289,20 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
         from ambfit.estimation.measure import force_check
 
         kw = opts.fit_kw()
-        fc = force_check(ds, res.effects, bearing=opts.bearing, base=res, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"],
-                         loss=opts.loss)
-        if fc is not None:
+        try:
+            fc = force_check(ds, res.effects, bearing=opts.bearing, base=res, sigma_i=kw["sigma_i"],
+                             sigma_x=kw["sigma_x"], loss=opts.loss)
+        except fit.FitError as exc:            # the check is extra: its failure must not cost the result
+            fc = {"method": "leave-one-load-out", "error": str(exc)}
+            warn(f"force check not possible: {exc}")
+        if fc is not None and "error" not in fc:
             record["force_check"] = fc
+            unconverged = (f"; {fc['n_not_converged']} of the refits did not converge (counted as they stand)"
+                           if fc["n_not_converged"] else "")
             note(f"force check (each of {fc['n_loads']} known loads left out and predicted): "
-                 f"{100 * fc['rms_rel']:.2f} % RMS, {100 * fc['max_rel']:.2f} % worst")
+                 f"{100 * fc['rms_rel']:.2f} % RMS, {100 * fc['max_rel']:.2f} % worst{unconverged}")
+        elif fc is not None:
+            record["force_check"] = fc
     return record
 
 
