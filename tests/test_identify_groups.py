@@ -90,7 +90,8 @@ def test_by_any_column_judges_each_group_on_its_own(bearings, tmp_path):
     t = pd.read_csv(table)
     assert t["group"].tolist() == ["A", "B", "C"] and t["bearing"].tolist() == ["A", "B", "C"]
     assert t["status"].tolist() == ["ok", "implausible", "failed"]
-    assert t["implausible"].tolist() == [False, True, False] and "kN" in t["implausible_why"][1]
+    # B's loads are 1000 x too large (mN typed as N): k comes out 1000 x too large, and the cause says mN
+    assert t["implausible"].tolist() == [False, True, False] and "loads given in mN" in t["implausible_why"][1]
     assert "does not identify" in t["error"][2]
     # A is the default data's fit, untouched by B and C; B's gap is estimated (only its loads are wrong)
     assert run(TABLE2, "--json", tmp_path / "a.json").exit_code == 0
