@@ -571,6 +571,15 @@ def mec_forces(params: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, 
     return f[..., 0], f[..., 1]
 
 
+def _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0):
+    """Per-row terms (own axis, other axis) -> the bearing's frame: ``(is_v, (i_vt, i_vb, i_wt, i_wb, dv, dw))``
+    with ``dv``, ``dw`` the physical displacement ``x + x0`` from the geometric centre."""
+    is_v = jnp.asarray(axis) == 0
+    return is_v, (jnp.where(is_v, i_top, i_top_other), jnp.where(is_v, i_bottom, i_bottom_other),
+                  jnp.where(is_v, i_top_other, i_top), jnp.where(is_v, i_bottom_other, i_bottom),
+                  jnp.where(is_v, x + x0, y + y0), jnp.where(is_v, y + y0, x + x0))
+
+
 def mec_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i_top_other, i_bottom_other,
                    x, y, x0, y0):
     """Force [N] along each row's own axis, in the contract's per-row terms.
@@ -580,15 +589,8 @@ def mec_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     this and the other axis and ``x0``, ``y0`` their effective origins [m], so the physical
     displacement is ``x + x0`` on the row's axis.
     """
-    axis = jnp.asarray(axis)
-    is_v = axis == 0
-    i_vt = jnp.where(is_v, i_top, i_top_other)
-    i_vb = jnp.where(is_v, i_bottom, i_bottom_other)
-    i_wt = jnp.where(is_v, i_top_other, i_top)
-    i_wb = jnp.where(is_v, i_bottom_other, i_bottom)
-    dv = jnp.where(is_v, x + x0, y + y0)
-    dw = jnp.where(is_v, y + y0, x + x0)
-    f = mec_solve(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw).force
+    is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
+    f = mec_solve(params, bearing, *inputs).force
     return jnp.where(is_v, f[..., 0], f[..., 1])
 
 
@@ -605,12 +607,6 @@ def row_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     axis = jnp.asarray(axis)
     n = axis.shape[0]
     rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
-    is_v = axis == 0
-    i_vt = jnp.where(is_v, i_top, i_top_other)
-    i_vb = jnp.where(is_v, i_bottom, i_bottom_other)
-    i_wt = jnp.where(is_v, i_top_other, i_top)
-    i_wb = jnp.where(is_v, i_bottom_other, i_bottom)
-    dv = jnp.where(is_v, x + x0, y + y0)
-    dw = jnp.where(is_v, y + y0, x + x0)
-    f = _solve_rows(rows, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw)
+    is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
+    f = _solve_rows(rows, bearing, *inputs)
     return jnp.where(is_v, f[:, 0], f[:, 1])
