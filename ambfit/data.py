@@ -292,6 +292,14 @@ def duplicate_rows(df: pd.DataFrame) -> list[tuple[int, int]]:
     return out
 
 
+def file_rows(df: pd.DataFrame) -> np.ndarray:
+    """The data row of each row of ``df`` as messages count them (from 1): its index label plus one when the
+    frame keeps the file's integer index (a group, or a file with duplicates dropped), else its position."""
+    if pd.api.types.is_integer_dtype(df.index):
+        return np.asarray(df.index, dtype=int) + 1
+    return np.arange(1, len(df) + 1)
+
+
 def load_groups(df: pd.DataFrame) -> pd.Series:
     """The static-load group of each row: ``load_id`` and axis, or experiment and axis when no ``load_id``."""
     if "load_id" in df.columns:

@@ -49,7 +49,7 @@ import numpy as np
 import optimistix as optx
 import pandas as pd
 
-from ambfit.data import Dataset, load_groups
+from ambfit.data import Dataset, file_rows, load_groups
 from ambfit.estimation import closed_form, plausibility, robust
 from ambfit.estimation.core import (
     EDM_MAX,
@@ -197,7 +197,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     df = data.frame if isinstance(data, Dataset) else data
     if loss not in robust.LOSSES:
         raise ValueError(f"loss must be one of {robust.LOSSES}, got {loss!r}")
-    rows = np.asarray(df.index, dtype=int) + 1 if pd.api.types.is_integer_dtype(df.index) else np.arange(1, len(df) + 1)
+    rows = file_rows(df)
     df = df.reset_index(drop=True)
     model = Model.of(effects, bearing)
     if debias and model.n:

@@ -35,6 +35,7 @@ import math
 import numpy as np
 import pandas as pd
 
+from ambfit.data import file_rows
 from ambfit.physics.bearing import AXES, Bearing
 
 K_FACTOR_RANGE = (0.4, 1.15)
@@ -131,13 +132,6 @@ def _gap_cause(ratio: float) -> str:
             "bearing's")
 
 
-def _row(df: pd.DataFrame, position: int) -> int:
-    """The data row (from 1, as in every message) of the ``position``-th row of ``df``: its index label when
-    the frame is a part of a file (a group), else the position."""
-    label = df.index[position]
-    return int(label) + 1 if isinstance(label, (int, np.integer)) else position + 1
-
-
 def check_data(df: pd.DataFrame, bearing: Bearing) -> list[Flag]:
     """Flags for the readings themselves: loads beyond the load capacity, currents beyond the coil limit,
     positions too small to be micrometres."""
@@ -149,7 +143,7 @@ def check_data(df: pd.DataFrame, bearing: Bearing) -> list[Flag]:
         if big.any():
             r = int(np.nanargmax(np.where(big, np.abs(load), -np.inf)))
             everywhere = big.sum() == np.isfinite(load).sum()
-            flags.append(Flag(f"load_N (row {_row(df, r)}, {int(big.sum())} row(s) in all)", float(load[r]),
+            flags.append(Flag(f"load_N (row {file_rows(df)[r]}, {int(big.sum())} row(s) in all)", float(load[r]),
                               f"|load| up to {LOAD_FACTOR:g} x the load capacity {cap:.3g} N",
                               "every known load is too large: loads in mN or grams instead of N, or a bearing "
                               "description that is not this bearing's" if everywhere else
@@ -161,7 +155,7 @@ def check_data(df: pd.DataFrame, bearing: Bearing) -> list[Flag]:
         if over.any():
             r = int(np.argmax(cur))
             ratio = cur[r] / bearing.max_current
-            flags.append(Flag(f"{col} (row {_row(df, r)}, {int(over.sum())} row(s) in all)", float(cur[r]),
+            flags.append(Flag(f"{col} (row {file_rows(df)[r]}, {int(over.sum())} row(s) in all)", float(cur[r]),
                               f"up to {CURRENT_FACTOR:g} x the coil limit {bearing.max_current:g} A",
                               "currents given in mA instead of A" if ratio > 100 else
                               "a current above the coil limit: a wrong bearing description (max_current_A) or a "

@@ -46,28 +46,25 @@ def drop_duplicates(ds, name: str, keep: bool):
 
     Rows are named as in the file (counted from 1): a group cut out of a file keeps the file's row numbers.
     """
-    from ambfit.data import Dataset, duplicate_rows
+    from ambfit.data import Dataset, duplicate_rows, file_rows
 
     dupes = duplicate_rows(ds.frame)
     if not dupes:
         return ds, []
-    index = ds.frame.index
-    row = (lambda r: int(index[r - 1]) + 1) if is_integer_dtype(index) else (lambda r: r)
+    rows = file_rows(ds.frame)
+
+    def row(r):                       # duplicate_rows counts positions from 1; messages name the file's rows
+        return int(rows[r - 1])
+
     listed = ", ".join(f"{row(r)} repeats {row(f)}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
     if keep:
         warn(f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; each "
              "counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
         return ds, []
-    frame = ds.frame.drop(index=index[[r - 1 for r, _ in dupes]])
+    frame = ds.frame.drop(index=ds.frame.index[[r - 1 for r, _ in dupes]])
     warn(f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading is a "
          "copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
     return Dataset(frame=frame, source=ds.source), [row(r) for r, _ in dupes]
-
-
-def is_integer_dtype(index) -> bool:
-    from pandas.api.types import is_integer_dtype as integer
-
-    return integer(index)
 
 
 def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "") -> float | None:
