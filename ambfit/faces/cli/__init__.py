@@ -13,6 +13,7 @@ from ambfit.faces.cli import identify  # noqa: F401
 from ambfit.faces.cli import explore  # noqa: F401
 from ambfit.faces.cli import reports  # noqa: F401
 from ambfit.faces.cli import force  # noqa: F401
+from ambfit.faces.cli import campaign  # noqa: F401
 from ambfit.faces.cli.app import app, err
 
 

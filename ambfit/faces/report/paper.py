@@ -74,6 +74,7 @@ def sections(rep, *, fig2_data, space, fig2_fit, bias_check, published, demo) ->
     """Every section's context (the page and the Markdown summary render the same ones)."""
     return {"intro": sec.intro(rep), "spread": sec.spread(rep), "calibration": sec.calibration(rep),
             "gap_spread": sec.gap_spread(rep), "origin_spread": sec.origin_spread(rep, bias_check),
+            "origins_over_time": sec.origins_over_time(),
             "eq7_bias": sec.eq7_bias(rep), "supplements": sec.supplements(rep, bias_check),
             "tables": [sec.side_by_side(rep, t) for t in (1, 2, 3, 4)],
             "fig2": sec.fig2(space, fig2_fit, fig2_data), "fig3": sec.fig3(rep),
@@ -85,14 +86,18 @@ def readme(s: dict, *, replicates: int, seconds: float) -> str:
     """The Markdown summary: the prose of the page as plain text and the tables as Markdown."""
     text = {name: plain(section("paper_sections.html.j2", name, s[name])) for name in (*PROSE, "own_gap")}
     tables = [{"number": t["number"], "markdown": markdown(t["frame"])} for t in s["tables"]]
+    o = s["origins_over_time"]
+    origins = {"text": plain(section("paper_sections.html.j2", "origins_over_time", o)),
+               "drift": markdown(o["drift_frame"]), "table": markdown(o["shown"])}
     return render("paper_readme.md.j2", command_replicates=replicates, intro=s["intro"], seconds=seconds,
-                  text=text, prose=PROSE, spread=markdown(s["spread"]["frame"]), tables=tables)
+                  text=text, prose=PROSE, spread=markdown(s["spread"]["frame"]), tables=tables, origins=origins)
 
 
 def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, demonstration: bool = True,
                  command: str = "", progress=None) -> Path:
     """Reproduce the seed paper on the rig and write ``out/``: ``index.html`` (self-contained),
-    ``README.md``, ``comparison.csv`` (every row of Tables 1-4), ``spread.csv``, ``reproduction.json`` and
+    ``README.md``, ``comparison.csv`` (every row of Tables 1-4), ``spread.csv``, ``origins_over_time.csv``
+    (Table 1's moves between experiments against noise and against Table 2's drift), ``reproduction.json`` and
     the figures as PNG.  Returns the HTML path.  ``progress``, if given, is called as ``progress(phase, done,
     total)`` (:func:`ambfit.studies.paper.reproduce`'s phases, then ``"paper: <step>"``)."""
     from ambfit.estimation import conditioning
@@ -130,6 +135,7 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     (out / "reproduction.json").write_text(json.dumps(record, indent=2, default=float))
     s = sections(rep, fig2_data=f2, space=space, fig2_fit=fig2_fit, bias_check=bias_check, published=published,
                  demo=demo)
+    s["origins_over_time"]["frame"].to_csv(out / "origins_over_time.csv", index=False)
     (out / "README.md").write_text(readme(s, replicates=replicates, seconds=time.perf_counter() - t0))
     html_path = out / "index.html"
     html_path.write_text(render(

@@ -152,6 +152,72 @@ def origin_spread(rep, bias_check: pd.DataFrame, *, low: float = 5.0, high: floa
             "z_max": float(rows["z"].abs().max())}
 
 
+def origins_over_time(alpha: float | None = None) -> dict:
+    """The paper's Tables 1 and 2 as a campaign over iterations (:func:`ambfit.studies.campaign.paper_origins`):
+    the drift inside Table 2, the moves between Table 1's experiments against noise alone and with that drift
+    removed, and (when no move survives the drift) how well the drift would have to be known for the largest
+    to be flagged.  Numbers in µm; needs no reproduction (the paper's own numbers)."""
+    from scipy import stats
+
+    from ambfit.studies import campaign
+
+    alpha = campaign.ALPHA if alpha is None else alpha
+    po = campaign.paper_origins(alpha=alpha)
+    um = 1e6
+
+    def steps(cp):
+        return [{"at": s.at, "after": s.before, "size": s.size * um, "se": s.std * um, "z": s.z, "p": s.p_bound,
+                 "flagged": s.flagged} for s in cp.tests]
+
+    def flags(result):
+        return [{"quantity": q, "at": s.at, "z": s.z, "p": s.p_bound} for q, cp in result.items() for s in cp.flagged]
+
+    drifts = {q: {"quantity": q, "slope": d.slope * um, "se": d.std * um, "over": d.slope * po.iterations * um,
+                  "over_se": d.std * po.iterations * um, "reduced_chi2": d.reduced_chi2, "inflated": d.inflated}
+              for q, d in po.drifts.items()}
+    origins = [q for q in campaign.PARAMS if not q.startswith("g_")]
+    best = max(((q, s) for q in origins for s in po.changes[q].tests), key=lambda qs: abs(qs[1].z))
+    q, s = best
+    needed = None
+    if not s.flagged:
+        z_crit = float(stats.norm.isf(alpha / (2 * s.m)))
+        noise = po.sd[q] / np.sqrt(po.iterations)
+        room = (s.size / z_crit) ** 2 - 2 * noise**2            # what is left for the drift's error over Δt
+        dt = float(po.iterations)
+        if room > 0:
+            se_needed = np.sqrt(room) / dt
+            needed = {"quantity": q, "at": s.at, "z": s.z, "p": s.p_bound, "se": s.std * um,
+                      "noise_se": float(np.sqrt(2) * noise * um), "se_slope": float(se_needed * um),
+                      "factor": float((po.drifts[q].std / se_needed) ** 2)}
+    rows = []
+    for q in campaign.PARAMS:
+        for mv, ch in zip(po.moves[q].tests, po.changes[q].tests):
+            rows.append({"quantity": q, "experiments": f"{mv.before} → {mv.at}", "move [µm]": mv.size * um,
+                         "se": mv.std * um, "z": mv.z, "p (Bonferroni)": mv.p_bound,
+                         "flagged": "yes" if mv.flagged else "no", "beyond drift [µm]": ch.size * um,
+                         "se (drift)": ch.std * um, "z (drift)": ch.z, "p (drift, Bonferroni)": ch.p_bound,
+                         "flagged (drift)": "yes" if ch.flagged else "no"})
+    frame = pd.DataFrame(rows)
+    shown = frame.assign(**{c: frame[c].map(lambda v: f"{v:.2g}") for c in frame.columns if c.startswith("p (")})
+    k = po.iterations
+    drift_frame = pd.DataFrame([{"quantity": d["quantity"], "drift [µm/iteration]": d["slope"], "se": d["se"],
+                                 f"over {k} iterations [µm]": d["over"], f"se ({k})": d["over_se"],
+                                 "χ²/dof": d["reduced_chi2"]} for d in drifts.values()])
+    t1 = study.load_table(1)
+    return {"first": po.first, "iterations": po.iterations, "source": po.source, "alpha": alpha,
+            "n_boundaries": len(po.moves["v0"].tests),
+            "sd": {q: v * um for q, v in po.sd.items()},
+            "mean_se": {q: float(v * um / np.sqrt(po.iterations)) for q, v in po.sd.items()},
+            "drift": drifts, "origin_drift": [drifts[q] for q in origins],
+            "moves": {q: steps(po.moves[q]) for q in campaign.PARAMS},
+            "changes": {q: steps(po.changes[q]) for q in campaign.PARAMS},
+            "flagged_moves": flags(po.moves), "flagged_changes": flags(po.changes),
+            "gaps_flagged": any(f["quantity"].startswith("g_") for f in flags(po.moves)),
+            "table1": {q: t1[f"{q}_um"].tolist() for q in origins}, "needed": needed,
+            "frame": frame, "shown": shown, "table": table(shown, 2), "drift_frame": drift_frame,
+            "drift_table": table(drift_frame, 2)}
+
+
 def eq7_bias(rep) -> dict:
     """The bias of the paper's estimator on Table 1's bias pairs: the rig's mean minus its truth, µm."""
     comp = rep.comparison()
