@@ -77,7 +77,7 @@ def predict(result: FitResult, data) -> np.ndarray:
 
 
 def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None, max_steps: int = 200,
-                **fit_kw) -> dict | None:
+                discrepancy: bool = False, **fit_kw) -> dict | None:
     """Leave-one-load-out force measurement (contract sections 2 and 3, ``force_check``).
 
     Each distinct known load of an axis in turn is left out, the model (the ideal law plus ``effects``)
@@ -86,7 +86,14 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     readings, and per load.  A load is skipped when leaving it out leaves its axis without a known load
     (k could not be calibrated).  None when fewer than two distinct known loads exist.
 
-    ``base`` is the fit of all rows with the same model (its estimate starts each refit).
+    ``base`` is the fit of all rows with the same model (its estimate starts each refit).  With
+    ``discrepancy``, each refit also gets the model-discrepancy term (:mod:`ambfit.estimation.discrepancy`)
+    fitted on the same rows, and the figures of the model with it are under ``"discrepancy"``.
+
+    Besides the contract's per-reading figures, ``rms_rel_mean`` is the RMS over the left-out loads of the
+    mean relative error of each load's readings (a force measured by averaging its readings), and
+    ``noise_floor_rel`` the per-reading figure a perfect model would reach: the RMS of each reading's force
+    noise (its effective-variance std) over its load.
     """
     from ambfit.data import Dataset
     from ambfit.estimation.fit import fit
@@ -105,7 +112,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         return None
     if base is None:
         base = fit(df, effects, bearing=bearing, max_steps=max_steps, throw=False, **fit_kw)
-    rel, per_load, skipped = [], [], []
+    rel, per_load, skipped, rel_d, floor = [], [], [], [], []
     for g in groups:
         out = (keys == g).to_numpy() & known
         ax = g.split(":")[0]
@@ -115,18 +122,46 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         res = fit(df, effects, bearing=bearing, mask=(~out).astype(float), start_from=base, max_steps=max_steps,
                   throw=False, **fit_kw)
         load = df.loc[out, "load_N"].to_numpy(float)
-        r = (predict(res, df)[out] - load) / load          # all rows: the other axis' currents pair by time_s
+        predicted = predict(res, df)
+        r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
         rel.append(r)
-        per_load.append({"axis": ax, "load_N": float(load[0]), "rows": int(out.sum()),
-                         "rms_rel": float(np.sqrt(np.mean(r**2))), "mean_rel": float(np.mean(r)),
-                         "converged": bool(res.converged)})
+        floor.append(_force_noise(res, df, fit_kw)[out] / load)
+        entry = {"axis": ax, "load_N": float(load[0]), "rows": int(out.sum()),
+                 "rms_rel": float(np.sqrt(np.mean(r**2))), "mean_rel": float(np.mean(r)),
+                 "converged": bool(res.converged)}
+        if discrepancy:
+            from ambfit.estimation.discrepancy import fit_discrepancy
+
+            d = fit_discrepancy(res, df, mask=(~out).astype(float), sigma_i=fit_kw.get("sigma_i"),
+                                sigma_x=fit_kw.get("sigma_x"))
+            rd = (predicted[out] + d.row_correction_n[out] - load) / load
+            rel_d.append(rd)
+            entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
+        per_load.append(entry)
     if not rel:
         return None
+    out = {"method": "leave-one-load-out", "model": base.model, "n_loads": len(per_load), **_figures(rel),
+           "noise_floor_rel": float(np.sqrt(np.mean(np.concatenate(floor) ** 2))),
+           "n_not_converged": sum(not p["converged"] for p in per_load), "zero_load_rows": zero,
+           "loads": per_load, "skipped": skipped}
+    if discrepancy:
+        out["discrepancy"] = {"model": f"{base.model}+discrepancy", **_figures(rel_d)}
+    return out
+
+
+def _figures(rel: list) -> dict:
+    """Per-reading RMS and largest relative error, and the RMS of the per-load mean errors."""
     r = np.concatenate(rel)
-    return {"method": "leave-one-load-out", "model": base.model, "n_loads": len(per_load),
-            "rms_rel": float(np.sqrt(np.mean(r**2))), "max_rel": float(np.max(np.abs(r))),
-            "n_not_converged": sum(not p["converged"] for p in per_load), "zero_load_rows": zero,
-            "loads": per_load, "skipped": skipped}
+    return {"rms_rel": float(np.sqrt(np.mean(r**2))), "max_rel": float(np.max(np.abs(r))),
+            "rms_rel_mean": float(np.sqrt(np.mean([np.mean(x) ** 2 for x in rel])))}
+
+
+def _force_noise(res: FitResult, df, fit_kw) -> np.ndarray:
+    """Each row's force noise std [N] under ``res``'s model (current and position noise propagated)."""
+    from ambfit.estimation.core import Model, build_problem, misfit
+
+    prob, _ = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
+    return np.asarray(misfit(jnp.asarray(res.theta), prob, Model.of(res.effects, res.bearing))[1])
 
 
 class ModelFileError(ValueError):
@@ -148,19 +183,31 @@ class FittedModel:
     effects: tuple
     bearing: object
     model: str
+    discrepancy: object = None          # a fitted ambfit.estimation.discrepancy.Discrepancy, added to the force
 
     @classmethod
     def from_result(cls, result: FitResult) -> FittedModel:
         return cls.from_state(result.model_state(), result.bearing)
 
     @classmethod
-    def from_json(cls, record: dict, bearing, source: str = "<json>") -> FittedModel:
-        """From an identify JSON (its ``model_state``) or a diagnose JSON (the verdict's model, else the ideal
-        law's)."""
-        state = record.get("model_state")
+    def from_json(cls, record: dict, bearing, source: str = "<json>", use: str | None = None) -> FittedModel:
+        """From an identify JSON (its ``model_state``) or a diagnose JSON.
+
+        ``use`` picks a diagnose JSON's model: ``"verdict"``, ``"discrepancy"`` (the verdict's model, or the
+        ideal law when there is none, with the model-discrepancy correction) or ``"ideal"``; default: the
+        verdict's model, else the discrepancy model (a verdict ``unexplained``), else the ideal law.
+        """
+        keys = {"verdict": "verdict_fit", "discrepancy": "discrepancy_fit", "ideal": "baseline_fit"}
+        if use is not None and use not in keys:
+            raise ValueError(f"use must be one of {sorted(keys)}, got {use!r}")
+        state = record.get("model_state") if use is None else None
         if state is None:
-            fitted = record.get("verdict_fit") or record.get("baseline_fit") or {}
+            order = [keys[use]] if use is not None else ["verdict_fit", "discrepancy_fit", "baseline_fit"]
+            fitted = next((record[k] for k in order if record.get(k)), {})
             state = fitted.get("model_state")
+            if state is None and use is not None:
+                raise ModelFileError(f"{source}: no {use} model in this JSON (a diagnose JSON has 'verdict' only "
+                                     "when the verdict names effects, 'discrepancy' only when it was fitted)")
         if state is None:
             raise ModelFileError(f"{source}: no fitted model in this JSON (write it with ambfit identify --json or "
                                  "ambfit diagnose --json of this version)")
@@ -193,7 +240,20 @@ class FittedModel:
                     e = _set_field(e, field, jnp.asarray(per_axis, dtype=float))
             effects.append(e)
         model = "+".join(s["name"] for s in state.get("effects", [])) or "ideal"
-        return cls(names=tuple(names), values=values, cov=cov, effects=tuple(effects), bearing=bearing, model=model)
+        disc = None
+        if state.get("discrepancy") is not None:
+            from ambfit.estimation.discrepancy import Discrepancy
+
+            try:
+                disc = Discrepancy.from_json(state["discrepancy"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ModelFileError(f"{source}: the discrepancy term cannot be read ({exc})") from None
+            if disc.names != tuple(names):
+                raise ModelFileError(f"{source}: the discrepancy refers to parameters {list(disc.names)}, the model "
+                                     f"has {names}")
+            model += "+discrepancy"
+        return cls(names=tuple(names), values=values, cov=cov, effects=tuple(effects), bearing=bearing, model=model,
+                   discrepancy=disc)
 
     def _params(self, theta):
         """Bearing parameters and effects at the parameter vector ``theta`` (SI, ordered as ``names``)."""
@@ -235,6 +295,10 @@ class FittedModel:
         val = f(theta)
         jac = jax.jacfwd(f)(theta)
         var = jnp.einsum("ni,ij,nj->n", jac, jnp.asarray(self.cov), jac)
+        if self.discrepancy is not None:
+            # the correction is orthogonal to the parameters: its variance adds (no cross-covariance)
+            delta, delta_std = self.discrepancy.correction(readings, np.asarray(jac))
+            val, var = val + delta, var + delta_std**2
         if np.any(sigma_i) or np.any(sigma_i_bottom) or np.any(sigma_x):
             params, effects = self._params(theta)
 

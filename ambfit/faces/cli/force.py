@@ -36,6 +36,9 @@ def force(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the readings with force_N and "
                                              "force_std_N as CSV here.")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the forces as JSON here.")] = None,
+    use: Annotated[str | None, typer.Option("--use", help="Which model of a diagnose JSON: verdict, discrepancy "
+                                            "(with the model-discrepancy correction) or ideal; default: the "
+                                            "verdict's, else the discrepancy model, else the ideal law.")] = None,
     bearing: BearingOption = None,
 ):
     """Force [N] the bearing applies along each reading's axis, with its standard error, from a fitted model.
@@ -56,9 +59,11 @@ def force(
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         fail(f"{model}: not a model JSON ({exc})")
     try:
-        fm = FittedModel.from_json(record, desc, str(model))
+        fm = FittedModel.from_json(record, desc, str(model), use=use)
     except ModelFileError as exc:
         fail(str(exc))
+    except ValueError as exc:
+        fail(f"--use: {exc}")
     fitted_with = FittedModel.bearing_name(record)
     if fitted_with is not None and fitted_with != desc.name:
         fail(f"{model}: the model was fitted with the bearing {fitted_with!r}, this run describes {desc.name!r}; "

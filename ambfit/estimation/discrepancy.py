@@ -1,0 +1,312 @@
+"""A model-discrepancy term: what no physical parameter of the model can express (Kennedy and O'Hagan 2001).
+
+The force is the physical model plus a smooth correction,
+``F = F_model(theta) + delta(readings)``.  ``delta`` is a finite basis with a Gaussian prior on its
+coefficients, i.e. a degenerate Gaussian process (Rasmussen and Williams 2006, section 2.1), built from what
+shapes a horseshoe's force: its flux density and its gap.  For each horseshoe (top, bottom) with
+
+- ``b = (i / I_max) / (1 -+ xi)``: the nominal flux density relative to that at the coil limit and nominal gap,
+- ``xi = x cos(alpha) / g_nom``: the rotor displacement relative to the drawn gap,
+
+the correction is ``F_ref * (h(b_top, xi) - h(b_bottom, -xi))`` with ``h`` the monomials ``b^p xi^q``
+(``p <= 6``, ``q <= 3``), the same terms times the other axis' mean squared current (coupling through the
+stator, when the rows are paired by ``time_s``) and times the approach direction of each coil's current
+(hysteresis), separately per axis.  ``F_ref = k_geom (I_max / g_nom)^2`` is one horseshoe's force at the coil
+limit.
+
+**Kept from swallowing gap, origin and k** (Plumlee 2017, "Bayesian calibration of computer models using
+orthogonal discrepancy", doi:10.1080/01621459.2016.1211016): the basis is projected onto the orthogonal
+complement of the model's Jacobian columns (every fitted parameter: gap, origin, k, loads, effect parameters)
+in the fit's weighted metric.  The physical parameters therefore stay the physical law's best fit; the
+correction carries only what the law cannot express.  What an unconstrained correction would have done to
+them is reported (:attr:`Discrepancy.unconstrained_shift`): in the joint linear problem it moves the
+parameters by ``-A c`` (``A`` the projection coefficients, ``c`` the correction's coefficients), which is
+exactly how much of the correction the parameters could have absorbed.
+
+The prior scale of the coefficients is chosen by maximising the marginal likelihood (type-II maximum
+likelihood) over a grid; the coefficients' posterior gives the correction's standard error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import scipy.linalg
+
+from ambfit.data import Dataset
+from ambfit.estimation.core import Model, build_problem, free_mask, jacobian, misfit, si_scale
+from ambfit.estimation.results import FitResult
+from ambfit.physics.bearing import AXES, Bearing
+
+P_MAX = 6
+Q_MAX = 3
+GROUPS = ("shape", "coupling", "hysteresis")
+"""The basis' groups: the horseshoe law's shape in flux density and gap (saturation, iron, fringing, leakage);
+what depends on the other axis (its currents and position: coupling through the stator); what depends on the
+direction from which each coil current was approached (hysteresis).  Each group has its own prior scale."""
+TAU_GRID = np.logspace(-7, 2, 19)
+"""Prior standard deviations tried for each group's coefficients (dimensionless: a fraction of ``F_ref``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Basis:
+    """The discrepancy's basis functions, fixed by the bearing description (not by the fit)."""
+
+    i_ref: float
+    g_ref: float
+    cos_alpha: float
+    sin_alpha: float
+    f_ref: float
+    groups: tuple = GROUPS
+
+    @classmethod
+    def of(cls, bearing: Bearing, groups=GROUPS) -> Basis:
+        unknown = set(groups) - set(GROUPS)
+        if unknown:
+            raise ValueError(f"unknown discrepancy group(s) {sorted(unknown)}; the groups are {GROUPS}")
+        i_ref, g_ref = float(bearing.max_current), float(bearing.nominal_gap)
+        return cls(i_ref=i_ref, g_ref=g_ref, cos_alpha=float(bearing.cos_alpha), sin_alpha=float(bearing.sin_alpha),
+                   f_ref=float(bearing.force_constant() * (i_ref / g_ref) ** 2), groups=tuple(groups))
+
+    def _columns(self, bt, bb, xi, o, eta, dt, db) -> list[tuple[str, str, np.ndarray]]:
+        """``(group, term, values)`` of one axis' basis functions."""
+        mono = [(p, q) for p in range(P_MAX + 1) for q in range(Q_MAX + 1) if (p, q) != (0, 0)]
+        cols = []
+        if "shape" in self.groups:
+            cols += [("shape", f"b^{p} xi^{q}", bt**p * xi**q - bb**p * (-xi) ** q) for p, q in mono]
+        if "coupling" in self.groups:
+            cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", o * (bt**p * xi**q - bb**p * (-xi) ** q))
+                     for p, q in mono if p in (0, 2)]
+            for r in (1, 2, 3):
+                cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
+                         ("coupling", f"eta^{r} (b_t^2 - b_b^2)", eta**r * (bt**2 - bb**2))]
+        if "hysteresis" in self.groups:
+            cols += [("hysteresis", f"direction b^{p} xi^{q}", dt * bt**p * xi**q - db * bb**p * (-xi) ** q)
+                     for p in range(5) for q in range(2)]
+        return cols
+
+    def _features(self, readings):
+        it, ib = np.asarray(readings.i_top) / self.i_ref, np.asarray(readings.i_bottom) / self.i_ref
+        xi = np.asarray(readings.x) * self.cos_alpha / self.g_ref
+        eta = np.asarray(readings.y) * self.sin_alpha / self.g_ref
+        ot, ob = getattr(readings, "i_top_other", None), getattr(readings, "i_bottom_other", None)
+        o = np.zeros_like(xi) if ot is None else np.nan_to_num(
+            0.5 * ((np.asarray(ot) / self.i_ref) ** 2 + (np.asarray(ob) / self.i_ref) ** 2))
+        dt, db = np.asarray(readings.dir_top, dtype=float), np.asarray(readings.dir_bottom, dtype=float)
+        return np.abs(it) / (1.0 - xi), np.abs(ib) / (1.0 + xi), xi, o, eta, dt, db
+
+    def terms(self) -> list[tuple[str, str]]:
+        """``(group, "axis: term")`` of every basis function, in column order."""
+        z = np.zeros(1)
+        one = self._columns(z, z, z, z, z, z, z)
+        return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self) | {"groups": list(self.groups), "p_max": P_MAX, "q_max": Q_MAX}
+
+    @classmethod
+    def from_json(cls, record: dict) -> Basis:
+        kw = {f.name: record[f.name] for f in dataclasses.fields(cls)}
+        return cls(**kw | {"groups": tuple(kw["groups"])})
+
+    def matrix(self, readings) -> np.ndarray:
+        """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis."""
+        ax = np.asarray(readings.axis)
+        cols = np.stack([c for _, _, c in self._columns(*self._features(readings))], axis=1)
+        return self.f_ref * np.concatenate([np.where((ax == a)[:, None], cols, 0.0) for a in range(len(AXES))],
+                                           axis=1)
+
+    def group_index(self) -> np.ndarray:
+        """Index into ``groups`` of every column."""
+        return np.array([self.groups.index(g) for g, _ in self.terms()])
+
+
+@dataclasses.dataclass(frozen=True)
+class Discrepancy:
+    """A fitted correction: its coefficients, their posterior, and how it was kept off the physical parameters.
+
+    Attributes
+    ----------
+    basis : Basis
+    coef, cov : array[m], array[m, m]
+        Posterior mean and covariance of the coefficients.
+    projection : array[p, m]
+        Regression of each basis function on the physical parameters' force sensitivities (SI units of
+        the parameter per unit coefficient), for the ``names`` of the model (loads excluded).
+    names : tuple of str
+        Physical parameters the projection refers to.
+    tau : dict
+        Each group's prior sd chosen by the marginal likelihood (0: the data do not want the group).
+    log_bayes : dict
+        Each group's log Bayes factor: the log marginal likelihood with the group against without it (the
+        other groups at their scales); above 5 the data want it strongly (Kass and Raftery 1995).
+    effective_parameters : float
+        ``sum(s^2 / (1 + s^2))`` over the singular values ``s`` of the prior-scaled basis: how many
+        coefficients the data determine.
+    row_correction, row_correction_n : array[n]
+        The correction on every row of the data it was fitted on (held-out rows too), in standardized units
+        and in newtons.
+    unconstrained_shift : dict
+        ``{name: (shift, shift / std)}``: how far an unconstrained correction (not projected) would move each
+        physical parameter, in SI units and in the parameter's standard errors.
+    """
+
+    basis: Basis
+    coef: np.ndarray
+    cov: np.ndarray
+    projection: np.ndarray
+    names: tuple
+    tau: dict
+    log_bayes: dict
+    effective_parameters: float
+    row_correction: np.ndarray
+    row_correction_n: np.ndarray
+    unconstrained_shift: dict
+
+    def correction(self, readings, sensitivity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The correction [N] at other readings and its standard error.
+
+        ``sensitivity``: ``dF/d(parameter)`` [N per SI unit] of the physical model at those readings, one
+        column per entry of :attr:`names` (the projection needs it).
+        """
+        g = self.basis.matrix(readings) - np.asarray(sensitivity) @ self.projection
+        return g @ self.coef, np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, self.cov, g), 0.0))
+
+    def largest(self, n: int = 5) -> list[dict]:
+        """The ``n`` basis terms that carry most of the correction (coefficient over its standard error)."""
+        std = np.sqrt(np.maximum(np.diag(self.cov), 1e-300))
+        order = np.argsort(-np.abs(self.coef / std))[:n]
+        terms = self.basis.terms()
+        return [{"group": terms[j][0], "term": terms[j][1], "coefficient": float(self.coef[j]),
+                 "sigma": float(self.coef[j] / std[j])} for j in order]
+
+    def to_json(self) -> dict:
+        return {"basis": self.basis.to_json(), "terms": [t for _, t in self.basis.terms()],
+                "coefficients": self.coef.tolist(), "covariance": self.cov.tolist(),
+                "projection": self.projection.tolist(), "names": list(self.names), "tau": self.tau,
+                "log_bayes": self.log_bayes, "effective_parameters": self.effective_parameters,
+                "orthogonal_to": "every fitted parameter (Plumlee 2017)", "largest_terms": self.largest(),
+                "unconstrained_shift": {k: {"shift": v[0], "sigma": v[1]} for k, v in self.unconstrained_shift.items()}}
+
+    @classmethod
+    def from_json(cls, record: dict) -> Discrepancy:
+        basis = Basis.from_json(record["basis"])
+        coef = np.asarray(record["coefficients"], dtype=float)
+        cov = np.asarray(record["covariance"], dtype=float)
+        proj = np.asarray(record["projection"], dtype=float)
+        m = len(basis.terms())
+        if coef.shape != (m,) or cov.shape != (m, m) or proj.shape != (len(record["names"]), m):
+            raise ValueError(f"the discrepancy has {m} basis terms but {coef.shape} coefficients, a "
+                             f"{cov.shape} covariance and a {proj.shape} projection")
+        return cls(basis=basis, coef=coef, cov=cov, projection=proj, names=tuple(record["names"]),
+                   tau=dict(record["tau"]), log_bayes=dict(record.get("log_bayes", {})),
+                   effective_parameters=float(record["effective_parameters"]), row_correction=np.zeros(0),
+                   row_correction_n=np.zeros(0), unconstrained_shift={})
+
+
+class _Evidence:
+    """log N(y | 0, sigma^2 (I + X diag(scale^2) X^T)) for many ``scale`` vectors; sigma = 1 for known noise,
+    else profiled.
+
+    With ``G = X^T X`` and ``g = X^T y`` computed once, ``Xs = X diag(scale)`` and ``C = I + Xs^T Xs = L L^T``:
+    ``y^T (I + Xs Xs^T)^-1 y = |y|^2 - |L^-1 Xs^T y|^2`` and ``det(I + Xs Xs^T) = det C`` (all m x m).
+    """
+
+    def __init__(self, x, y, noise_known: bool):
+        self.gram, self.g, self.yy, self.n = x.T @ x, x.T @ y, float(y @ y), len(y)
+        self.noise_known = noise_known
+
+    def __call__(self, scale) -> float:
+        chol = np.linalg.cholesky(np.eye(len(scale)) + scale[:, None] * self.gram * scale[None, :])
+        h = scipy.linalg.solve_triangular(chol, scale * self.g, lower=True)
+        quad = self.yy - float(h @ h)
+        logdet = 2.0 * float(np.sum(np.log(np.diag(chol))))
+        if self.noise_known:
+            return -0.5 * (quad + logdet + self.n * np.log(2 * np.pi))
+        return -0.5 * (self.n * np.log(2 * np.pi * quad / self.n) + self.n + logdet)
+
+
+def _scales(x, y, group, n_groups, noise_known):
+    """Each group's prior sd by coordinate ascent of the marginal likelihood over ``TAU_GRID`` and 0, and each
+    group's log Bayes factor (with it against without it, the others at their scales)."""
+    evidence = _Evidence(x, y, noise_known)
+    grid = np.concatenate([[0.0], TAU_GRID])
+    common = [(evidence(np.full(x.shape[1], t)), t) for t in TAU_GRID]
+    best, t0 = max(common)
+    tau = np.full(n_groups, t0)
+    for _ in range(2):
+        for g in range(n_groups):
+            vals = []
+            for t in grid:
+                trial = tau.copy()
+                trial[g] = t
+                vals.append(evidence(trial[group]))
+            j = int(np.argmax(vals))
+            tau[g], best = grid[j], vals[j]
+    bayes = []
+    for g in range(n_groups):
+        without = tau.copy()
+        without[g] = 0.0
+        bayes.append(best - evidence(without[group]))
+    return tau, np.asarray(bayes)
+
+
+def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
+                    sigma_x: float | None = None, mask=None, groups=GROUPS) -> Discrepancy:
+    """The discrepancy of ``result``'s model on ``data`` (the rows the fit used, or ``mask``'s rows).
+
+    ``sigma_i``, ``sigma_x`` must be those the fit was given; ``mask`` (1 fitted, 0 held out) those of a
+    held-out fit; ``groups`` the basis groups to use (:data:`GROUPS`).  The fit itself is not changed: see
+    the module docstring for why it need not be.
+    """
+    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    basis = Basis.of(result.bearing, groups)
+    prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x)
+    model = Model.of(result.effects, result.bearing)
+    theta = jnp.asarray(result.theta)
+    n = len(df)
+    free = free_mask(prob, meta, model)
+    jac = np.asarray(jacobian(theta, prob, model))[:n][:, free]
+    s = np.asarray(misfit(theta, prob, model)[1])
+    if mask is not None:
+        w = np.asarray(mask, dtype=float) ** 2
+    elif result.weights is not None:
+        w = np.asarray(result.weights, dtype=float)
+    else:
+        w = np.ones(n)
+    z = np.asarray(result.residuals)[:n]
+    b = basis.matrix(prob.readings) / s[:, None]
+    sw = np.sqrt(w)[:, None]
+    # the basis' regression on the parameters' columns (weighted), and what is left: orthogonal to them
+    a = np.linalg.lstsq(sw * jac, sw * b, rcond=None)[0]
+    b_perp = b - jac @ a
+    used = w > 0
+    x, y = (sw * b_perp)[used], -(np.sqrt(w) * z)[used]
+    noise_known = not result.noise_estimated
+    group = basis.group_index()
+    tau_g, bayes = _scales(x, y, group, len(basis.groups), noise_known)
+    tau = tau_g[group]
+    xs = x * tau
+    inner = np.linalg.inv(np.eye(xs.shape[1]) + xs.T @ xs)     # posterior covariance of coef / tau
+    coef = tau * (inner @ xs.T @ y)
+    neff = float(xs.shape[1] - np.trace(inner))               # sum s^2 / (1 + s^2)
+    sigma2 = 1.0
+    if not noise_known:
+        resid = y - x @ coef
+        sigma2 = float(resid @ resid) / max(len(y) - neff, 1.0)
+    cov = sigma2 * inner * np.outer(tau, tau)
+    row = b_perp @ coef
+    scale, _ = si_scale(prob, model)
+    names = list(result.names)
+    phys = [j for j, nm in enumerate(names) if not nm.startswith("load[")]
+    a_si = a * scale[free][:, None]
+    shift = -(a_si @ coef)
+    unconstrained = {names[j]: (float(shift[j]), float(shift[j] / result.std[j]) if result.std[j] > 0 else np.inf)
+                     for j in phys}
+    return Discrepancy(basis=basis, coef=coef, cov=cov, projection=a_si[phys], names=tuple(names[j] for j in phys),
+                       tau=dict(zip(basis.groups, map(float, tau_g))), log_bayes=dict(zip(basis.groups, map(float, bayes))),
+                       effective_parameters=neff, row_correction=row, row_correction_n=row * s,
+                       unconstrained_shift=unconstrained)
