@@ -87,6 +87,28 @@ def main():
                 others = [cls() for n, cls in E.EFFECTS.items() if n != name]
                 case["verdict_without_truth"] = gap.diagnose(d, candidates=others).to_json()["verdict"]
             cases.append(case)
+    # families whose law differs from the library's: the family should be named (and the law said to differ)
+    from ambfit.rig.laws import OTHER_LAWS
+
+    for law, (family, cls) in OTHER_LAWS.items():
+        made = 0
+        while made < args.per_effect:
+            spec = rig.PAPER_RIG.with_truth(g0=rng.uniform(760e-6, 764e-6, 2), x0=rng.uniform(-40e-6, 40e-6, 2))
+            eff = [cls.random(rng)]
+            try:
+                d = rig.simulate(spec, proto, eff, seed=rng).data
+            except rig.RigError:
+                continue
+            made += 1
+            rec = gap.diagnose(d).to_json()
+            lw = rec.get("law") or {}
+            cases.append({"truth": law, "family": family, "verdict": rec["verdict"], "shrink": rec["shrink"],
+                          "library_law_shrink": lw.get("library_law_shrink"), "log_bayes": lw.get("log_bayes"),
+                          "law_differs": rec["verdict"] == lw.get("family"), "excess_before": rec["heldout_excess_before"],
+                          "confounded_with": rec["confounded_with"], "parameter_gap_flagged": False,
+                          "effect_params": eff[0].describe()})
+    other = [c for c in cases if c["truth"] in OTHER_LAWS]
+    cases = [c for c in cases if c["truth"] not in OTHER_LAWS]
     labels = names + ["unexplained"]
     conf = {t: {v: sum(1 for c in cases if c["truth"] == t and c["verdict"] == v) for v in labels} for t in names}
     structured = [n for n in E.EFFECTS if sum(c["verdict"] != "none" for c in cases if c["truth"] == n)
@@ -108,11 +130,16 @@ def main():
                                        / args.per_effect),
         "withheld_from_library_unexplained": (sum(c["verdict_without_truth"] == "unexplained" for c in withheld)
                                               / max(len(withheld), 1)),
+        "other_law_family_named": sum(c["verdict"] == c["family"] for c in other) / max(len(other), 1),
+        "other_law_library_shrink_median": float(np.median([c["library_law_shrink"] for c in other
+                                                            if c["library_law_shrink"] is not None] or [np.nan])),
+        "other_law_shrink_median": float(np.median([c["shrink"] for c in other])) if other else None,
         "seconds_per_diagnosis_median": float(np.median(times)), "seconds_first": times[0],
         "rows": len(proto) * 2,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "attribution.json").write_text(json.dumps({"summary": summary, "confusion": conf, "cases": cases},
+    (args.out / "attribution.json").write_text(json.dumps({"summary": summary, "confusion": conf, "cases": cases,
+                                                           "other_laws": other},
                                                           indent=2, default=float))
     md = ["# Blind attribution of unmodelled effects", "",
           f"{args.per_effect} rig data sets per row ({summary['rows']} readings each, rich design, random magnitudes "
@@ -134,6 +161,10 @@ def main():
            f"{summary['none_parameter_gap_flagged']:.2f} | low |",
            f"| true effect withheld from the candidates: verdict `unexplained` | "
            f"{summary['withheld_from_library_unexplained']:.2f} | ≥ 0.80 |",
+           f"| families whose law differs from the library's ({', '.join(OTHER_LAWS)}): family named | "
+           f"{summary['other_law_family_named']:.2f} | 1.0 |",
+           f"| those: held-out shrink of the library's own law (median) / with its signature widened | "
+           f"{summary['other_law_library_shrink_median']:.2f} / {summary['other_law_shrink_median']:.2f} | |",
            f"| time per diagnosis (median; first incl. compilation) | {summary['seconds_per_diagnosis_median']:.1f} s "
            f"({summary['seconds_first']:.0f} s) | ≤ 30 s |"]
     md += ["", "Figure: `shrink.png` (held-out shrink of every data set, by true effect)."]

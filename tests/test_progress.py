@@ -37,8 +37,10 @@ def test_diagnose_reports_every_candidate(capsys):
     data = read_csv(ROOT / "data" / "paper_table2.csv")
     calls, cb = recorder()
     diagnose(data, candidates=[E.Saturation(), E.Leakage()], progress=cb)
-    assert [c[1] for c in calls] == [1, 2, 3] and {c[0] for c in calls} == {"candidate effects"}
-    assert calls[-1][1] == calls[-1][2]                     # ends full: the ideal law and both candidates
+    fits = [c for c in calls if c[0] == "candidate effects"]
+    assert [c[1] for c in fits] == [1, 2, 3] and {c[0] for c in calls} == {"candidate effects", "discrepancy"}
+    assert fits[-1][1] == fits[-1][2]                       # ends full: the ideal law and both candidates
+    assert calls[-1] == ("discrepancy", 1, 1)               # then the model-discrepancy term, one phase
     assert capsys.readouterr() == ("", "")
 
 

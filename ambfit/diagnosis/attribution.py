@@ -74,6 +74,7 @@ class Candidate:
     heldout_z: np.ndarray
     before: float
     fit: FitResult
+    folds: tuple = ()           # (test mask, fit without those rows) per fold
 
     @property
     def after(self) -> float:
@@ -154,6 +155,8 @@ class Diagnosis:
     best_pair: dict | None = None
     families: list | None = None
     force_check: dict | None = None
+    law: dict | None = None
+    discrepancy: dict | None = None
 
     @property
     def residuals_before(self) -> np.ndarray:
@@ -193,10 +196,24 @@ class Diagnosis:
                 self.verdict_fit.names, self.verdict_fit.values, self.verdict_fit.std) if not n.startswith("load[")}
         if self.force_check is not None:
             rec["force_check"] = self.force_check
+        if self.law is not None:
+            rec["law"] = self.law
+        if self.discrepancy is not None:
+            rec["discrepancy"] = {k: v for k, v in self.discrepancy.items() if k not in ("fit", "host")}
+            if self.discrepancy.get("fit") is not None:
+                d = self.discrepancy["fit"]
+                rec["discrepancy"] |= {"log_bayes": d.log_bayes, "tau": d.tau,
+                                       "effective_parameters": d.effective_parameters, "largest_terms": d.largest(),
+                                       "unconstrained_shift": {k: {"shift": v[0], "sigma": v[1]}
+                                                               for k, v in d.unconstrained_shift.items()}}
         # what ambfit force needs to measure with either model
         rec["baseline_fit"] = {"model_state": self.baseline.model_state()}
         if self.verdict_fit is not None:
             rec["verdict_fit"] = {"model": self.verdict_fit.model, "model_state": self.verdict_fit.model_state()}
+        if self.discrepancy is not None and self.discrepancy.get("fit") is not None:
+            host = self.discrepancy["host"]
+            rec["discrepancy_fit"] = {"model": f"{host.model}+discrepancy",
+                                      "model_state": host.model_state() | {"discrepancy": self.discrepancy["fit"].to_json()}}
         return rec
 
     def to_dataframe(self) -> pd.DataFrame:
@@ -253,6 +270,27 @@ class Diagnosis:
             if "verdict" in fc and "error" not in fc["verdict"]:
                 text += (f", {fc['verdict']['model']} {100 * fc['verdict']['rms_rel']:.2f} % RMS "
                          f"({100 * fc['verdict']['max_rel']:.2f} % worst)")
+            if "discrepancy" in fc:
+                text += (f", {fc['discrepancy']['model']} {100 * fc['discrepancy']['rms_rel']:.2f} % RMS "
+                         f"({100 * fc['discrepancy']['max_rel']:.2f} % worst)")
+            floor = fc["ideal"].get("noise_floor_rel")
+            if floor is not None:
+                text += f"; the readings' noise alone gives {100 * floor:.2f} % RMS"
+        if self.law is not None:
+            lw = self.law
+            named = self.verdict == lw["family"]
+            text += (f"\n{lw['family']}'s signature ({lw['signature']} terms) in its residuals: log Bayes factor "
+                     f"{lw['log_bayes']:.1f} ({'clear' if lw['signature_clear'] else 'not clear'}); the library's "
+                     f"{lw['family']} law shrinks the held-out excess by {lw['library_law_shrink']:.3f}, widened by "
+                     f"that signature by {lw['shrink']:.3f}"
+                     + (f": the family is {lw['family']}, its law differs from the library's" if named else ""))
+        if self.discrepancy is not None:
+            dc = self.discrepancy
+            text += (f"\ndiscrepancy (a smooth correction in flux density, gap, other axis and approach direction, "
+                     f"orthogonal to the fitted parameters): held-out shrink {dc['ideal']['shrink']:.3f} on the ideal "
+                     "law (the ceiling of what such an effect explains)")
+            if "verdict" in dc:
+                text += f", {dc['verdict']['shrink']:.3f} on {dc['verdict']['model']}"
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
@@ -263,7 +301,11 @@ class Diagnosis:
         out = []
         for e in self.parameter_gap:
             if e["flagged"]:
-                why = "; ".join(f"{c['effect']} ({c['needs']})" for c in e.get("could_be", []))
+                # plausible explanations first; an implausible one says why (e.g. beyond the calibration tolerance)
+                could = sorted(e.get("could_be", []), key=lambda c: c.get("plausible") is False)
+                why = "; ".join(f"{c['effect']} ({c['needs']}"
+                                + (f"; implausible: {c.get('note', 'beyond its physical range')})"
+                                   if c.get("plausible") is False else ")") for c in could)
                 out.append(f"{e['parameter']}: identified {e['identified']:.4g} vs nominal {e['nominal']:.4g} "
                            f"({e['z']:+.1f} sd) - could be {why}")
         return out
@@ -339,7 +381,7 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
 def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing = PAPER_BEARING,
              floor_tolerance: float = 1.0, min_shrink: float = 0.5, pairs: bool = True, pair_verdict: bool = False,
              max_steps: int = 60, baseline: FitResult | None = None, progress=None, check_force: bool = True,
-             **noise) -> Diagnosis:
+             discrepancy: bool = True, **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
     Verdict: ``none`` when the baseline's held-out residuals sit on the noise floor
@@ -352,6 +394,18 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
     ``baseline`` is the ideal fit of these data when the caller already has it.  ``progress``, if given, is
     called as ``progress("candidate effects", done, total)`` after each model's held-out fits.
+
+    **A family whose law differs from the library's**: when the verdict would be ``unexplained`` and the best
+    single candidate has a residual signature of its own (:data:`SIGNATURES`: hysteresis, residuals that
+    depend on the approach direction; cross-coupling, residuals that depend on the other axis), that
+    signature's group of the discrepancy basis is fitted on the candidate's residuals.  When the data want
+    it clearly (log Bayes factor above :data:`LOG_BAYES_CLEAR`) and the candidate with it explains the
+    held-out data, the family is the verdict; ``law`` says how much the library's own law left.
+
+    **The discrepancy** (``discrepancy=True``, :mod:`ambfit.estimation.discrepancy`): the ideal law and the
+    verdict's model each get the nonparametric correction on the same folds; its held-out shrink is the
+    ceiling of what any effect expressible in flux density, gap, the other axis and approach direction could
+    explain.  Its force check joins ``force_check`` as ``"discrepancy"``.
     """
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
@@ -365,25 +419,29 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         steps = max(max_steps, 200) if any(getattr(e, "needs_other_axis", False) for e in effects) else max_steps
         full = base if not effects else fit(df, effects, bearing=bearing, start_from=base, max_steps=steps,
                                             throw=False, **noise)
-        zs = []
+        zs, fitted = [], []
         for test in tests:
             f = fit(df, effects, bearing=bearing, mask=(~test).astype(float), start_from=full, max_steps=steps,
                     throw=False, **noise)
             zs.append(heldout_residuals(f, df, test))
+            fitted.append((test, f))
         name = "+".join(type(e).name for e in effects) or "ideal"
         z = np.concatenate(zs)
         count["done"] += 1
         if progress is not None:
             progress("candidate effects", count["done"], count["total"])
-        return Candidate(name, z, excess(z) if before is None else before, full)
+        return Candidate(name, z, excess(z) if before is None else before, full, tuple(fitted))
 
     ideal = heldout((), None)
     before = ideal.after
     loc = where(df, base)
     on_floor = before < floor_tolerance and not loc.regions
 
+    def explains_after(after, shrunk):
+        return shrunk >= min_shrink and after < floor_tolerance
+
     def explains(c):
-        return c.shrink >= min_shrink and c.after < floor_tolerance
+        return explains_after(c.after, c.shrink)
 
     ranking = sorted((heldout((e,), before) for e in cands), key=lambda c: c.score)
     if not on_floor and ranking and not explains(ranking[0]) and pairs:
@@ -414,6 +472,15 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         best_pair = {"effect": bp.effect, "heldout_excess_after": bp.after, "shrink": bp.shrink,
                      "explains": bool(explains(bp))}
     verdict_fit = next((c.fit for c in ranking if c.effect == verdict), None)
+    law = None
+    if verdict == "unexplained" and singles and singles[0].effect in SIGNATURES:
+        # the best family's law may differ from the library's: its signature, widened by the discrepancy
+        law = _law_differs(df, singles[0], before, noise)
+        if law["signature_clear"] and explains_after(law["heldout_excess_after"], law["shrink"]):
+            verdict, verdict_fit = singles[0].effect, singles[0].fit
+            confounded = []
+    disc = _discrepancy(df, ideal, next((c for c in ranking if c.effect == verdict), None), before, noise,
+                        progress) if discrepancy else None
     families = None
     if verdict == "magnetic_circuit":
         # the circuit is physics, the verdict names its families: each piece's contribution, largest first
@@ -424,30 +491,99 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         baseline=base, noise_floor=noise_floor(base), where=loc, folds=fold_name, ideal=ideal, ranking=ranking,
         verdict=verdict, confounded_with=confounded,
         # for "unexplained" this is the best candidate's partial shrink; for "none" there is nothing to shrink
-        shrink=0.0 if verdict == "none" or best is None else best.shrink,
-        verdict_fit=verdict_fit, operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing),
-        best_pair=best_pair, families=families,
-        force_check=_force_checks(df, base, verdict_fit, bearing, noise) if check_force else None)
+        shrink=0.0 if verdict == "none" or best is None else (
+            law["shrink"] if law is not None and verdict == law["family"] else best.shrink),
+        verdict_fit=verdict_fit, operating=operating_variables(df, base),
+        parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
+        best_pair=best_pair, families=families, law=law, discrepancy=disc,
+        force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy) if check_force else None)
 
 
-def _force_checks(df, base, verdict_fit, bearing, noise) -> dict | None:
-    """Contract section 3's ``force_check``: leave-one-load-out for the ideal law and the verdict's model."""
+def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True) -> dict | None:
+    """Contract section 3's ``force_check``: leave-one-load-out for the ideal law, the verdict's model and the
+    discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
+    effects), from the same refits."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
+    with_effects = verdict_fit is not None and bool(verdict_fit.effects)
     try:
-        ideal = force_check(df, (), bearing=bearing, base=base, **noise)
+        ideal = force_check(df, (), bearing=bearing, base=base, discrepancy=discrepancy and not with_effects,
+                            **noise)
     except FitError as exc:
         return {"method": "leave-one-load-out", "error": str(exc)}
     if ideal is None:
         return None
-    keys = ("rms_rel", "max_rel", "n_loads", "n_not_converged")
+    keys = ("rms_rel", "max_rel", "rms_rel_mean", "n_loads", "n_not_converged", "noise_floor_rel")
     out = {"method": ideal["method"], "ideal": {k: ideal[k] for k in keys}}
-    if verdict_fit is not None and verdict_fit.effects:
+    if "discrepancy" in ideal:
+        out["discrepancy"] = ideal["discrepancy"]
+    if with_effects:
         try:
-            v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, **noise)
+            v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, discrepancy=discrepancy,
+                            **noise)
         except FitError as exc:
             v, out["verdict"] = None, {"model": verdict_fit.model, "error": str(exc)}
         if v is not None:
             out["verdict"] = {"model": verdict_fit.model, **{k: v[k] for k in keys}}
+            if "discrepancy" in v:
+                out["discrepancy"] = v["discrepancy"]
+    return out
+
+
+SIGNATURES = {"hysteresis": "hysteresis", "cross_coupling": "coupling"}
+"""Families with a residual signature of their own, and the discrepancy group that expresses it: hysteresis
+makes the force depend on the direction from which each coil current was approached; cross-coupling on the
+other axis' position and currents."""
+
+LOG_BAYES_CLEAR = 10.0
+"""A signature is clearly in the residuals when the marginal likelihood wants its discrepancy group by more
+than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995 scale; the FEM bearing, with
+no hysteresis, gives its direction group 3.3)."""
+
+
+def _corrected_heldout(cand: Candidate, df, groups, noise) -> np.ndarray:
+    """Held-out residuals of ``cand``'s folds with the discrepancy (``groups``) fitted on each fold's training rows."""
+    from ambfit.estimation.discrepancy import fit_discrepancy
+
+    zs = []
+    for test, f in cand.folds:
+        d = fit_discrepancy(f, df, mask=(~test).astype(float), groups=groups, **noise)
+        zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test))
+    return np.concatenate(zs)
+
+
+def _law_differs(df, best: Candidate, before: float, noise) -> dict:
+    """The best family's signature in its residuals and the held-out shrink of its law widened by it."""
+    from ambfit.estimation.discrepancy import fit_discrepancy
+
+    group = SIGNATURES[best.effect]
+    full = fit_discrepancy(best.fit, df, groups=(group,), **noise)
+    z = _corrected_heldout(best, df, (group,), noise)
+    after = excess(z)
+    return {"family": best.effect, "signature": group, "log_bayes": full.log_bayes[group],
+            "signature_clear": bool(full.log_bayes[group] > LOG_BAYES_CLEAR),
+            "library_law_shrink": best.shrink, "library_law_leaves": 1.0 - best.shrink,
+            "heldout_excess_after": after, "shrink": shrink(before, after),
+            "widened_by": f"the discrepancy's '{group}' terms (orthogonal to gap, origin, k and the law's parameters)",
+            "largest_terms": full.largest(3)}
+
+
+def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float, noise, progress=None) -> dict:
+    """The discrepancy's held-out shrink on the ideal law (the ceiling) and on the verdict's model, and the
+    correction fitted on every row of the verdict's model (the ideal law's when there is none)."""
+    from ambfit.estimation.discrepancy import GROUPS, fit_discrepancy
+
+    out = {"groups": list(GROUPS)}
+    z = _corrected_heldout(ideal, df, GROUPS, noise)
+    out["ideal"] = {"heldout_excess_after": excess(z), "shrink": shrink(before, excess(z))}
+    host = verdict if verdict is not None and verdict.fit.effects else ideal
+    if host is not ideal:
+        z = _corrected_heldout(host, df, GROUPS, noise)
+        out["verdict"] = {"model": host.effect, "heldout_excess_after": excess(z), "shrink": shrink(before, excess(z))}
+    out["fit"] = fit_discrepancy(host.fit, df, **noise)
+    out["host"] = host.fit
+    out["fitted_on"] = host.effect
+    if progress is not None:
+        progress("discrepancy", 1, 1)
     return out

@@ -13,13 +13,20 @@ import numpy as np
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import AXES, Bearing
 
+MODEL_GAP_TOLERANCE = 0.02
+"""A model with effects accounts for the ideal law's effective gap when its own gap is within this fraction of
+the drawn gap (machining tolerances of radial bearings are of the order of 1 %)."""
 
-def parameter_gap(result: FitResult, bearing: Bearing | None = None, n_sigma: float = 3.0) -> list[dict]:
+
+def parameter_gap(result: FitResult, bearing: Bearing | None = None, n_sigma: float = 3.0,
+                  model_fit: FitResult | None = None) -> list[dict]:
     """Identified effective parameters against the nominal rig, with the effects that could explain each
     difference (and the magnitude each would need) and the experiment that would separate them.
 
     ``bearing`` defaults to the one the fit used.  A difference counts when it exceeds ``n_sigma``
-    standard errors.
+    standard errors.  ``model_fit``: a fit of a model with effects (the diagnosis' verdict); when its own
+    gap is near the drawing, the ideal law's effective gap is explained by that model's physics, and it is
+    listed first.
     """
     nominal = bearing or result.bearing
     out = []
@@ -34,6 +41,14 @@ def parameter_gap(result: FitResult, bearing: Bearing | None = None, n_sigma: fl
         if entry["flagged"]:
             rel = diff / nominal.nominal_gap
             expl = []
+            if model_fit is not None and model_fit.effects and name in model_fit.names:
+                gm, sm = model_fit.value(name), model_fit.error(name)
+                off = (gm - nominal.nominal_gap) / nominal.nominal_gap
+                expl.append({"effect": model_fit.model, "needs": f"nothing more: with it the gap is {gm * 1e6:.1f} "
+                             f"± {sm * 1e6:.1f} µm, {off * 100:+.1f} % from the drawing; the ideal law's "
+                             f"{diff * 1e6:+.1f} µm is that model's physics read as a gap",
+                             "plausible": bool(abs(off) <= MODEL_GAP_TOLERANCE),
+                             "note": f"its gap is {off * 100:+.1f} % from the drawing"})
             if diff > 0:
                 mu = nominal.iron_path / (2 * diff)
                 expl.append({"effect": "iron_reluctance", "needs": f"relative permeability {mu:.0f} over an "

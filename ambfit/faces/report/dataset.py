@@ -143,7 +143,33 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
             "noise_source": nf.source, "mean_z2": nf.mean_z2, "expected_mean_z2": nf.expected_mean_z2,
             "heldout_excess_before": result.heldout_excess_before, "folds": result.folds,
             "ranking": table(ranking, 3), "figure": bars, "where": table(where, 2) if regions else None,
-            "flagged": [e for e in result.parameter_gap if e.get("flagged")]}
+            "flagged": [e for e in result.parameter_gap if e.get("flagged")],
+            "force_check": _force_table(result.force_check), "notes": _diagnosis_notes(result)}
+
+
+def _force_table(fc: dict | None):
+    """Leave-one-load-out force measurement of each model as a table (percent of the known load)."""
+    if fc is None or "error" in fc:
+        return None
+    rows = []
+    for key in ("ideal", "verdict", "discrepancy"):
+        if key not in fc or "error" in fc[key]:
+            continue
+        e = fc[key]
+        rows.append({"model": e.get("model", "ideal"), "RMS per reading [%]": 100 * e["rms_rel"],
+                     "worst reading [%]": 100 * e["max_rel"],
+                     "RMS of each load's mean [%]": 100 * e["rms_rel_mean"] if "rms_rel_mean" in e else np.nan})
+    floor = fc["ideal"].get("noise_floor_rel")
+    if floor is not None:
+        rows.append({"model": "the readings' noise alone", "RMS per reading [%]": 100 * floor,
+                     "worst reading [%]": np.nan, "RMS of each load's mean [%]": np.nan})
+    return table(pd.DataFrame(rows), 3)
+
+
+def _diagnosis_notes(result) -> list[str]:
+    """The law and discrepancy findings, as sentences (the lines of the verdict text that say them)."""
+    prefixes = ["discrepancy"] + ([f"{result.law['family']}'s signature"] if result.law else [])
+    return [line for line in result.verdict_text().splitlines() if line.startswith(tuple(prefixes))]
 
 
 def _attempt(what: str, compute) -> dict:
