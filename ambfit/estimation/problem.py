@@ -9,6 +9,8 @@ and which rows the fit uses.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+from collections import OrderedDict
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -99,6 +101,17 @@ def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
     return st, sb, sx, "; ".join(sources)
 
 
+_BUILT: OrderedDict = OrderedDict()
+"""The last few tables' problems, by content: the diagnosis and the force check fit one table dozens of times
+with different masks, and building its readings (pairing the axes by time) costs more than a warm fit."""
+_BUILT_SIZE = 8
+
+
+def _content_key(df: pd.DataFrame, sigma_i, sigma_x) -> tuple:
+    digest = hashlib.blake2b(pd.util.hash_pandas_object(df, index=True).to_numpy().tobytes(), digest_size=16)
+    return tuple(map(str, df.columns)), tuple(map(str, df.dtypes)), digest.hexdigest(), sigma_i, sigma_x
+
+
 def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: float | None = None,
                   mask=None) -> tuple[Problem, Meta]:
     """Arrays for :func:`residuals` from a contract table.
@@ -109,6 +122,19 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     ``mask``: 1 for rows to fit, 0 for rows held out (default all 1).
     """
     df = data.frame if isinstance(data, Dataset) else data
+    key = _content_key(df, sigma_i, sigma_x)
+    if key in _BUILT:
+        _BUILT.move_to_end(key)
+        prob, meta = _BUILT[key]
+    else:
+        prob, meta = _build(df, sigma_i, sigma_x)
+        _BUILT[key] = prob, meta
+        if len(_BUILT) > _BUILT_SIZE:
+            _BUILT.popitem(last=False)
+    return (prob if mask is None else prob.with_mask(mask)), meta
+
+
+def _build(df: pd.DataFrame, sigma_i, sigma_x) -> tuple[Problem, Meta]:
     r = readings(df)
     ax = np.asarray(r.axis)
     st, sb, sx, source = _noise(df, ax, sigma_i, sigma_x)
@@ -120,7 +146,7 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     known = np.isfinite(load)
     k_free = tuple(bool(known[ax == a].any()) for a in range(2))
     present = tuple(bool((ax == a).any()) for a in range(2))
-    m = np.ones(len(df)) if mask is None else np.asarray(mask, dtype=float)
+    m = np.ones(len(df))
     prob = Problem(readings=r, s_top=jnp.asarray(st), s_bottom=jnp.asarray(sb), s_x=jnp.asarray(sx),
                    load=jnp.asarray(np.nan_to_num(load)), known=jnp.asarray(known), gidx=jnp.asarray(gidx),
                    k_free=jnp.asarray(k_free), mask=jnp.asarray(m))
