@@ -37,7 +37,7 @@ import pandas as pd
 import scipy.linalg
 
 from ambfit.data import Dataset
-from ambfit.estimation.core import Model, build_problem, free_mask, jacobian, misfit, si_scale
+from ambfit.estimation.core import Model, build_problem, free_mask, jacobian, noise_std, si_scale
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import AXES, Bearing
 
@@ -270,7 +270,7 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     n = len(df)
     free = free_mask(prob, meta, model)
     jac = np.asarray(jacobian(theta, prob, model))[:n][:, free]
-    s = np.asarray(misfit(theta, prob, model)[1])
+    s = np.asarray(noise_std(theta, prob, model))
     if mask is not None:
         w = np.asarray(mask, dtype=float) ** 2
     elif result.weights is not None:

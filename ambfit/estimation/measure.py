@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -73,7 +74,13 @@ def predict(result: FitResult, data) -> np.ndarray:
     params = BearingParams(jnp.asarray([vals.get("g_v0", nominal), vals.get("g_w0", nominal)]),
                            jnp.asarray([vals.get("v0", 0.0), vals.get("w0", 0.0)]),
                            jnp.asarray([vals.get("k_v", np.nan), vals.get("k_w", np.nan)]))
-    return np.asarray(evaluate(params, readings(df), result.effects, bearing=result.bearing)[0])
+    return np.asarray(_force(params, readings(df), result.effects, result.bearing))
+
+
+@eqx.filter_jit
+def _force(params, readings, effects, bearing):
+    """The model's force at the readings (compiled once per model: force checks predict many times)."""
+    return evaluate(params, readings, effects, bearing=bearing)[0]
 
 
 def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None, max_steps: int = 200,
@@ -158,10 +165,10 @@ def _figures(rel: list) -> dict:
 
 def _force_noise(res: FitResult, df, fit_kw) -> np.ndarray:
     """Each row's force noise std [N] under ``res``'s model (current and position noise propagated)."""
-    from ambfit.estimation.core import Model, build_problem, misfit
+    from ambfit.estimation.core import Model, build_problem, noise_std
 
     prob, _ = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
-    return np.asarray(misfit(jnp.asarray(res.theta), prob, Model.of(res.effects, res.bearing))[1])
+    return np.asarray(noise_std(jnp.asarray(res.theta), prob, Model.of(res.effects, res.bearing)))
 
 
 class ModelFileError(ValueError):
@@ -316,13 +323,9 @@ class FittedModel:
 
 
 def _set_field(effect, field, value):
-    import equinox as eqx
-
     return eqx.tree_at(lambda e: getattr(e, field), effect, value)
 
 
 def eqx_tree_replace(readings: Readings, **fields) -> Readings:
-    import equinox as eqx
-
     names = tuple(fields)
     return eqx.tree_at(lambda r: tuple(getattr(r, n) for n in names), readings, tuple(fields.values()))
