@@ -121,3 +121,4 @@ def test_diagnosis_names_the_family_when_its_law_differs():
     assert d.law["library_law_shrink"] < 0.9 <= d.law["shrink"] == d.shrink
     rec = d.to_json()
     assert rec["law"]["family"] == "hysteresis" and "discrepancy_fit" in rec
+    assert [st["shrink"] for st in rec["steps"]] == [d.law["library_law_shrink"], d.law["shrink"]]

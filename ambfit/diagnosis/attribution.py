@@ -198,6 +198,7 @@ class Diagnosis:
             rec["force_check"] = self.force_check
         if self.law is not None:
             rec["law"] = self.law
+        rec["steps"] = self.steps()
         if self.discrepancy is not None:
             rec["discrepancy"] = {k: v for k, v in self.discrepancy.items() if k not in ("fit", "host")}
             if self.discrepancy.get("fit") is not None:
@@ -215,6 +216,27 @@ class Diagnosis:
             rec["discrepancy_fit"] = {"model": f"{host.model}+discrepancy",
                                       "model_state": host.model_state() | {"discrepancy": self.discrepancy["fit"].to_json()}}
         return rec
+
+    def steps(self) -> list[dict]:
+        """How the verdict was reached, each step with its held-out shrink: the first effect, then the second of
+        a pair; for a family whose law differs, the library's law, then the law widened by its signature."""
+        by_name = {c.effect: c for c in self.ranking}
+        if self.verdict in ("none", "unexplained"):
+            return []
+        if self.law is not None and self.verdict == self.law["family"]:
+            return [{"model": self.verdict, "shrink": self.law["library_law_shrink"]},
+                    {"model": f"{self.verdict} widened by its {self.law['signature']} signature",
+                     "shrink": self.law["shrink"]}]
+        if self.families is not None:
+            return [{"model": "magnetic_circuit", "shrink": self.shrink,
+                     "families": [f["family"] for f in self.families if f["significant"]]}]
+        parts = self.verdict.split("+")
+        out = []
+        for j in range(1, len(parts) + 1):
+            c = by_name.get("+".join(parts[:j]))
+            if c is not None:
+                out.append({"model": c.effect, "shrink": c.shrink})
+        return out
 
     def to_dataframe(self) -> pd.DataFrame:
         """The ranking as a table: effect, held-out excess after, shrink, in-sample mean z²."""
