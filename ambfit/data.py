@@ -234,9 +234,20 @@ def _numeric(df: pd.DataFrame, problems: _Problems):
                       "iteration", df["iteration"])
 
 
+ZERO_CURRENT_NOISE_A = 3e-3
+"""A measured coil current slightly below 0 is a zero current read through its sensor's noise: accepted down to
+-5 times the row's std column, or -3 mA without one (a 0.6 mA sensor at 5 sigma).  Biases must not be negative."""
+
+
 def _ranges(df: pd.DataFrame, problems: _Problems, max_position_um: float):
     for col in [c for c in CURRENTS if c in df.columns]:
-        problems.rows(df[col] < 0, "negative current; coil currents and biases cannot be negative", col, df[col])
+        floor = 0.0
+        if col != "bias_A":
+            std = f"{col[:-2]}_std_A"
+            floor = (-5.0 * df[std].fillna(ZERO_CURRENT_NOISE_A / 5.0).clip(lower=0.0) if std in df.columns
+                     else -ZERO_CURRENT_NOISE_A)
+        problems.rows(df[col] < floor, "negative current; coil currents and biases cannot be negative (a coil "
+                      "current within its noise of 0 is accepted)", col, df[col])
     for col in [c for c in CURRENTS if c in df.columns]:
         problems.rows(df[col] >= MAX_CURRENT_A, f"not a coil current (at least {MAX_CURRENT_A:g} A); currents must "
                       "be in amperes", col, df[col])

@@ -133,3 +133,17 @@ def test_readings_in_si_units(table, tmp_path):
 def test_approach_direction_follows_the_order():
     df = pd.DataFrame({"axis": ["v"] * 5, "i_top_A": [1.0, 1.2, 1.4, 1.2, 1.0], "experiment": "e"})
     np.testing.assert_array_equal(D.approach_direction(df, "i_top_A"), [1, 1, 1, -1, -1])
+
+
+def test_a_zero_current_read_through_its_noise_is_accepted(table, tmp_path):
+    # a coil at 0 A whose sensor (0.6 mA noise) reads -0.2 mA is a zero current, not a unit or sign error;
+    # without std columns down to -3 mA; beyond 5 sigma it is refused as before
+    df = table.copy()
+    df.loc[4, "i_bottom_A"] = -0.0002
+    path = tmp_path / "near_zero.csv"
+    df.to_csv(path, index=False)
+    assert D.read_csv(path).frame.loc[4, "i_bottom_A"] == -0.0002
+    df.loc[4, "i_bottom_A"] = -0.0031
+    df.to_csv(path, index=False)
+    with pytest.raises(D.DataError, match="negative current"):
+        D.read_csv(path)
