@@ -309,10 +309,11 @@ class Diagnosis:
         if self.discrepancy is not None:
             dc = self.discrepancy
             text += (f"\ndiscrepancy (a smooth correction in flux density, gap, other axis and approach direction, "
-                     f"orthogonal to the fitted parameters): held-out shrink {dc['ideal']['shrink']:.3f} on the ideal "
-                     "law (the ceiling of what such an effect explains)")
+                     f"orthogonal to the fitted parameters) on the ideal law: it removes {dc['ideal']['insample_shrink']:.3f} "
+                     f"of the excess in sample (the ceiling of what any such effect explains), {dc['ideal']['shrink']:.3f} "
+                     "held out")
             if "verdict" in dc:
-                text += f", {dc['verdict']['shrink']:.3f} on {dc['verdict']['model']}"
+                text += f"; added to {dc['verdict']['model']}: {dc['verdict']['shrink']:.3f} held out"
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
@@ -598,12 +599,17 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
 
     out = {"groups": list(GROUPS)}
     z = _corrected_heldout(ideal, df, GROUPS, noise)
-    out["ideal"] = {"heldout_excess_after": excess(z), "shrink": shrink(before, excess(z))}
     host = verdict if verdict is not None and verdict.fit.effects else ideal
+    fits = {c.effect: fit_discrepancy(c.fit, df, **noise) for c in ([ideal] if host is ideal else [ideal, host])}
+    z_in = ideal.fit.residuals
+    kept = np.ones(len(z_in), bool) if ideal.fit.weights is None else np.asarray(ideal.fit.weights) > 0
+    # in sample (every row fitted): what is left of the ideal law's excess once the correction is added
+    out["ideal"] = {"heldout_excess_after": excess(z), "shrink": shrink(before, excess(z)),
+                    "insample_shrink": shrink(excess(z_in[kept]), excess((z_in + fits[ideal.effect].row_correction)[kept]))}
     if host is not ideal:
         z = _corrected_heldout(host, df, GROUPS, noise)
         out["verdict"] = {"model": host.effect, "heldout_excess_after": excess(z), "shrink": shrink(before, excess(z))}
-    out["fit"] = fit_discrepancy(host.fit, df, **noise)
+    out["fit"] = fits[host.effect]
     out["host"] = host.fit
     out["fitted_on"] = host.effect
     if progress is not None:
