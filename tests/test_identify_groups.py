@@ -142,3 +142,42 @@ def test_closed_form_per_group(tmp_path, table2):
     assert js["method"] == "closed_form"
     g1, g2 = (g["params"]["g_v0_um"]["value"] for g in js["groups"])
     assert g1 == pytest.approx(g2, rel=1e-12)         # the same data twice: the same estimate
+
+
+# --- the groups on worker processes (ambfit.engine): the same entries as in this process ---------------------
+
+def test_workers_and_scheduler_exclude_each_other_and_need_dask(tmp_path, table2, monkeypatch):
+    data = tmp_path / "two.csv"
+    runs(table2, "1", "2").to_csv(data, index=False)
+    r = run(data, "--by", "run", "--workers", "2", "--scheduler", "tcp://localhost:8786")
+    assert r.exit_code == 2 and "not both" in r.output
+    import sys
+
+    monkeypatch.setitem(sys.modules, "distributed", None)          # as if dask were not installed
+    r = run(data, "--by", "run", "--workers", "2")
+    assert r.exit_code == 2 and "install ambfit[dask]" in r.output
+
+
+@pytest.mark.skipif(__import__("importlib").util.find_spec("distributed") is None,
+                    reason="dask[distributed] is not installed (pip install 'ambfit[dask]')")
+def test_a_fleet_on_two_worker_processes_gives_the_same_table(bearings, tmp_path, table2):
+    # A (fine), B (implausible), C (not identifiable), D (one reading 50 mA off: named and left out), E (a duplicate)
+    d = table2.assign(bearing="D", experiment="D", load_id="D" + table2["load_id"].astype(str))
+    d.loc[d.index[5], "i_top_A"] += 0.05
+    e = table2.head(40).assign(bearing="E", experiment="E", load_id="E" + table2["load_id"].head(40).astype(str),
+                               time_s=table2["time_s"].head(40) + 1e5)
+    fleet = tmp_path / "fleet.csv"
+    pd.concat([pd.read_csv(bearings), d, e, e.iloc[[39]]]).to_csv(fleet, index=False)
+    here, there = tmp_path / "here.csv", tmp_path / "there.csv"
+    r1 = run(fleet, "--by", "bearing", "--table", here)
+    r2 = run(fleet, "--by", "bearing", "--table", there, "--workers", "2")
+    assert r1.exit_code == r2.exit_code == 3, r2.output
+    a, b = pd.read_csv(here), pd.read_csv(there)
+    assert a["status"].tolist() == ["ok", "implausible", "failed", "ok", "ok"]
+    assert a["outliers"].tolist() == [0, 0, 0, 1, 0] and a["duplicates_dropped"].tolist() == [0, 0, 0, 0, 1]
+    numbers = a.select_dtypes("number").columns
+    pd.testing.assert_frame_equal(a.drop(columns=numbers), b.drop(columns=numbers))
+    # the batch and the single fit stop within the same convergence test (core.EDM_MAX): same numbers to 1e-8
+    pd.testing.assert_frame_equal(a[numbers], b[numbers], rtol=1e-8)
+    # every message of every group, in the groups' order (only the written file's name differs)
+    assert r1.output.replace("here.csv", "T") == r2.output.replace("there.csv", "T")

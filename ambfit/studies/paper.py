@@ -310,18 +310,23 @@ class Reproduction:
 
 
 def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG, noise: Noise = Noise(),
-              iterations: int = 10, least_squares: bool = True, progress=None) -> Reproduction:
+              iterations: int = 10, least_squares: bool = True, progress=None, workers: int | None = None,
+              scheduler: str | None = None, chunk_size: int | None = None) -> Reproduction:
     """Run every experiment of Tables 1-4 once (the reproduction) and ``replicates`` more times (the prediction).
 
     Each experiment is the paper's effective-origin search; seeds are drawn from one
-    :class:`numpy.random.SeedSequence`, so the result is reproducible.  Replicates
-    whose Eq. 7 validity checks reject an iteration are counted in ``failed`` and
+    :class:`numpy.random.SeedSequence` (one child per replicate), so the result is reproducible and
+    does not depend on where the replicates run: in this process (the default), on ``workers`` local
+    processes or on the Dask cluster at ``scheduler`` (:mod:`ambfit.engine`; an enclosing
+    ``with ambfit.engine.Engine(...)`` block is used when neither is given), ``chunk_size`` replicates per
+    task.  Replicates whose Eq. 7 validity checks reject an iteration are counted in ``failed`` and
     left out.  ``progress``, if given, is called as ``progress(phase, done, total)`` ("experiments",
     "replicates").
     """
+    import functools
     import time
 
-    from ambfit.estimation.closed_form import ClosedFormError
+    from ambfit import engine
 
     t0 = time.perf_counter()
     rs = rows()
@@ -347,20 +352,29 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
             ls_out.append({f"{n}_um": (res.value(n) * 1e6, res.error(n) * 1e6) for n in ("v0", "w0", "g_v0", "g_w0")})
     else:
         ls_out = [None] * len(rs)
-    reps, failed = [], 0
-    for j, rep in enumerate(rep_seeds, 1):
-        try:
-            reps.append(np.stack([iteration_values(run_row(r, spec=spec, noise=noise, seed=np.random.default_rng(s),
-                                                  iterations=iterations))
-                                  for r, s in zip(rs, rep.spawn(len(rs)))]))
-        except ClosedFormError:
-            failed += 1
-        if progress is not None:
-            progress("replicates", j, replicates)
+    one = functools.partial(_replicate, rows=tuple(rs), spec=spec, noise=noise, iterations=iterations)
+    with engine.using(workers, scheduler) as eng:
+        out = eng.map(one, rep_seeds, chunk_size=chunk_size, progress=progress, what="replicates")
+    reps = [r for r in out if r is not None]
+    failed = len(out) - len(reps)
     if len(reps) < 2:
         raise RuntimeError(f"only {len(reps)} of {replicates} replicates ran; the rig's noise is too large for Eq. 7")
     return Reproduction(rows=rs, run=run, replicates=np.stack(reps), searches=searches, least_squares=ls_out,
                         noise=noise, spec=spec, seconds=time.perf_counter() - t0, failed=failed)
+
+
+def _replicate(seed: np.random.SeedSequence, *, rows: tuple, spec: RigSpec, noise: Noise,
+               iterations: int) -> np.ndarray | None:
+    """One replicate of every experiment: per-iteration values, array[rows, iterations, 4] [µm]; None when Eq. 7's
+    validity checks reject an iteration of one of them."""
+    from ambfit.estimation.closed_form import ClosedFormError
+
+    try:
+        return np.stack([iteration_values(run_row(r, spec=spec, noise=noise, seed=np.random.default_rng(s),
+                                                  iterations=iterations))
+                         for r, s in zip(rows, seed.spawn(len(rows)))])
+    except ClosedFormError:
+        return None
 
 
 def fig2_data(seed: int = 7) -> pd.DataFrame:

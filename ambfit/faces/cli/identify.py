@@ -41,7 +41,24 @@ class Loss(str, Enum):
     cauchy = "cauchy"
 
 
-def drop_duplicates(ds, name: str, keep: bool):
+def say(kind: str, text: str) -> None:
+    """Show one message now: ``kind`` is "warn", "note", "error" or "implausible".  Work that runs on an engine's
+    worker processes collects ``(kind, text)`` pairs instead (a list's ``append`` in its place) and the command
+    shows them, in order, when the results come back."""
+    if kind == "warn":
+        warn(text)
+    elif kind == "note":
+        note(text)
+    else:
+        err.print(f"[bold red]{kind}:[/] {text}", highlight=False, soft_wrap=True)
+
+
+def _collector(messages: list):
+    """A ``say`` that keeps the messages in ``messages`` (an engine task returns them with its results)."""
+    return lambda kind, text: messages.append((kind, text))
+
+
+def drop_duplicates(ds, name: str, keep: bool, say=say):
     """Name exact duplicate readings; unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``.
 
     Rows are named as in the file (counted from 1): a group cut out of a file keeps the file's row numbers.
@@ -58,16 +75,16 @@ def drop_duplicates(ds, name: str, keep: bool):
 
     listed = ", ".join(f"{row(r)} repeats {row(f)}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
     if keep:
-        warn(f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; each "
-             "counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
+        say("warn", f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; "
+            "each counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
         return ds, []
     frame = ds.frame.drop(index=ds.frame.index[[r - 1 for r, _ in dupes]])
-    warn(f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading is a "
-         "copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
+    say("warn", f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading "
+        "is a copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
     return Dataset(frame=frame, source=ds.source), [row(r) for r, _ in dupes]
 
 
-def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "") -> float | None:
+def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "", say=say) -> float | None:
     """How much smaller the gap's error bar would be with the duplicates counted (a fit of the full file)."""
     from ambfit.estimation import fit
 
@@ -76,8 +93,8 @@ def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = 
     except fit.FitError:
         return None
     std, dup = record["params"]["g_v0_um"]["std"], with_dupes.error("g_v0") * 1e6
-    note(f"{prefix}counted as often as they appear, the duplicates would shrink the error bars {std / dup:.2f} x "
-         f"(g_v0 ± {dup:.3g} µm instead of ± {std:.3g} µm)")
+    say("note", f"{prefix}counted as often as they appear, the duplicates would shrink the error bars "
+        f"{std / dup:.2f} x (g_v0 ± {dup:.3g} µm instead of ± {std:.3g} µm)")
     return std / dup
 
 
@@ -157,6 +174,14 @@ def identify(
                                               "(contract force_check).")] = True,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
+    workers: Annotated[int | None, typer.Option(min=1, help="With several files or --by: fit the groups on this "
+                                                "many local worker processes (needs ambfit[dask]); plain least "
+                                                "squares runs as vmapped batches of groups. Default: this "
+                                                "process.")] = None,
+    scheduler: Annotated[str | None, typer.Option(metavar="ADDRESS", help="With several files or --by: fit the "
+                                                  "groups on the Dask cluster whose scheduler is at this address "
+                                                  "(e.g. tcp://10.0.0.5:8786, a dask-jobqueue cluster's "
+                                                  "scheduler_address; its workers need ambfit).")] = None,
 ):
     """Identify effective gap, origin (and k when loads are known) for each axis.
 
@@ -168,9 +193,12 @@ def identify(
 
     Several files (or --by COLUMN): one estimate per group, each judged on its own; a group
     that fails does not stop the others.  Exit 0 when every group is fine, 2 when a file
-    cannot be read, else 3; the last line names the groups that are not fine.
+    cannot be read, else 3; the last line names the groups that are not fine.  --workers N
+    or --scheduler ADDRESS spread the groups over processes or a Dask cluster (same results).
     """
     check_output(json_out, table)
+    if workers is not None and scheduler is not None:
+        fail("give --workers (local processes) or --scheduler (a running Dask cluster), not both")
     enable_compilation_cache()
     desc = bearing_of(bearing)
     paths, unmatched = _expand(data)
@@ -179,9 +207,13 @@ def identify(
                     require_k=require_k, debias=debias, loss=loss.value, keep_duplicates=keep_duplicates,
                     accept=accept_implausible, bearing=desc, force_check=force_check)
     if len(paths) == 1 and not unmatched and column is None and not pooled:
+        if workers is not None or scheduler is not None:
+            note("one data set: nothing to spread over workers, it is fitted in this process (--workers and "
+                 "--scheduler take several files or --by COLUMN)")
         _identify_file(paths[0], opts, max_position_um, json_out, table)
     else:
-        _identify_groups(paths, unmatched, column, opts, max_position_um, pooled, json_out, table)
+        _identify_groups(paths, unmatched, column, opts, max_position_um, pooled, json_out, table, workers,
+                         scheduler)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,14 +279,14 @@ def _identify_closed_form(ds, name, bearing, *, show: bool = True) -> dict:
     return record
 
 
-def _closed_form_record(result, bearing, name: str) -> dict:
+def _closed_form_record(result, bearing, name: str, say=say) -> dict:
     """The closed form's contract record with its plausibility flags; its rejections and health as warnings."""
     from ambfit.estimation import plausibility
 
     for line in result.rejections():
-        warn(name + line)
+        say("warn", name + line)
     for line in result.health():
-        warn(name + line)
+        say("warn", name + line)
     record = result.to_json()
     keys = {e for e, _ in result.estimates}
     record["implausible"] = [f.to_json() for key in sorted(keys) for f in plausibility.check_result(
@@ -303,10 +335,10 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
     return record
 
 
-def _warn_health(res, prefix: str = ""):
+def _warn_health(res, prefix: str = "", say=say):
     for check, ok, text in res.checks():
         if ok is False and check not in ("k_identified", "plausible"):   # plausibility: judge() says it
-            warn(prefix + text)
+            say("warn", prefix + text)
 
 
 # --- several files, or one file split by a column ---------------------------------------------------------------
@@ -370,9 +402,11 @@ def _status(record: dict, flags, accept: bool) -> str:
     return "ok"
 
 
-def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, pooled, json_out, table):
+def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, pooled, json_out, table,
+                     workers: int | None = None, scheduler: str | None = None):
     """One estimate per file (and per value of ``column``), each judged on its own; exit 2 if a file is unreadable,
-    3 if a group is not fine, else 0."""
+    3 if a group is not fine, else 0.  With ``workers`` or ``scheduler`` the groups run on :mod:`ambfit.engine`
+    (chunks of groups per task, plain least squares as one vmapped batch per chunk); the entries are the same."""
     from ambfit.data import DataError, Dataset, read_csv
     from ambfit.faces.cli.progress import progress_bar
 
@@ -400,14 +434,18 @@ def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, 
 
     entries = []
     with progress_bar() as bar:
-        for file, value, ds in bar.iterate(jobs, "groups"):
-            head = {"group": label(file, value), "file": file, **({} if column is None else {"by": column,
-                                                                                           "value": value})}
-            if isinstance(ds, str):
-                err.print(f"[bold red]error:[/] {ds}", highlight=False, soft_wrap=True)
-                entries.append({**head, "status": "unreadable", "error": ds})
-            else:
-                entries.append({**head, **_identify_group(ds, head["group"], opts)})
+        heads = [{"group": label(file, value), "file": file, **({} if column is None else {"by": column,
+                                                                                         "value": value})}
+                 for file, value, _ in jobs]
+        if workers is None and scheduler is None:
+            for head, (_, _, ds) in zip(heads, bar.iterate(jobs, "groups")):
+                if isinstance(ds, str):
+                    say("error", ds)
+                    entries.append({**head, "status": "unreadable", "error": ds})
+                else:
+                    entries.append({**head, **_identify_group(ds, head["group"], opts)})
+        else:
+            entries = _groups_on_engine(jobs, heads, opts, workers, scheduler, bar)
         pooled_entry = None
         if pooled and readable:
             bar("pooled fit", 0, 1)
@@ -443,39 +481,116 @@ def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, 
     fail(f"{len(bad)} of {len(shown)} group(s) not fine: {listed}{rest}", 2 if unreadable else 3)
 
 
-def _identify_group(ds, name: str, opts: _Options) -> dict:
+def _groups_on_engine(jobs, heads, opts: _Options, workers, scheduler, bar) -> list[dict]:
+    """The groups' entries computed on the engine; their messages shown afterwards in the order of the groups."""
+    import functools
+
+    from ambfit import engine
+
+    items = [(head["group"], ds) for head, (_, _, ds) in zip(heads, jobs) if not isinstance(ds, str)]
+    try:
+        with engine.using(workers, scheduler) as eng:
+            done = eng.map_batches(functools.partial(_groups_task, opts=opts), items, progress=bar, what="groups")
+    except engine.EngineError as exc:
+        from rich.markup import escape
+
+        fail(escape(str(exc)), 2)           # (escaped: "ambfit[dask]" is not markup)
+    results = iter(done)
+    entries = []
+    for head, (_, _, ds) in zip(heads, jobs):
+        if isinstance(ds, str):
+            say("error", ds)
+            entries.append({**head, "status": "unreadable", "error": ds})
+            continue
+        entry, messages = next(results)
+        for kind, text in messages:
+            say(kind, text)
+        entries.append({**head, **entry})
+    return entries
+
+
+def _identify_group(ds, name: str, opts: _Options, say=say) -> dict:
     """Plausibility of the data, duplicates, the fit and the plausibility of its result for one group, as the
     single-file path does them, but reported instead of ending the run."""
+    return _finish_group(_prepare_group(ds, name, opts, say), name, opts, say)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Prepared:
+    """A group before its fit: the data's plausibility flags, the table as read, and without duplicates."""
+
+    data_flags: list
+    original: object
+    ds: object
+    dropped: list
+
+
+def _prepare_group(ds, name: str, opts: _Options, say=say) -> _Prepared:
+    from ambfit.estimation import plausibility
+
+    data_flags = plausibility.check_data(ds.frame, opts.bearing)
+    deduplicated, dropped = drop_duplicates(ds, name, opts.keep_duplicates, say)
+    return _Prepared(data_flags=data_flags, original=ds, ds=deduplicated, dropped=dropped)
+
+
+def _finish_group(prep: _Prepared, name: str, opts: _Options, say=say, res=None) -> dict:
+    """The group's entry from its fit: ``res`` (a :class:`FitResult`, or the exception its fit raised) when the
+    fit ran in a batch, else the fit runs here."""
     from ambfit.data import DataError
     from ambfit.estimation import closed_form, fit, plausibility
 
     prefix = f"{name}: "
-    data_flags = plausibility.check_data(ds.frame, opts.bearing)
-    original = ds
-    ds, dropped = drop_duplicates(ds, name, opts.keep_duplicates)
+    ds = prep.ds
     try:
         if opts.method is Method.closed_form:
-            record = _closed_form_record(closed_form.identify(ds, bearing=opts.bearing), opts.bearing, prefix)
+            record = _closed_form_record(closed_form.identify(ds, bearing=opts.bearing), opts.bearing, prefix, say)
         else:
-            res = fit.fit(ds, **opts.fit_kw())
-            _warn_health(res, prefix)
+            if res is None:
+                res = fit.fit(ds, **opts.fit_kw())
+            elif isinstance(res, Exception):
+                raise res
+            else:
+                res.raise_for_health()          # what fit(throw=True) raises
+            _warn_health(res, prefix, say)
             record = res.to_json()
-            if dropped and "g_v0_um" in record["params"]:
-                record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, opts.bearing, opts.loss,
-                                                                          prefix)
+            if prep.dropped and "g_v0_um" in record["params"]:
+                record["duplicates_error_bar_factor"] = _duplicate_effect(prep.original, record, opts.bearing,
+                                                                          opts.loss, prefix, say)
     except (fit.FitError, closed_form.ClosedFormError, DataError, ValueError) as exc:
-        err.print(f"[bold red]error:[/] {prefix}{exc}", highlight=False, soft_wrap=True)
+        say("error", f"{prefix}{exc}")
         record = {"method": "closed_form" if opts.method is Method.closed_form else "least_squares", "params": {},
                   "converged": False, "n_rows": len(ds), "error": str(exc)}
-    flags = [*data_flags, *(plausibility.Flag(**f) for f in record.get("implausible", []))]
+    flags = [*prep.data_flags, *(plausibility.Flag(**f) for f in record.get("implausible", []))]
     record["implausible"] = [f.to_json() for f in flags]
-    record["duplicates_dropped"] = dropped
+    record["duplicates_dropped"] = prep.dropped
     for f in flags:
-        if opts.accept:
-            warn(f"{prefix}{f}")
-        else:
-            err.print(f"[bold red]implausible:[/] {prefix}{f}", highlight=False, soft_wrap=True)
+        say("warn" if opts.accept else "implausible", f"{prefix}{f}")
     return {"status": _status(record, flags, opts.accept), **record}
+
+
+def _batched(opts: _Options) -> bool:
+    """Whether the groups' fits can run as one vmapped batch (:func:`ambfit.estimation.batch.fit_many`): plain
+    least squares of the ideal law (with its outlier test), no bias correction."""
+    return opts.method is Method.least_squares and opts.loss in ("auto", "linear") and not opts.debias
+
+
+def _groups_task(chunk: list, opts: _Options) -> list:
+    """One engine task: the entries of a chunk of ``(group label, Dataset)`` and each group's messages
+    (``[(kind, text)]``), as the in-process loop would show them.  Plain least squares runs as one vmapped batch
+    of the chunk's groups; everything else (and every group whose outlier test finds a reading) is fitted by
+    :func:`ambfit.estimation.fit.fit`, as in this process."""
+    from ambfit.estimation import batch
+
+    out, preps = [], []
+    for name, ds in chunk:
+        messages = []
+        preps.append(_prepare_group(ds, name, opts, _collector(messages)))
+        out.append(messages)
+    fits = [None] * len(chunk)
+    if _batched(opts):
+        fits = batch.fit_many([p.ds for p in preps], **opts.fit_kw())
+    return [(_finish_group(p, name, opts, _collector(messages), res), messages)
+            for (name, _), p, res, messages in zip(chunk, preps, fits, out)]
 
 
 def _pooled(readable):
