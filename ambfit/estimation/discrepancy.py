@@ -149,6 +149,8 @@ class Discrepancy:
     row_correction, row_correction_n : array[n]
         The correction on every row of the data it was fitted on (held-out rows too), in standardized units
         and in newtons.
+    row_noise_n : array[n]
+        Each of those rows' force noise std [N] (the unit of the standardized correction).
     unconstrained_shift : dict
         ``{name: (shift, shift / std)}``: how far an unconstrained correction (not projected) would move each
         physical parameter, in SI units and in the parameter's standard errors.
@@ -165,6 +167,7 @@ class Discrepancy:
     row_correction: np.ndarray
     row_correction_n: np.ndarray
     unconstrained_shift: dict
+    row_noise_n: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def correction(self, readings, sensitivity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The correction [N] at other readings and its standard error.
@@ -309,4 +312,4 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     return Discrepancy(basis=basis, coef=coef, cov=cov, projection=a_si[phys], names=tuple(names[j] for j in phys),
                        tau=dict(zip(basis.groups, map(float, tau_g))), log_bayes=dict(zip(basis.groups, map(float, bayes))),
                        effective_parameters=neff, row_correction=row, row_correction_n=row * s,
-                       unconstrained_shift=unconstrained)
+                       unconstrained_shift=unconstrained, row_noise_n=s)

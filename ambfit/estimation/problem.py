@@ -109,7 +109,8 @@ _BUILT_SIZE = 8
 
 def _content_key(df: pd.DataFrame, sigma_i, sigma_x) -> tuple:
     digest = hashlib.blake2b(pd.util.hash_pandas_object(df, index=True).to_numpy().tobytes(), digest_size=16)
-    return tuple(map(str, df.columns)), tuple(map(str, df.dtypes)), digest.hexdigest(), sigma_i, sigma_x
+    declared = tuple(None if v is None else np.asarray(v, dtype=float).tobytes() for v in (sigma_i, sigma_x))
+    return tuple(map(str, df.columns)), tuple(map(str, df.dtypes)), digest.hexdigest(), declared
 
 
 def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None, sigma_x: float | None = None,

@@ -261,6 +261,38 @@ def plot_ranking(diagnosis, ax=None):
     return ax
 
 
+def plot_discrepancy(diagnosis, ax=None):
+    """Where the force law and the data part ways, as a function: the model-discrepancy correction [N] of every
+    reading against the top coil's flux density, per axis, with the ideal law's force misfit for comparison.
+
+    ``diagnosis``: a :class:`ambfit.Diagnosis` fitted with ``discrepancy=True``.
+    """
+    ax = _axes(ax)
+    disc = diagnosis.discrepancy
+    if disc is None or disc.get("fit") is None:
+        raise ValueError("this diagnosis has no discrepancy term (diagnose(..., discrepancy=True))")
+    op = diagnosis.operating
+    b = op["b_top_T"].to_numpy()
+    axis = op["axis"].to_numpy() if "axis" in op else np.zeros(len(b))
+    corr = disc["fit"].row_correction_n
+    host = disc["host"]
+    misfit_n = -diagnosis.baseline.residuals * disc["fit"].row_noise_n      # load - force [N]
+    for a, (name, colour) in enumerate((("v", "tab:blue"), ("w", "tab:orange"))):
+        m = (axis == a) | (axis == name)
+        if not np.any(m):
+            continue
+        ax.scatter(b[m], corr[m], s=8, color=colour, label=f"{name}: correction to {host.model}")
+        if host.model == "ideal":
+            ax.scatter(b[m], misfit_n[m], s=8, marker="x", color=colour, alpha=0.35,
+                       label=f"{name}: ideal law's misfit (load - force)")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("top-coil flux density [T] (ideal circuit)")
+    ax.set_ylabel("force [N]")
+    ax.set_title(f"discrepancy of {host.model}: what no parameter of it expresses")
+    ax.legend(fontsize=7)
+    return ax
+
+
 # --- the paper's figures (ambfit.studies.paper) ------------------------------------------------------------------
 
 def plot_fig2_surface(space, *, limit_dchi2: float = 11.8, fig=None):
