@@ -145,7 +145,8 @@ def main():
     if disc:
         md += [f"Discrepancy (orthogonal to every fitted parameter): held-out shrink {disc['ideal']['shrink']:.3f} on "
                "the ideal law" + (f", {disc['verdict']['shrink']:.3f} on {disc['verdict']['model']}"
-                                  if "verdict" in disc else "") + "; log Bayes factor per group: "
+                                  if "verdict" in disc else "") + f"; log Bayes factor per group on {disc.get('fitted_on', 'the model')}'s "
+               "residuals (above 10: clearly wanted): "
                + ", ".join(f"{k} {v:.1f}" for k, v in disc["log_bayes"].items()) + ".", ""]
     flagged = [e for e in rec.get("parameter_gap", []) if e.get("flagged") and e["parameter"].startswith("g_")]
     if flagged:

@@ -133,6 +133,41 @@ def run(engine: Engine, n: int, chunk: int, seed: int, warmup: int) -> tuple[dic
             "rows_min_max": [int(rows[:, 9].min()), int(rows[:, 9].max())]}, rows
 
 
+def _timed_copy(n: int, chunk: int, seed: int, barrier) -> float:
+    """One plain process of the capacity control: warm up, wait for the others, time ``n`` items."""
+    enable_compilation_cache()
+    warm(chunk, chunk, seed)
+    kids = np.random.SeedSequence([seed, 3]).spawn(n)
+
+    def items():
+        for lo in range(0, n, chunk):
+            study_chunk(list(range(lo, min(lo + chunk, n))), kids[lo:lo + chunk])
+
+    items()                                  # the timed items once untimed: every design's first call is paid
+    barrier.wait()
+    t0 = time.perf_counter()
+    items()
+    return time.perf_counter() - t0
+
+
+def capacity(copies: int, n: int, chunk: int, seed: int) -> dict:
+    """What this machine gives ``copies`` processes doing the same work at once, without Dask: the throughput of
+    ``copies`` simultaneous plain processes over that of one alone (the ceiling of any engine's speed-up here)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = mp.get_context("spawn")
+    walls = {}
+    with ctx.Manager() as manager:
+        for k in (1, copies):
+            barrier = manager.Barrier(k)
+            with ProcessPoolExecutor(max_workers=k, mp_context=ctx) as pool:
+                walls[k] = list(pool.map(_timed_copy, [n] * k, [chunk] * k, [seed] * k, [barrier] * k))
+    alone, together = walls[1][0], walls[copies]
+    return {"copies": copies, "items_each": n, "wall_alone_s": alone, "wall_together_s": together,
+            "capacity": copies * alone / max(together)}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=10_000, help="data sets (items) in the timed study")
@@ -142,6 +177,8 @@ def main():
                                                                "(default: one chunk)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
+    ap.add_argument("--control", type=int, default=1000, help="items per process of the capacity control "
+                    "(plain processes without Dask; 0 skips it)")
     args = ap.parse_args()
     enable_compilation_cache()               # as the command line does; the workers enable it themselves
     chunk = args.chunk or max(1, -(-args.n // (4 * args.workers)))
@@ -150,6 +187,7 @@ def main():
     # the cluster first: the driver's peak memory then belongs to it alone (the in-process run's peak is larger)
     there, rows_there = run(Engine(workers=args.workers), args.n, chunk, args.seed, warmup)
     here, rows_here = run(Engine(), args.n, chunk, args.seed, warmup)
+    control = capacity(args.workers, args.control, min(chunk, args.control), args.seed) if args.control else None
     same = np.isfinite(rows_here[:, :8]) & np.isfinite(rows_there[:, :8])
     diff = np.abs(rows_here[:, :8] - rows_there[:, :8])[same]
     values = np.abs(rows_here[:, :4][same[:, :4]])
@@ -158,7 +196,7 @@ def main():
         "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "load_average_at_start": load_start},
         "in_process": here, "local_cluster": there,
-        "speedup": here["wall_s"] / there["wall_s"], "target_speedup": 1.7,
+        "speedup": here["wall_s"] / there["wall_s"], "target_speedup": 1.7, "control": control,
         "identical": {"max_abs_difference_um": float(diff.max() * 1e6) if diff.size else 0.0,
                       "max_relative_difference": float(np.max(np.abs(rows_here[:, :4] - rows_there[:, :4])[same[:, :4]]
                                                               / values)) if values.size else 0.0,
@@ -200,6 +238,14 @@ def markdown(r: dict) -> str:
         "", f"Speed-up {r['speedup']:.2f} x with {r['workers']} workers ({verdict} the {r['target_speedup']} x target "
         f"on this machine at this load). Warm-up: {a['warmup_s']:.1f} s in-process, {b['warmup_s']:.1f} s on the "
         "workers (in parallel).",
+    ]
+    if r.get("control"):
+        c = r["control"]
+        lines += ["", f"Control without Dask: {c['copies']} plain processes doing {c['items_each']} items each at once "
+                  f"take {max(c['wall_together_s']):.1f} s against {c['wall_alone_s']:.1f} s for one alone: this machine "
+                  f"gives {c['copies']} processes {c['capacity']:.2f} x the throughput of one, the ceiling of any "
+                  f"engine here; the LocalCluster reaches {r['speedup'] / c['capacity']:.0%} of it."]
+    lines += [
         "", f"Same seeds, same numbers: largest difference between the engines' estimates and standard errors "
         f"{ident['max_abs_difference_um']:.3g} µm (relative {ident['max_relative_difference']:.3g}); "
         f"{100 * ident['bitwise_equal_fraction']:.1f} % bitwise equal; same failed sets: {ident['same_failures']}.",

@@ -119,6 +119,23 @@ def test_diagnosis_residuals_use_the_most_structured_variable():
     np.testing.assert_array_equal(line(ax, "with the verdict effect").get_ydata(), d.residuals_after)
 
 
+def test_discrepancy_is_drawn_against_flux_density_per_axis_in_newtons():
+    op = pd.DataFrame({"b_top_T": [0.5, 0.7, 0.9, 1.1], "axis": ["v", "v", "w", "w"]})
+    fit = types.SimpleNamespace(row_correction_n=np.array([0.01, 0.02, -0.03, 0.04]),
+                                row_noise_n=np.array([0.1, 0.1, 0.2, 0.2]))
+    d = types.SimpleNamespace(operating=op, baseline=types.SimpleNamespace(residuals=np.array([1.0, 2.0, 3.0, 4.0])),
+                              discrepancy={"fit": fit, "host": types.SimpleNamespace(model="ideal")})
+    ax = plots.plot_discrepancy(d)
+    assert ax.get_xlabel().startswith("top-coil flux density [T]") and ax.get_ylabel() == "force [N]"
+    got = {c.get_label(): c.get_offsets() for c in ax.collections}
+    np.testing.assert_allclose(got["v: correction to ideal"], [[0.5, 0.01], [0.7, 0.02]])
+    np.testing.assert_allclose(got["w: correction to ideal"], [[0.9, -0.03], [1.1, 0.04]])
+    # the ideal law's misfit in newtons: load - force = -z * s
+    np.testing.assert_allclose(got["w: ideal law's misfit (load - force)"], [[0.9, -0.6], [1.1, -0.8]])
+    with pytest.raises(ValueError, match="no discrepancy"):
+        plots.plot_discrepancy(types.SimpleNamespace(discrepancy=None))
+
+
 def test_ranking_has_one_bar_per_candidate_and_the_baseline():
     ax = plots.plot_ranking(RANKING)
     bars = ax.patches

@@ -134,17 +134,20 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
                              "ΔAIC": c.to_json(result.ideal)["delta_aic"]} for c in result.ranking])
     regions = result.where.regions[:max_regions]
     where = pd.DataFrame([{"region": r.describe(), "rows": r.rows, "z": r.z} for r in regions])
-    bars = None
+    bars = correction = None
     if draw:
         from ambfit.faces import plots
 
         bars = figure(plots.plot_ranking(result))
+        if result.discrepancy is not None and result.discrepancy.get("fit") is not None:
+            correction = figure(plots.plot_discrepancy(result))
     return {"verdict": result.verdict, "confounded_with": list(result.confounded_with), "shrink": result.shrink,
             "noise_source": nf.source, "mean_z2": nf.mean_z2, "expected_mean_z2": nf.expected_mean_z2,
             "heldout_excess_before": result.heldout_excess_before, "folds": result.folds,
             "ranking": table(ranking, 3), "figure": bars, "where": table(where, 2) if regions else None,
             "flagged": [e for e in result.parameter_gap if e.get("flagged")],
-            "force_check": _force_table(result.force_check), "notes": _diagnosis_notes(result)}
+            "force_check": _force_table(result.force_check), "notes": _diagnosis_notes(result),
+            "discrepancy_figure": correction}
 
 
 def _force_table(fc: dict | None):
