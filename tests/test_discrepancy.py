@@ -122,3 +122,27 @@ def test_diagnosis_names_the_family_when_its_law_differs():
     rec = d.to_json()
     assert rec["law"]["family"] == "hysteresis" and "discrepancy_fit" in rec
     assert [st["shrink"] for st in rec["steps"]] == [d.law["library_law_shrink"], d.law["shrink"]]
+
+
+def test_identify_writes_effects_and_discrepancy_into_the_model_for_ambfit_force(saturated, tmp_path):
+    # the model JSON of identify --effect --discrepancy carries both; ambfit force predicts with them
+    import json
+
+    from typer.testing import CliRunner
+
+    from ambfit.data import write_csv
+    from ambfit.faces.cli import app
+
+    data, _, _ = saturated
+    csv, model = tmp_path / "sat.csv", tmp_path / "model.json"
+    write_csv(data, csv)
+    r = CliRunner().invoke(app, ["identify", str(csv), "--effect", "saturation", "--discrepancy", "--json", str(model)])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(model.read_text())
+    assert [e["name"] for e in rec["model_state"]["effects"]] == ["saturation"]
+    assert "discrepancy" in rec["model_state"] and "discrepancy" in rec["force_check"]
+    fm = FittedModel.from_json(rec, saturated[1].bearing)
+    assert fm.model == "saturation+discrepancy"
+    write_csv(data, tmp_path / "again.csv")
+    r = CliRunner().invoke(app, ["identify", str(csv), str(tmp_path / "again.csv"), "--effect", "saturation"])
+    assert r.exit_code == 2 and "one data set" in r.output

@@ -172,6 +172,13 @@ def identify(
     force_check: Annotated[bool, typer.Option(help="With two or more distinct known loads: leave each out, fit the "
                                               "rest, and compare the force predicted for its readings with it "
                                               "(contract force_check).")] = True,
+    effect: Annotated[list[str] | None, typer.Option("--effect", metavar="NAME", help="Fit this unmodelled effect "
+                                                  "with the ideal law, its parameters estimated (repeatable; e.g. "
+                                                  "magnetic_circuit with a bearing description that has a B-H curve, "
+                                                  "saturation); the model JSON then carries it for ambfit force.")] = None,
+    discrepancy: Annotated[bool, typer.Option("--discrepancy", help="Also fit the model-discrepancy term (a smooth "
+                                              "correction orthogonal to every fitted parameter) and add it to the "
+                                              "model JSON for ambfit force.")] = False,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
     workers: Annotated[int | None, typer.Option(min=1, help="With several files or --by: fit the groups on this "
@@ -203,10 +210,16 @@ def identify(
     desc = bearing_of(bearing)
     paths, unmatched = _expand(data)
     column = None if by.strip().lower() in ("", "none") else by.strip()
+    effects = _effects(effect or [], desc)
     opts = _Options(method=method, current_noise_ma=current_noise_ma, position_noise_um=position_noise_um,
                     require_k=require_k, debias=debias, loss=loss.value, keep_duplicates=keep_duplicates,
-                    accept=accept_implausible, bearing=desc, force_check=force_check)
-    if len(paths) == 1 and not unmatched and column is None and not pooled:
+                    accept=accept_implausible, bearing=desc, force_check=force_check, effects=effects,
+                    discrepancy=discrepancy)
+    single = len(paths) == 1 and not unmatched and column is None and not pooled
+    if (effects or discrepancy) and (not single or method == Method.closed_form):
+        fail("--effect and --discrepancy extend the least-squares model of one data set (not the closed form, "
+             "not several files or --by groups)")
+    if single:
         if workers is not None or scheduler is not None:
             note("one data set: nothing to spread over workers, it is fitted in this process (--workers and "
                  "--scheduler take several files or --by COLUMN)")
@@ -230,6 +243,8 @@ class _Options:
     accept: bool
     bearing: object
     force_check: bool = True
+    effects: tuple = ()
+    discrepancy: bool = False
 
     def fit_kw(self) -> dict:
         return dict(sigma_i=None if self.current_noise_ma is None else self.current_noise_ma * 1e-3,
@@ -301,26 +316,60 @@ def _si_values(params: dict) -> dict:
     return {name: params[key]["value"] / f for name, key, f in CONTRACT_PARAMS if key in params}
 
 
+def _effects(names: list[str], bearing) -> tuple:
+    """The ``--effect`` names as effects to fit; the magnetic circuit needs the bearing's B-H curve."""
+    from ambfit.physics.effects import effect_by_name
+
+    out = []
+    for text in names:
+        try:
+            e = effect_by_name(text.strip())
+        except ValueError as exc:
+            fail(f"--effect: {exc}")
+        if getattr(e, "needs_other_axis", False) and not bearing.b_curve:
+            fail(f"--effect {text}: the magnetic circuit needs the lamination's B-H curve in the bearing description "
+                 "(--bearing FILE with b_curve/h_curve)")
+        out.append(e)
+    return tuple(out)
+
+
 def _identify_ls(ds, name, opts: _Options) -> dict:
     from ambfit.estimation import fit
 
     try:
-        res = fit.fit(ds, **opts.fit_kw())
+        res = fit.fit(ds, opts.effects, **opts.fit_kw())
     except fit.FitError as exc:
         fail(str(exc), 3)
+    except ValueError as exc:                   # e.g. --debias with effects
+        fail(str(exc))
     show_table([{"experiment": "all", **res.display_row()}], f"least squares, {name}, {len(ds)} rows",
                left=("experiment",))
     for line in res.notes():
         note(line)
     _warn_health(res)
     record = res.to_json()
+    kw = opts.fit_kw()
+    if opts.discrepancy and res.converged:
+        import numpy as np
+
+        from ambfit.estimation.discrepancy import fit_discrepancy
+
+        d = fit_discrepancy(res, ds, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"])
+        record["model_state"]["discrepancy"] = d.to_json()
+        kept = np.ones(len(res.residuals), bool) if res.weights is None else np.asarray(res.weights) > 0
+        before, after = np.mean(res.residuals[kept] ** 2), np.mean((res.residuals + d.row_correction)[kept] ** 2)
+        record["discrepancy"] = {"mean_z2_before": float(before), "mean_z2_after": float(after),
+                                 "log_bayes": d.log_bayes, "effective_parameters": d.effective_parameters,
+                                 "largest_terms": d.largest(3)}
+        note(f"discrepancy (orthogonal to every fitted parameter): mean z² {before:.2f} -> {after:.2f} with "
+             f"{d.effective_parameters:.0f} effective terms; log Bayes factor "
+             + ", ".join(f"{k} {v:.1f}" for k, v in d.log_bayes.items()) + " (above 10: the data want it)")
     if opts.force_check and res.converged:
         from ambfit.estimation.measure import force_check
 
-        kw = opts.fit_kw()
         try:
             fc = force_check(ds, res.effects, bearing=opts.bearing, base=res, sigma_i=kw["sigma_i"],
-                             sigma_x=kw["sigma_x"], loss=opts.loss)
+                             sigma_x=kw["sigma_x"], loss=opts.loss, discrepancy=opts.discrepancy)
         except fit.FitError as exc:            # the check is extra: its failure must not cost the result
             fc = {"method": "leave-one-load-out", "error": str(exc)}
             warn(f"force check not possible: {exc}")
@@ -328,8 +377,11 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
             record["force_check"] = fc
             unconverged = (f"; {fc['n_not_converged']} of the refits did not converge (counted as they stand)"
                            if fc["n_not_converged"] else "")
+            with_d = (f"; with the discrepancy {100 * fc['discrepancy']['rms_rel']:.2f} % RMS"
+                      if "discrepancy" in fc else "")
             note(f"force check (each of {fc['n_loads']} known loads left out and predicted): "
-                 f"{100 * fc['rms_rel']:.2f} % RMS, {100 * fc['max_rel']:.2f} % worst{unconverged}")
+                 f"{100 * fc['rms_rel']:.2f} % RMS, {100 * fc['max_rel']:.2f} % worst{unconverged}{with_d}; the "
+                 f"readings' noise alone gives {100 * fc['noise_floor_rel']:.2f} %")
         elif fc is not None:
             record["force_check"] = fc
     return record
