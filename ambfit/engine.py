@@ -58,6 +58,11 @@ IN_PROCESS_CHUNKS = 10
 
 INSTALL_HINT = "install ambfit[dask] (pip install 'ambfit[dask]', i.e. dask[distributed])"
 
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+"""Dask settings of local worker processes: no statistical profiler (2000 data sets of ``benchmarks/scale.py`` on 2
+workers: 28.5 s of task CPU with it, 19.0 s without).  Workers of a cluster you start yourself take it from their
+own configuration (``distributed.worker.profile.enabled: false``)."""
+
 WORKER_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 """XLA flags of local worker processes: one compute thread each, so N workers use N cores and do not fight over
 them (XLA's default thread pool in every process would use every core)."""
@@ -160,10 +165,16 @@ class Engine:
         if self.workers is not None:
             env = {"JAX_ENABLE_X64": "True",
                    "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " " + WORKER_XLA_FLAGS).strip()}
+            import dask
+
             try:
-                self._cluster = distributed.LocalCluster(
-                    n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                    silence_logs=logging.ERROR, env=env)
+                # Dask's statistical profiler samples every worker thread's stack every 10 ms: on this Python-heavy
+                # work (JAX dispatch) it cost a third of the workers' CPU (benchmarks/scale.py); the worker
+                # processes receive this setting from the nanny
+                with dask.config.set(WORKER_CONFIG):
+                    self._cluster = distributed.LocalCluster(
+                        n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                        silence_logs=logging.ERROR, env=env)
                 self._client = distributed.Client(self._cluster, timeout=self.timeout)
             except Exception as exc:  # noqa: BLE001 - any failure to start: close what started, say what failed
                 self.close()
