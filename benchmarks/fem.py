@@ -28,7 +28,7 @@ import numpy as np
 
 import ambfit
 from ambfit.data import read_csv
-from ambfit.estimation.measure import force_check
+from ambfit.estimation.measure import force_check, force_noise
 from ambfit.physics.circuit import MECParams
 from ambfit.physics.effects import MagneticCircuit
 
@@ -45,12 +45,8 @@ def noise_floor_rel(res, df) -> float:
     """RMS over the known-load readings of (force noise / load): the best any model's force check can do.
 
     The force noise of a reading is its effective-variance std (current and position noise propagated
-    through the model, :func:`ambfit.estimation.core.misfit`)."""
-    from ambfit.estimation.core import Model, misfit
-    from ambfit.estimation.problem import build_problem
-
-    prob, _ = build_problem(df)
-    s = np.asarray(misfit(np.asarray(res.theta), prob, Model.of(res.effects, res.bearing))[1])
+    through the model, :func:`ambfit.estimation.measure.force_noise`)."""
+    s = force_noise(res, df)
     load = df["load_N"].to_numpy(float)
     ok = np.isfinite(load) & (np.abs(load) > 0)
     return float(np.sqrt(np.mean((s[ok] / load[ok]) ** 2)))

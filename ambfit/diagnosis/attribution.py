@@ -202,11 +202,7 @@ class Diagnosis:
         if self.discrepancy is not None:
             rec["discrepancy"] = {k: v for k, v in self.discrepancy.items() if k not in ("fit", "host")}
             if self.discrepancy.get("fit") is not None:
-                d = self.discrepancy["fit"]
-                rec["discrepancy"] |= {"log_bayes": d.log_bayes, "tau": d.tau,
-                                       "effective_parameters": d.effective_parameters, "largest_terms": d.largest(),
-                                       "unconstrained_shift": {k: {"shift": v[0], "sigma": v[1]}
-                                                               for k, v in d.unconstrained_shift.items()}}
+                rec["discrepancy"] |= self.discrepancy["fit"].summary()
         # what ambfit force needs to measure with either model
         rec["baseline_fit"] = {"model_state": self.baseline.model_state()}
         if self.verdict_fit is not None:
@@ -298,27 +294,34 @@ class Diagnosis:
             floor = fc["ideal"].get("noise_floor_rel")
             if floor is not None:
                 text += f"; the readings' noise alone gives {100 * floor:.2f} % RMS"
-        if self.law is not None:
-            lw = self.law
-            named = self.verdict == lw["family"]
-            text += (f"\n{lw['family']}'s signature ({lw['signature']} terms) in its residuals: log Bayes factor "
-                     f"{lw['log_bayes']:.1f} ({'clear' if lw['signature_clear'] else 'not clear'}); the library's "
-                     f"{lw['family']} law shrinks the held-out excess by {lw['library_law_shrink']:.3f}, widened by "
-                     f"that signature by {lw['shrink']:.3f}"
-                     + (f": the family is {lw['family']}, its law differs from the library's" if named else ""))
-        if self.discrepancy is not None:
-            dc = self.discrepancy
-            text += (f"\ndiscrepancy (a smooth correction in flux density, gap, other axis and approach direction, "
-                     f"orthogonal to the fitted parameters) on the ideal law: it removes {dc['ideal']['insample_shrink']:.3f} "
-                     f"of the excess in sample (the ceiling of what any such effect explains), {dc['ideal']['shrink']:.3f} "
-                     "held out")
-            if "verdict" in dc:
-                text += f"; added to {dc['verdict']['model']}: {dc['verdict']['shrink']:.3f} held out"
+        text += "".join(f"\n{line}" for line in self.findings())
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
                      f"{bp['shrink']:.3f}{', explains the data' if bp['explains'] else ''})")
         return text
+
+    def findings(self) -> list[str]:
+        """The law and discrepancy findings as sentences (part of :meth:`verdict_text`; the report shows them)."""
+        out = []
+        if self.law is not None:
+            lw = self.law
+            named = self.verdict == lw["family"]
+            out.append(f"{lw['family']}'s signature ({lw['signature']} terms) in its residuals: log Bayes factor "
+                       f"{lw['log_bayes']:.1f} ({'clear' if lw['signature_clear'] else 'not clear'}); the library's "
+                       f"{lw['family']} law shrinks the held-out excess by {lw['library_law_shrink']:.3f}, widened by "
+                       f"that signature by {lw['shrink']:.3f}"
+                       + (f": the family is {lw['family']}, its law differs from the library's" if named else ""))
+        if self.discrepancy is not None:
+            dc = self.discrepancy
+            text = ("discrepancy (a smooth correction in flux density, gap, other axis and approach direction, "
+                    "orthogonal to the fitted parameters) on the ideal law: it removes "
+                    f"{dc['ideal']['insample_shrink']:.3f} of the excess in sample (the ceiling of what any such effect "
+                    f"explains), {dc['ideal']['shrink']:.3f} held out")
+            if "verdict" in dc:
+                text += f"; added to {dc['verdict']['model']}: {dc['verdict']['shrink']:.3f} held out"
+            out.append(text)
+        return out
 
     def flagged_parameters(self) -> list[str]:
         out = []
@@ -390,7 +393,7 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
         if piece == "saturation" and not bearing.b_curve:
             continue                       # linear iron already: nothing to switch off
         # the same rows as the full fit, none dropped by an outlier test: χ² must compare like with like
-        keep = None if full.weights is None else (np.asarray(full.weights) > 0).astype(float)
+        keep = full.fitted_rows.astype(float)
         f = fit(data, [mec.without(piece)], bearing=bearing, start_from=full, max_steps=max_steps, throw=False,
                 mask=keep, loss="linear", **noise)
         rise[piece], converged[piece] = float(f.chi2 - full.chi2), bool(f.converged)
@@ -602,7 +605,7 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
     host = verdict if verdict is not None and verdict.fit.effects else ideal
     fits = {c.effect: fit_discrepancy(c.fit, df, **noise) for c in ([ideal] if host is ideal else [ideal, host])}
     z_in = ideal.fit.residuals
-    kept = np.ones(len(z_in), bool) if ideal.fit.weights is None else np.asarray(ideal.fit.weights) > 0
+    kept = ideal.fit.fitted_rows
     # in sample (every row fitted): what is left of the ideal law's excess once the correction is added
     out["ideal"] = {"heldout_excess_after": excess(z), "shrink": shrink(before, excess(z)),
                     "insample_shrink": shrink(excess(z_in[kept]), excess((z_in + fits[ideal.effect].row_correction)[kept]))}

@@ -74,17 +74,22 @@ class Basis:
     def _columns(self, bt, bb, xi, o, eta, dt, db) -> list[tuple[str, str, np.ndarray]]:
         """``(group, term, values)`` of one axis' basis functions."""
         mono = [(p, q) for p in range(P_MAX + 1) for q in range(Q_MAX + 1) if (p, q) != (0, 0)]
+
+        def horseshoes(p, q, top=1.0, bottom=1.0):
+            # the top horseshoe's b^p xi^q less the bottom one's (its displacement is -xi), each weighted
+            return top * bt**p * xi**q - bottom * bb**p * (-xi) ** q
+
         cols = []
         if "shape" in self.groups:
-            cols += [("shape", f"b^{p} xi^{q}", bt**p * xi**q - bb**p * (-xi) ** q) for p, q in mono]
+            cols += [("shape", f"b^{p} xi^{q}", horseshoes(p, q)) for p, q in mono]
         if "coupling" in self.groups:
-            cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", o * (bt**p * xi**q - bb**p * (-xi) ** q))
+            cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", o * horseshoes(p, q))
                      for p, q in mono if p in (0, 2)]
             for r in (1, 2, 3):
                 cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
                          ("coupling", f"eta^{r} (b_t^2 - b_b^2)", eta**r * (bt**2 - bb**2))]
         if "hysteresis" in self.groups:
-            cols += [("hysteresis", f"direction b^{p} xi^{q}", dt * bt**p * xi**q - db * bb**p * (-xi) ** q)
+            cols += [("hysteresis", f"direction b^{p} xi^{q}", horseshoes(p, q, dt, db))
                      for p in range(5) for q in range(2)]
         return cols
 
@@ -186,13 +191,18 @@ class Discrepancy:
         return [{"group": terms[j][0], "term": terms[j][1], "coefficient": float(self.coef[j]),
                  "sigma": float(self.coef[j] / std[j])} for j in order]
 
+    def summary(self, n_terms: int = 5) -> dict:
+        """What the correction says, without its matrices: prior scales, Bayes factors, the largest terms, and
+        what an unconstrained correction would have done to the parameters."""
+        return {"tau": self.tau, "log_bayes": self.log_bayes, "effective_parameters": self.effective_parameters,
+                "largest_terms": self.largest(n_terms),
+                "unconstrained_shift": {k: {"shift": v[0], "sigma": v[1]} for k, v in self.unconstrained_shift.items()}}
+
     def to_json(self) -> dict:
         return {"basis": self.basis.to_json(), "terms": [t for _, t in self.basis.terms()],
                 "coefficients": self.coef.tolist(), "covariance": self.cov.tolist(),
-                "projection": self.projection.tolist(), "names": list(self.names), "tau": self.tau,
-                "log_bayes": self.log_bayes, "effective_parameters": self.effective_parameters,
-                "orthogonal_to": "every fitted parameter (Plumlee 2017)", "largest_terms": self.largest(),
-                "unconstrained_shift": {k: {"shift": v[0], "sigma": v[1]} for k, v in self.unconstrained_shift.items()}}
+                "projection": self.projection.tolist(), "names": list(self.names),
+                "orthogonal_to": "every fitted parameter (Plumlee 2017)", **self.summary()}
 
     @classmethod
     def from_json(cls, record: dict) -> Discrepancy:

@@ -210,7 +210,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         start_from = fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask, max_steps=max_steps,
                          loss=loss, alpha=alpha, throw=False)
         if start_from.outliers and loss == "auto":     # the extended model starts without the ideal fit's outliers
-            prob = prob.with_mask(np.asarray(prob.mask) * np.asarray(start_from.weights > 0, dtype=float))
+            prob = prob.with_mask(np.asarray(prob.mask) * start_from.fitted_rows.astype(float))
             # (that fit numbered rows of the re-indexed table: back to file rows)
             inherited = tuple(dataclasses.replace(o, row=int(rows[o.row - 1])) for o in start_from.outliers)
     thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,

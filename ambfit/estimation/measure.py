@@ -110,7 +110,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         predicted = predict(res, df)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
         rel.append(r)
-        floor.append(_force_noise(res, df, fit_kw)[out] / load)
+        floor.append(force_noise(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))[out] / load)
         entry = {"axis": ax, "load_N": float(load[0]), "rows": int(out.sum()),
                  "rms_rel": float(np.sqrt(np.mean(r**2))), "mean_rel": float(np.mean(r)),
                  "converged": bool(res.converged)}
@@ -141,11 +141,12 @@ def _figures(rel: list) -> dict:
             "rms_rel_mean": float(np.sqrt(np.mean([np.mean(x) ** 2 for x in rel])))}
 
 
-def _force_noise(res: FitResult, df, fit_kw) -> np.ndarray:
-    """Each row's force noise std [N] under ``res``'s model (current and position noise propagated)."""
+def force_noise(res: FitResult, df, *, sigma_i: float | None = None, sigma_x: float | None = None) -> np.ndarray:
+    """Each row's force noise std [N] under ``res``'s model: the readings' current and position noise (std
+    columns, or ``sigma_i`` [A] / ``sigma_x`` [m] as the fit was given them) propagated through it."""
     from ambfit.estimation.core import Model, build_problem, noise_std
 
-    prob, _ = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
+    prob, _ = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x)
     return np.asarray(noise_std(jnp.asarray(res.theta), prob, Model.of(res.effects, res.bearing)))
 
 

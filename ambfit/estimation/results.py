@@ -163,6 +163,13 @@ class FitResult:
         return float(self.std[self.names.index(name)])
 
     @property
+    def fitted_rows(self) -> np.ndarray:
+        """Which rows the fit used (bool per row): weight above 0; every row when no weights were recorded."""
+        if self.weights is None:
+            return np.ones(len(self.residuals), bool)
+        return np.asarray(self.weights) > 0
+
+    @property
     def reduced_chi2(self) -> float:
         return self.chi2 / max(self.dof, 1)
 

@@ -356,11 +356,9 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
 
         d = fit_discrepancy(res, ds, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"])
         record["model_state"]["discrepancy"] = d.to_json()
-        kept = np.ones(len(res.residuals), bool) if res.weights is None else np.asarray(res.weights) > 0
+        kept = res.fitted_rows
         before, after = np.mean(res.residuals[kept] ** 2), np.mean((res.residuals + d.row_correction)[kept] ** 2)
-        record["discrepancy"] = {"mean_z2_before": float(before), "mean_z2_after": float(after),
-                                 "log_bayes": d.log_bayes, "effective_parameters": d.effective_parameters,
-                                 "largest_terms": d.largest(3)}
+        record["discrepancy"] = {"mean_z2_before": float(before), "mean_z2_after": float(after), **d.summary(3)}
         note(f"discrepancy (orthogonal to every fitted parameter): mean z² {before:.2f} -> {after:.2f} with "
              f"{d.effective_parameters:.0f} effective terms; log Bayes factor "
              + ", ".join(f"{k} {v:.1f}" for k, v in d.log_bayes.items()) + " (above 10: the data want it)")

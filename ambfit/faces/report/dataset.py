@@ -146,7 +146,7 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
             "heldout_excess_before": result.heldout_excess_before, "folds": result.folds,
             "ranking": table(ranking, 3), "figure": bars, "where": table(where, 2) if regions else None,
             "flagged": [e for e in result.parameter_gap if e.get("flagged")],
-            "force_check": _force_table(result.force_check), "notes": _diagnosis_notes(result),
+            "force_check": _force_table(result.force_check), "notes": result.findings(),
             "discrepancy_figure": correction}
 
 
@@ -167,12 +167,6 @@ def _force_table(fc: dict | None):
         rows.append({"model": "the readings' noise alone", "RMS per reading [%]": 100 * floor,
                      "worst reading [%]": np.nan, "RMS of each load's mean [%]": np.nan})
     return table(pd.DataFrame(rows), 3)
-
-
-def _diagnosis_notes(result) -> list[str]:
-    """The law and discrepancy findings, as sentences (the lines of the verdict text that say them)."""
-    prefixes = ["discrepancy"] + ([f"{result.law['family']}'s signature"] if result.law else [])
-    return [line for line in result.verdict_text().splitlines() if line.startswith(tuple(prefixes))]
 
 
 def _attempt(what: str, compute) -> dict:
