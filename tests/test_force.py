@@ -96,6 +96,11 @@ def test_force_check_leaves_each_known_load_out():
     assert fc["method"] == "leave-one-load-out" and fc["n_loads"] == len(fc["loads"]) >= 4
     # the ideal law on ideal-rig data: the force of readings the fit never saw, to a fraction of a percent
     assert fc["rms_rel"] < 0.005 and fc["max_rel"] < 0.03
+    # the right model: the per-reading error is the readings' noise, nothing beyond it to speak of; the model's
+    # own error is what is left of the RMS over that floor in quadrature
+    assert 0.8 * fc["noise_floor_rel"] < fc["rms_rel"] < 1.2 * fc["noise_floor_rel"]
+    assert fc["model_error_rel"] == pytest.approx(np.sqrt(max(fc["rms_rel"] ** 2 - fc["noise_floor_rel"] ** 2, 0)))
+    assert fc["model_error_rel"] < 0.6 * fc["noise_floor_rel"]
     one = sim.data.assign(load_N=np.where(sim.data["axis"] == "v", 5.0, 2.0))
     assert force_check(one[one.axis == "v"]) is None                   # one known load: nothing to leave out
 

@@ -540,7 +540,7 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
         return {"method": "leave-one-load-out", "error": str(exc)}
     if ideal is None:
         return None
-    keys = ("rms_rel", "max_rel", "rms_rel_mean", "n_loads", "n_not_converged", "noise_floor_rel")
+    keys = ("rms_rel", "max_rel", "rms_rel_mean", "model_error_rel", "n_loads", "n_not_converged", "noise_floor_rel")
     out = {"method": ideal["method"], "ideal": {k: ideal[k] for k in keys}}
     if "discrepancy" in ideal:
         out["discrepancy"] = ideal["discrepancy"]

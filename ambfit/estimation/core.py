@@ -254,15 +254,18 @@ def standardized(theta, prob: Problem, model: Model = IDEAL):
 
 
 def _edm(theta, prob, model):
-    """Estimated distance to the minimum and the Jacobian it was computed from."""
-    j = jax.jacfwd(residuals)(theta, prob, model)
+    """Estimated distance to the minimum, the Jacobian it was computed from, and the same Jacobian with every
+    row at weight 1 (held-out rows too: what studentized residuals and leverages need)."""
+    j_all = jax.jacfwd(residuals)(theta, eqx.tree_at(lambda p: p.mask, prob, jnp.ones_like(prob.mask)), model)
+    # the mask multiplies each row's residual and the weights are held (stop_gradient): its rows scale likewise
+    j = j_all * jnp.concatenate([prob.mask, jnp.ones(j_all.shape[0] - prob.mask.shape[0])])[:, None]
     g = j.T @ residuals(theta, prob, model)
     h = j.T @ j
     # Held parameters (k without a known load, loads of held-out groups) have zero columns: unit diagonal,
     # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
     # the identifiability checks then say why.
     h = h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0))
-    return g @ jnp.linalg.solve(h, g), j
+    return g @ jnp.linalg.solve(h, g), j, j_all
 
 
 def _solve(theta0, prob, model, max_steps, rtol, atol):
@@ -276,8 +279,8 @@ def _solve(theta0, prob, model, max_steps, rtol, atol):
     # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
     theta, steps, result = jax.lax.fori_loop(
         0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
-    edm, j = _edm(theta, prob, model)
-    return theta, result, steps, edm, j
+    edm, j, j_all = _edm(theta, prob, model)
+    return theta, result, steps, edm, j, j_all
 
 
 @eqx.filter_jit
@@ -293,12 +296,16 @@ def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_ST
 
 
 @eqx.filter_jit
-def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS):
+def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS,
+                      every_row: bool = False):
     """:func:`solve`, plus the Jacobian of :func:`residuals` and the standardized residuals of every row at the
-    solution: ``(theta, result, num_steps, edm, jacobian, z)``.  One compiled function per model and step budget,
-    which is what a single fit needs (the diagnosis fits dozens of models, and compile time dominates there)."""
-    theta, result, steps, edm, j = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
-    return theta, result, steps, edm, j, standardized(theta, prob, model)
+    solution: ``(theta, result, num_steps, edm, jacobian, z)``, and with ``every_row`` the Jacobian with every
+    row at weight 1 as a seventh entry (a single fit's outlier test and leverages need it: no second compiled
+    function).  One compiled function per model and step budget, which is what a single fit needs (the
+    diagnosis fits dozens of models, and compile time dominates there)."""
+    theta, result, steps, edm, j, j_all = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
+    out = theta, result, steps, edm, j, standardized(theta, prob, model)
+    return out + (j_all,) if every_row else out
 
 
 @eqx.filter_jit

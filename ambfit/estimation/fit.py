@@ -232,14 +232,17 @@ def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0
     # The ideal law from a closed-form seed needs a few steps; a second solve (another compilation) only when
     # that was not enough.  Extended fits start further away (effects at their prior centre): one solve.
     first = max_steps if model.n else min(FIRST_STEPS, max_steps)
-    theta, result, steps, edm, jac, z = solve_and_measure(jnp.asarray(theta0), prob, model, max_steps=first)
+    theta, result, steps, edm, jac, z, rows = solve_and_measure(jnp.asarray(theta0), prob, model, max_steps=first,
+                                                                every_row=True)
     if not edm < EDM_MAX and max_steps > first:  # a far start: give Levenberg-Marquardt room
-        theta, result, more, edm, jac, z = solve_and_measure(theta, prob, model, max_steps=max_steps)
+        theta, result, more, edm, jac, z, rows = solve_and_measure(theta, prob, model, max_steps=max_steps,
+                                                                   every_row=True)
         steps = steps + more
     if not edm < EDM_MAX and model.n and steps < max_steps:
         # the effective-variance weights moved after the last round (strongly nonlinear models): one more
         # solve with the same compiled function settles them
-        theta, result, more, edm, jac, z = solve_and_measure(theta, prob, model, max_steps=max_steps)
+        theta, result, more, edm, jac, z, rows = solve_and_measure(theta, prob, model, max_steps=max_steps,
+                                                                   every_row=True)
         steps = steps + more
     lm = "successful" if result == optx.RESULTS.successful else str(result)
     theta = np.asarray(theta)
@@ -250,8 +253,10 @@ def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0
         correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed, model=model)
         theta = theta - correction.bias
         jac, z = jacobian(jnp.asarray(theta), prob, model), standardized(jnp.asarray(theta), prob, model)
+        rows = jacobian(jnp.asarray(theta), prob.with_mask(np.ones(len(prob.mask))), model)
     res = _finish(theta, np.asarray(jac), np.asarray(z), float(edm), lm, int(steps), prob, meta, model, how,
                   thresholds)
+    res = dataclasses.replace(res, jacobian_rows=np.asarray(rows)[: len(prob.mask)][:, free_mask(prob, meta, model)])
     if correction is not None:
         res = _with_correction(res, correction, prob, meta)
     return res
@@ -259,9 +264,12 @@ def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0
 
 def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.ndarray:
     """Studentized residuals of every row at ``res`` (fit weights from ``prob.mask``)."""
-    free = free_mask(prob, meta, model)
-    ones = prob.with_mask(np.ones(len(prob.mask)))
-    jac = np.asarray(jacobian(jnp.asarray(res.theta), ones, model))[: len(prob.mask)][:, free]
+    if res.jacobian_rows is not None:        # measured with the solve (same theta, same model)
+        jac = res.jacobian_rows
+    else:
+        free = free_mask(prob, meta, model)
+        ones = prob.with_mask(np.ones(len(prob.mask)))
+        jac = np.asarray(jacobian(jnp.asarray(res.theta), ones, model))[: len(prob.mask)][:, free]
     w = np.asarray(prob.mask) ** 2
     return robust.studentized(jac, res.residuals, w > 0, w, known_noise=not meta.noise_estimated)
 

@@ -76,9 +76,11 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     fitted on the same rows, and the figures of the model with it are under ``"discrepancy"``.
 
     Besides the contract's per-reading figures, ``rms_rel_mean`` is the RMS over the left-out loads of the
-    mean relative error of each load's readings (a force measured by averaging its readings), and
+    mean relative error of each load's readings (a force measured by averaging its readings),
     ``noise_floor_rel`` the per-reading figure a perfect model would reach: the RMS of each reading's force
-    noise (its effective-variance std) over its load.
+    noise (its effective-variance std) over its load, and ``model_error_rel`` what is left of the per-reading
+    RMS beyond that floor, ``sqrt(max(rms_rel^2 - noise_floor_rel^2, 0))`` (the model's own error; the
+    readings' noise and the model's error add in quadrature).
     """
     from ambfit.data import Dataset
     from ambfit.estimation.fit import fit
@@ -125,20 +127,23 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         per_load.append(entry)
     if not rel:
         return None
-    out = {"method": "leave-one-load-out", "model": base.model, "n_loads": len(per_load), **_figures(rel),
-           "noise_floor_rel": float(np.sqrt(np.mean(np.concatenate(floor) ** 2))),
-           "n_not_converged": sum(not p["converged"] for p in per_load), "zero_load_rows": zero,
-           "loads": per_load, "skipped": skipped}
+    noise = float(np.sqrt(np.mean(np.concatenate(floor) ** 2)))
+    out = {"method": "leave-one-load-out", "model": base.model, "n_loads": len(per_load), **_figures(rel, noise),
+           "noise_floor_rel": noise, "n_not_converged": sum(not p["converged"] for p in per_load),
+           "zero_load_rows": zero, "loads": per_load, "skipped": skipped}
     if discrepancy:
-        out["discrepancy"] = {"model": f"{base.model}+discrepancy", **_figures(rel_d)}
+        out["discrepancy"] = {"model": f"{base.model}+discrepancy", **_figures(rel_d, noise)}
     return out
 
 
-def _figures(rel: list) -> dict:
-    """Per-reading RMS and largest relative error, and the RMS of the per-load mean errors."""
+def _figures(rel: list, noise: float) -> dict:
+    """Per-reading RMS and largest relative error, the RMS of the per-load mean errors, and the per-reading RMS
+    beyond the readings' ``noise`` (in quadrature)."""
     r = np.concatenate(rel)
-    return {"rms_rel": float(np.sqrt(np.mean(r**2))), "max_rel": float(np.max(np.abs(r))),
-            "rms_rel_mean": float(np.sqrt(np.mean([np.mean(x) ** 2 for x in rel])))}
+    rms = float(np.sqrt(np.mean(r**2)))
+    return {"rms_rel": rms, "max_rel": float(np.max(np.abs(r))),
+            "rms_rel_mean": float(np.sqrt(np.mean([np.mean(x) ** 2 for x in rel]))),
+            "model_error_rel": float(np.sqrt(max(rms**2 - noise**2, 0.0)))}
 
 
 def force_noise(res: FitResult, df, *, sigma_i: float | None = None, sigma_x: float | None = None) -> np.ndarray:

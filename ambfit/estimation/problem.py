@@ -108,7 +108,14 @@ _BUILT_SIZE = 8
 
 
 def _content_key(df: pd.DataFrame, sigma_i, sigma_x) -> tuple:
-    digest = hashlib.blake2b(pd.util.hash_pandas_object(df, index=True).to_numpy().tobytes(), digest_size=16)
+    # numeric columns by their bytes, others by their text (pandas' row hashing took 3.6 ms a call on 840 rows,
+    # a tenth of a warm fit)
+    digest = hashlib.blake2b(digest_size=16)
+    for _, col in [("index", df.index.to_series()), *df.items()]:
+        v = col.to_numpy()
+        digest.update(np.ascontiguousarray(v).tobytes() if v.dtype.kind in "biufcmM"
+                      else "\x1f".join(map(repr, v)).encode())
+        digest.update(b"\x1e")
     declared = tuple(None if v is None else np.asarray(v, dtype=float).tobytes() for v in (sigma_i, sigma_x))
     return tuple(map(str, df.columns)), tuple(map(str, df.dtypes)), digest.hexdigest(), declared
 

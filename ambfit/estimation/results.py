@@ -149,6 +149,9 @@ class FitResult:
     rows: np.ndarray | None = None
     outliers: tuple = ()
     outlier_note: str = ""
+    jacobian_rows: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    """Jacobian of every row's standardized residual (weight 1, held-out rows too) at ``theta``, free columns
+    (what the outlier test's leverages need; measured with the solve)."""
     plain_shift: dict | None = None
     implausible: tuple = ()
 

@@ -379,7 +379,8 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
                       if "discrepancy" in fc else "")
             note(f"force check (each of {fc['n_loads']} known loads left out and predicted): "
                  f"{100 * fc['rms_rel']:.2f} % RMS, {100 * fc['max_rel']:.2f} % worst{unconverged}{with_d}; the "
-                 f"readings' noise alone gives {100 * fc['noise_floor_rel']:.2f} %")
+                 f"readings' noise alone gives {100 * fc['noise_floor_rel']:.2f} %, so the model's own error is "
+                 f"{100 * fc['model_error_rel']:.2f} %")
         elif fc is not None:
             record["force_check"] = fc
     return record

@@ -161,11 +161,13 @@ def _force_table(fc: dict | None):
         e = fc[key]
         rows.append({"model": e.get("model", "ideal"), "RMS per reading [%]": 100 * e["rms_rel"],
                      "worst reading [%]": 100 * e["max_rel"],
-                     "RMS of each load's mean [%]": 100 * e["rms_rel_mean"] if "rms_rel_mean" in e else np.nan})
+                     "RMS of each load's mean [%]": 100 * e["rms_rel_mean"] if "rms_rel_mean" in e else np.nan,
+                     "beyond the readings' noise [%]": 100 * e.get("model_error_rel", np.nan)})
     floor = fc["ideal"].get("noise_floor_rel")
     if floor is not None:
         rows.append({"model": "the readings' noise alone", "RMS per reading [%]": 100 * floor,
-                     "worst reading [%]": np.nan, "RMS of each load's mean [%]": np.nan})
+                     "worst reading [%]": np.nan, "RMS of each load's mean [%]": np.nan,
+                     "beyond the readings' noise [%]": np.nan})
     return table(pd.DataFrame(rows), 3)
 
 
