@@ -205,16 +205,19 @@ def _where(items):
     import jax
     import jax.numpy as jnp
 
-    return [(os.getpid(), str(jnp.zeros(1).dtype), bool(jax.config.jax_enable_x64)) for _ in items]
+    return [(os.getpid(), str(jnp.zeros(1).dtype), bool(jax.config.jax_enable_x64),
+             os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OMP_NUM_THREADS")) for _ in items]
 
 
 @needs_dask
 def test_workers_are_separate_float64_processes(cluster):
     assert cluster.kind == "local" and cluster.n_workers == 2
     seen = cluster.map_batches(_where, range(8), chunk_size=1)
-    pids = {pid for pid, _, _ in seen}
+    pids = {pid for pid, *_ in seen}
     assert os.getpid() not in pids and len(pids) == 2
-    assert all(dtype == "float64" and x64 for _, dtype, x64 in seen)
+    assert all(dtype == "float64" and x64 for _, dtype, x64, _, _ in seen)
+    # Dask's other worker settings stay; its malloc trim threshold (a tenth of the CPU of batch fits) does not
+    assert all(trim is None and omp == "1" for *_, trim, omp in seen)
 
 
 DESIGNS = (P.paper_table2(iterations=2, center=CENTER),               # three designs of one length: one compilation
