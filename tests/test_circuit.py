@@ -238,3 +238,17 @@ def test_row_parameters_give_the_shared_parameters_forces_and_derivatives():
     jb = jax.jacfwd(lambda g, i: force(mec_axis_force, g, i), argnums=(0, 1))(REAL.gap, 1.2)
     for a, b in zip(ja, jb):
         np.testing.assert_allclose(a, b, rtol=1e-10)
+
+
+def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_looks_right(monkeypatch):
+    from ambfit.physics import circuit
+
+    b = PAPER_BEARING
+    p = MECParams.ideal(b)
+    with jax.disable_jit():                      # the step budget is read when the loop runs
+        monkeypatch.setattr(circuit, "MAX_NEWTON", 1)
+        stopped = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
+        monkeypatch.setattr(circuit, "MAX_NEWTON", 40)
+        solved = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
+    assert np.isnan(float(stopped[0])) and np.isnan(float(stopped[1]))
+    assert np.isfinite(float(solved[0])) and float(solved[0]) > 0

@@ -49,7 +49,8 @@ Springer 2009, ch. 3-4, eq. 3.23 and sec. 4.2).  With ideal iron, no fringing, n
 rest of ambfit fits.
 
 The circuit is solved by Newton's method (at most :data:`MAX_NEWTON` steps, stopping at a
-relative step of 1e-13); derivatives with respect to the parameters and inputs come from one
+relative step of 1e-13; a reading whose solve is still moving by more than :data:`NEWTON_FAILED` after
+:data:`MAX_NEWTON` steps gets a NaN force, so that a fit names its rows instead of using a wrong number); derivatives with respect to the parameters and inputs come from one
 extra Newton step whose Jacobian is held constant (the implicit-function theorem), so
 :func:`mec_forces` is jit-able, vmap-able and differentiable in float64.  Newton runs on 17 loop
 fluxes (the flux law solved in advance, see ``_loop_system``) with a hand-written Jacobian; it takes
@@ -71,12 +72,17 @@ import numpy as np
 from ambfit.physics.bearing import MU_0, PAPER_BEARING, Bearing
 
 __all__ = [
-    "MECParams", "MECSolution", "mec_solve", "mec_forces", "mec_axis_force", "bh_curve", "MAX_NEWTON",
+    "MECParams", "MECSolution", "mec_solve", "mec_forces", "mec_axis_force", "bh_curve", "MAX_NEWTON", "NEWTON_FAILED",
     "POLE_SPLIT", "YOKE_SPLIT", "ROTOR_SPLIT", "DEFAULT_MU_R",
 ]
 
 MAX_NEWTON = 40
 """Upper bound on the Newton steps of one circuit solve (typically 5-8 are used)."""
+
+NEWTON_FAILED = 1e-8
+"""A solve whose last Newton step still moved the fluxes by more than this (relative) after :data:`MAX_NEWTON`
+steps did not converge: its force is NaN.  (Round-off can keep a converged solve from the 1e-13 stopping
+step; it does not leave it moving by 1e-8.)"""
 
 POLE_SPLIT, YOKE_SPLIT, ROTOR_SPLIT = 0.25, 0.35, 0.15
 """How the mean iron path ``l_fe`` of one horseshoe circuit is shared: each of its two poles
@@ -460,7 +466,8 @@ def _loop_system(x, p: MECParams, bearing: Bearing, currents, gaps, with_jacobia
 
 
 def _newton(p, bearing, currents, gaps):
-    """Newton's method on the loop fluxes from zero flux; returns ``x``, the steps and the last LU factors."""
+    """Newton's method on the loop fluxes from zero flux; returns ``x``, the steps, the last LU factors and
+    whether it converged (see :data:`NEWTON_FAILED`)."""
 
     def cond(state):
         _, step, res, it, _ = state
@@ -477,15 +484,15 @@ def _newton(p, bearing, currents, gaps):
     x0 = jnp.zeros(_NX)
     inf = jnp.asarray(jnp.inf)
     lu0 = (jnp.zeros((_NX, _NX)), jnp.zeros(_NX, dtype=jnp.int32))
-    x, _, _, it, lu = jax.lax.while_loop(cond, body, (x0, inf, inf, jnp.asarray(0), lu0))
-    return x, it, lu
+    x, step, res, it, lu = jax.lax.while_loop(cond, body, (x0, inf, inf, jnp.asarray(0), lu0))
+    return x, it, lu, (step <= NEWTON_FAILED) | (res <= 1e-14)
 
 
 def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, full: bool = True):
     cos_t, sin_t, _ = _geometry(bearing)
     currents = jnp.stack([jnp.asarray(c, dtype=float) for c in (i_vt, i_vb, i_wt, i_wb)])
     gaps = p.gap - dv * jnp.asarray(cos_t) - dw * jnp.asarray(sin_t)
-    x_star, iterations, lu = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
+    x_star, iterations, lu, converged = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
                                      jax.lax.stop_gradient(gaps))
     x_star, lu = jax.lax.stop_gradient((x_star, lu))
     # One more Newton step with the Jacobian held constant (the last step's factors: the iterate moved by
@@ -498,6 +505,7 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     drop = fg / perm
     pole_force = 0.5 * drop**2 * pull
     force = jnp.stack([jnp.sum(pole_force * jnp.asarray(cos_t)), jnp.sum(pole_force * jnp.asarray(sin_t))])
+    force = jnp.where(converged, force, jnp.nan)          # never a wrong number: the caller sees NaN rows
     if not full:
         return force
     # The nodal unknowns, for the nodal residual of the solution (reported as before).
