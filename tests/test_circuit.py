@@ -252,3 +252,17 @@ def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_look
         solved = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
     assert np.isnan(float(stopped[0])) and np.isnan(float(stopped[1]))
     assert np.isfinite(float(solved[0])) and float(solved[0]) > 0
+
+
+def test_a_held_circuit_parameter_is_not_fitted_and_survives_the_model_file():
+    from ambfit.estimation.core import Model
+    from ambfit.physics.effects import MagneticCircuit, effect_by_name
+
+    e = MagneticCircuit(fringe_depth=jnp.asarray(1.5e-3), held=("fringe_depth",))
+    names = Model.of([e]).names()
+    assert "magnetic_circuit.fringe_depth" not in names and "magnetic_circuit.leakage" in names
+    assert len(Model.of([MagneticCircuit()]).names()) == len(names) + 1
+    again = effect_by_name("magnetic_circuit", **e.describe())        # the model JSON's round trip
+    assert again.held == ("fringe_depth",) and float(again.fringe_depth) == 1.5e-3
+    with pytest.raises(ValueError, match="bogus"):
+        MagneticCircuit(held=("bogus",))

@@ -282,7 +282,11 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     theta = jnp.asarray(result.theta)
     n = len(df)
     free = free_mask(prob, meta, model)
-    jac = np.asarray(jacobian(theta, prob, model))[:n][:, free]
+    rows = result.jacobian_rows
+    if rows is not None and rows.shape == (n, int(free.sum())):
+        jac = rows                     # measured with the fit's solve, every row at weight 1: the same matrix
+    else:
+        jac = np.asarray(jacobian(theta, prob, model))[:n][:, free]
     s = np.asarray(noise_std(theta, prob, model))
     if mask is not None:
         w = np.asarray(mask, dtype=float) ** 2

@@ -397,6 +397,10 @@ class MagneticCircuit(Effect):
         path; stress from punching, joints and a longer mean path raise it (0.5-2).
     ``pole_area_ratio`` [-]
         Pole-body cross-section over the pole face (< 1 under pole shoes; 0.5-1).
+
+    ``held`` names parameters that are not fitted but held at this instance's values (for example the
+    fringe depth the drawing implies: ``MagneticCircuit(fringe_depth=1.5e-3, held=("fringe_depth",))``), to
+    see what the data say when a designer's value is imposed.
     """
 
     fringe_depth: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(3.0e-3))
@@ -407,6 +411,7 @@ class MagneticCircuit(Effect):
     """1 for each piece of the physics (``PIECES`` order) that is on, 0 when switched off to measure what it
     contributes.  An array, not a static setting, so every variant runs the same compiled fit; the
     parameters of a piece that is off stay in the fit, held at their prior centre by the prior."""
+    held: tuple = eqx.field(static=True, default=(), converter=tuple)
     name: ClassVar[str] = "magnetic_circuit"
     PIECES: ClassVar = ("saturation", "iron", "fringing", "leakage", "coupling")
     """``saturation`` off: the iron keeps a constant permeability (the B-H curve's initial slope, scaled by
@@ -418,6 +423,15 @@ class MagneticCircuit(Effect):
     needs_other_axis: ClassVar[bool] = True
     SHARED: ClassVar[bool] = True          # one stator: the same parameters for both axes
     FAMILIES: ClassVar = ("saturation", "iron_reluctance", "fringing", "leakage", "cross_coupling")
+
+    def __check_init__(self):
+        unknown = set(self.held) - set(type(self).RANGES)
+        if unknown:
+            raise ValueError(f"held: {', '.join(sorted(unknown))} not among {', '.join(type(self).RANGES)}")
+
+    def ranges(self) -> dict[str, tuple[float, float]]:
+        """``RANGES`` without the ``held`` parameters."""
+        return {k: v for k, v in type(self).RANGES.items() if k not in self.held}
 
     @property
     def off(self) -> tuple:
