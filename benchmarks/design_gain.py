@@ -9,18 +9,23 @@ After each round both arms are refitted by least squares; the gap's 94 % interva
 half-width (1.88 standard errors; the posterior is near-Gaussian here, see ls_efficiency)
 is recorded.  Averaged over S seeds of the rig noise.
 
-    .venv/bin/python benchmarks/design_gain.py [--seeds 10] [--rounds 9]
+    .venv/bin/python benchmarks/design_gain.py [--seeds 10] [--rounds 9] [--workers 2 | --scheduler ADDRESS]
+
+Each seed is one item of :class:`ambfit.engine.Engine` (in this process by default): the same numbers
+wherever it runs.
 
 Writes reports/benchmarks/design_gain.{json,md,png}.
 """
 
 import argparse
+import functools
 import json
 from pathlib import Path
 
 import numpy as np
 
 from ambfit import rig
+from ambfit.engine import Engine
 from ambfit.estimation import design, fit
 from ambfit.rig import protocol
 
@@ -60,8 +65,12 @@ def main():
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
+    ap.add_argument("--workers", type=int, default=None, help="local worker processes (default: this process)")
+    ap.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
     args = ap.parse_args()
-    runs = [run(s, args.rounds) for s in range(args.seeds)]
+    with Engine(workers=args.workers, scheduler=args.scheduler) as engine:
+        runs = engine.map(functools.partial(run, rounds=args.rounds), range(args.seeds), chunk_size=1,
+                          what="seeds")
     out = {k: np.mean([r[k] for r in runs], axis=0).tolist() for k in ("paper", "ambfit")}
     out["steps"] = [4 * (i + 1) for i in range(args.rounds + 1)]
     out["seeds"] = args.seeds

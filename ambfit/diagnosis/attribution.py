@@ -522,20 +522,22 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         verdict_fit=verdict_fit, operating=operating_variables(df, base),
         parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
         best_pair=best_pair, families=families, law=law, discrepancy=disc,
-        force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy) if check_force else None)
+        force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy, max_steps)
+        if check_force else None)
 
 
-def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True) -> dict | None:
+def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True, max_steps: int = 60) -> dict | None:
     """Contract section 3's ``force_check``: leave-one-load-out for the ideal law, the verdict's model and the
     discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
-    effects), from the same refits."""
+    effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis (the same
+    compiled solve: a budget is part of what is compiled)."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
     with_effects = verdict_fit is not None and bool(verdict_fit.effects)
     try:
         ideal = force_check(df, (), bearing=bearing, base=base, discrepancy=discrepancy and not with_effects,
-                            **noise)
+                            max_steps=max_steps, **noise)
     except FitError as exc:
         return {"method": "leave-one-load-out", "error": str(exc)}
     if ideal is None:
@@ -546,8 +548,9 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
         out["discrepancy"] = ideal["discrepancy"]
     if with_effects:
         try:
+            circuit = any(getattr(e, "needs_other_axis", False) for e in verdict_fit.effects)
             v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, discrepancy=discrepancy,
-                            **noise)
+                            max_steps=max(max_steps, 200) if circuit else max_steps, **noise)
         except FitError as exc:
             v, out["verdict"] = None, {"model": verdict_fit.model, "error": str(exc)}
         if v is not None:

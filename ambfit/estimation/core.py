@@ -111,12 +111,17 @@ class Model(eqx.Module):
     @classmethod
     def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING) -> Model:
         fields, centre, width = [], [], []
+        effects = list(effects)
         for i, e in enumerate(effects):
             shared = getattr(type(e), "SHARED", False)
             for name, (lo, hi) in e.ranges().items():
                 if lo == hi:
                     continue
                 fields.append((i, name, shared))
+                # a free field's value comes from q (build): one shape for every instance, so that a model of
+                # fitted effects runs the compiled solve of the same model with default ones
+                effects[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), effects[i],
+                                         jnp.broadcast_to(jnp.asarray(getattr(e, name), dtype=float), (2,)))
                 signed = name in type(e).SIGNED
                 c = 0.0 if signed else 0.5 * (lo + hi)
                 wd = hi if signed else max(hi - lo, 1e-12)
