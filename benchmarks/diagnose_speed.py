@@ -9,8 +9,8 @@ loads; 840 readings) with iron saturation, as in ``benchmarks/gap_report.py``.  
    machine pays: tracing is not cached, XLA's compilation is);
 3. ``ambfit.diagnose`` in this process, first call (compiles) and again (warm: everything compiled).
 
-Then where a warm diagnosis spends its time, and how many compiled solves a cold one builds (one per model:
-the ideal law, each candidate, force checks' and the discrepancy's helpers).
+Then where a warm diagnosis spends its time, and how many compiled solves a cold one builds (one per model and
+step budget: the ideal law and each candidate).
 
     .venv/bin/python benchmarks/diagnose_speed.py
 
@@ -154,8 +154,8 @@ def main():
           f"| `ambfit.diagnose`, first call in a process | {out['in_process_first_s']:.1f} | |",
           f"| `ambfit.diagnose`, again (warm) | {out['in_process_warm_s']:.2f} | ≤ {TARGET_WARM_S:.0f} "
           f"({met(out['in_process_warm_s'], TARGET_WARM_S)}) |", "",
-          f"A cold diagnosis compiles {c['solves (one per model)']} least-squares solves (one per model: the ideal "
-          f"law, every candidate, the force checks' and discrepancy's) in {c['seconds compiling solves']:.1f} s of "
+          f"A cold diagnosis compiles {c['solves (one per model)']} least-squares solves (one per model and step "
+          f"budget: the ideal law and every candidate) in {c['seconds compiling solves']:.1f} s of "
           f"XLA compilation and {c['seconds tracing solves']:.1f} s of tracing; {c['all compilations']} compilations "
           f"in all ({c['seconds compiling']:.1f} s compiling, {c['seconds tracing']:.1f} s tracing). Most of each "
           "solve is the Levenberg-Marquardt machinery, traced and compiled again for every model.", "",
