@@ -355,6 +355,13 @@ def free_mask(prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
                     + [True] * (prob.n_loads + model.n))
 
 
+def row_jacobian(theta, prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
+    """Jacobian of every row's standardized residual at weight 1 (held-out rows too), free columns only: what
+    leverages and the discrepancy's projection need (a fit measures it with its solve: ``FitResult.jacobian_rows``)."""
+    ones = prob.with_mask(np.ones(len(prob.mask)))
+    return np.asarray(jacobian(jnp.asarray(theta), ones, model))[: len(prob.mask)][:, free_mask(prob, meta, model)]
+
+
 def free_names(meta: Meta, free: np.ndarray, model: Model = IDEAL) -> list[str]:
     """Names of the estimated entries of theta: head parameters, ``load[<group>]``, then ``effect.field[axis]``."""
     every = list(HEAD_NAMES) + [f"load[{g}]" for g in meta.load_groups] + model.names()

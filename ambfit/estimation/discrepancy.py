@@ -37,7 +37,7 @@ import pandas as pd
 import scipy.linalg
 
 from ambfit.data import Dataset
-from ambfit.estimation.core import Model, build_problem, free_mask, jacobian, noise_std, si_scale
+from ambfit.estimation.core import Model, build_problem, free_mask, noise_std, row_jacobian, si_scale
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import AXES, Bearing
 
@@ -283,10 +283,8 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     n = len(df)
     free = free_mask(prob, meta, model)
     rows = result.jacobian_rows
-    if rows is not None and rows.shape == (n, int(free.sum())):
-        jac = rows                     # measured with the fit's solve, every row at weight 1: the same matrix
-    else:
-        jac = np.asarray(jacobian(theta, prob, model))[:n][:, free]
+    # measured with the fit's solve, every row at weight 1: the same matrix
+    jac = rows if rows is not None and rows.shape == (n, int(free.sum())) else row_jacobian(theta, prob, meta, model)
     s = np.asarray(noise_std(theta, prob, model))
     if mask is not None:
         w = np.asarray(mask, dtype=float) ** 2

@@ -63,6 +63,7 @@ from ambfit.estimation.core import (
     free_mask,
     free_names,
     jacobian,
+    row_jacobian,
     seed_loads_and_k,
     si_scale,
     solve_and_measure,
@@ -253,10 +254,12 @@ def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0
         correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed, model=model)
         theta = theta - correction.bias
         jac, z = jacobian(jnp.asarray(theta), prob, model), standardized(jnp.asarray(theta), prob, model)
-        rows = jacobian(jnp.asarray(theta), prob.with_mask(np.ones(len(prob.mask))), model)
+        rows = row_jacobian(theta, prob, meta, model)
+    else:
+        rows = np.asarray(rows)[: len(prob.mask)][:, free_mask(prob, meta, model)]
     res = _finish(theta, np.asarray(jac), np.asarray(z), float(edm), lm, int(steps), prob, meta, model, how,
                   thresholds)
-    res = dataclasses.replace(res, jacobian_rows=np.asarray(rows)[: len(prob.mask)][:, free_mask(prob, meta, model)])
+    res = dataclasses.replace(res, jacobian_rows=rows)
     if correction is not None:
         res = _with_correction(res, correction, prob, meta)
     return res
@@ -264,12 +267,8 @@ def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0
 
 def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.ndarray:
     """Studentized residuals of every row at ``res`` (fit weights from ``prob.mask``)."""
-    if res.jacobian_rows is not None:        # measured with the solve (same theta, same model)
-        jac = res.jacobian_rows
-    else:
-        free = free_mask(prob, meta, model)
-        ones = prob.with_mask(np.ones(len(prob.mask)))
-        jac = np.asarray(jacobian(jnp.asarray(res.theta), ones, model))[: len(prob.mask)][:, free]
+    # measured with the solve (same theta, same model)
+    jac = res.jacobian_rows if res.jacobian_rows is not None else row_jacobian(res.theta, prob, meta, model)
     w = np.asarray(prob.mask) ** 2
     return robust.studentized(jac, res.residuals, w > 0, w, known_noise=not meta.noise_estimated)
 
