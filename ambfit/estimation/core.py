@@ -191,6 +191,20 @@ def target(prob: Problem, loads) -> jnp.ndarray:
     return jnp.where(prob.known, prob.load, nuisance)
 
 
+def force_misfit(theta, prob: Problem, model: Model = IDEAL):
+    """Force misfit ``F - L`` [N] of every row, without the noise (what Levenberg-Marquardt differentiates: the
+    effective-variance weights are held within a round, so tracing their derivatives there would only be
+    thrown away, and a cold diagnosis is dominated by tracing and compiling)."""
+    p = unpack(theta, prob, model)
+    if not model.effects:
+        a, r = prob.ax, prob.readings
+        f = ideal_force(p.params.g0[a], p.params.x0[a], p.params.k[a], r.i_top, r.i_bottom, r.x,
+                        model.bearing.cos_alpha)
+    else:
+        f = evaluate(p.params, prob.readings, p.effects, bearing=model.bearing)[0]
+    return f - target(prob, p.loads)
+
+
 def misfit(theta, prob: Problem, model: Model = IDEAL):
     """Force misfit ``F - L`` [N] of every row and its effective noise std ``s_eff`` [N].
 
@@ -231,18 +245,22 @@ def _ideal_misfit(p: Unpacked, prob: Problem, cos_alpha: float):
     return f - target(prob, p.loads), s
 
 
-def _weighted(theta, args):
-    prob, model, s = args
-    f = misfit(theta, prob, model)[0]
+def _with_priors(theta, r, model: Model):
     if not model.n:
-        return prob.mask * f / s
-    return jnp.concatenate([prob.mask * f / s, theta[theta.shape[0] - model.n:]])   # prior residuals: q ~ N(0, 1)
+        return r
+    return jnp.concatenate([r, theta[theta.shape[0] - model.n:]])   # prior residuals: q ~ N(0, 1)
+
+
+def _weighted(theta, args):
+    """Residuals with the noise ``s`` held (the function Levenberg-Marquardt and the Jacobians differentiate)."""
+    prob, model, s = args
+    return _with_priors(theta, prob.mask * force_misfit(theta, prob, model) / s, model)
 
 
 def residuals(theta, prob: Problem, model: Model = IDEAL):
     """Standardized residuals of every row (held-out rows masked to 0), then the effect priors' residuals."""
-    s = jax.lax.stop_gradient(misfit(theta, prob, model)[1])
-    return _weighted(theta, (prob, model, s))
+    f, s = misfit(theta, prob, model)
+    return _with_priors(theta, prob.mask * f / jax.lax.stop_gradient(s), model)
 
 
 @eqx.filter_jit
@@ -261,16 +279,17 @@ def standardized(theta, prob: Problem, model: Model = IDEAL):
 def _edm(theta, prob, model):
     """Estimated distance to the minimum, the Jacobian it was computed from, and the same Jacobian with every
     row at weight 1 (held-out rows too: what studentized residuals and leverages need)."""
-    j_all = jax.jacfwd(residuals)(theta, eqx.tree_at(lambda p: p.mask, prob, jnp.ones_like(prob.mask)), model)
-    # the mask multiplies each row's residual and the weights are held (stop_gradient): its rows scale likewise
+    f, s = misfit(theta, prob, model)
+    j_all = jax.jacfwd(_weighted)(theta, (eqx.tree_at(lambda p: p.mask, prob, jnp.ones_like(prob.mask)), model, s))
+    # the mask multiplies each row's residual and the weights are held: its rows scale likewise
     j = j_all * jnp.concatenate([prob.mask, jnp.ones(j_all.shape[0] - prob.mask.shape[0])])[:, None]
-    g = j.T @ residuals(theta, prob, model)
+    g = j.T @ _with_priors(theta, prob.mask * f / s, model)
     h = j.T @ j
     # Held parameters (k without a known load, loads of held-out groups) have zero columns: unit diagonal,
     # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
     # the identifiability checks then say why.
     h = h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0))
-    return g @ jnp.linalg.solve(h, g), j, j_all
+    return g @ jnp.linalg.solve(h, g), j, j_all, f / s
 
 
 def _solve(theta0, prob, model, max_steps, rtol, atol):
@@ -284,8 +303,8 @@ def _solve(theta0, prob, model, max_steps, rtol, atol):
     # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
     theta, steps, result = jax.lax.fori_loop(
         0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
-    edm, j, j_all = _edm(theta, prob, model)
-    return theta, result, steps, edm, j, j_all
+    edm, j, j_all, z = _edm(theta, prob, model)
+    return theta, result, steps, edm, j, j_all, z
 
 
 @eqx.filter_jit
@@ -308,15 +327,15 @@ def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: in
     row at weight 1 as a seventh entry (a single fit's outlier test and leverages need it: no second compiled
     function).  One compiled function per model and step budget, which is what a single fit needs (the
     diagnosis fits dozens of models, and compile time dominates there)."""
-    theta, result, steps, edm, j, j_all = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
-    out = theta, result, steps, edm, j, standardized(theta, prob, model)
+    theta, result, steps, edm, j, j_all, z = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
+    out = theta, result, steps, edm, j, z
     return out + (j_all,) if every_row else out
 
 
 @eqx.filter_jit
 def jacobian(theta, prob: Problem, model: Model = IDEAL):
     """Jacobian ``d r / d theta`` of :func:`residuals` [rows + effect priors, params] (scaled parameters)."""
-    return jax.jacfwd(residuals)(theta, prob, model)
+    return jax.jacfwd(_weighted)(theta, (prob, model, misfit(theta, prob, model)[1]))
 
 
 @eqx.filter_jit
