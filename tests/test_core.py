@@ -260,3 +260,43 @@ def test_the_solve_measures_every_rows_jacobian_and_fits_only_the_masked_rows():
     alone = fit(sim[keep > 0].reset_index(drop=True), [E.Saturation()], loss="linear", throw=False)
     assert alone.names == res.names
     np.testing.assert_allclose(res.std, alone.std, rtol=1e-5)
+
+
+# --- one compiled solve for a set of models -----------------------------------------------------------------
+
+def test_models_solved_together_fit_as_each_alone():
+    """Within ``compiled_together`` each model runs the set's one solve (theta padded to the widest member, the
+    force a switch over the members, the Jacobian each member's own): the estimate, its Jacobian and its
+    residuals are those of the model solved alone.  Red when the switch picks another member, when the padding
+    leaks into the model's parameters, or when the members' Jacobians are not the acting member's."""
+    sim = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=jnp.asarray(1.3))], seed=4).data
+    prob, _ = core.build_problem(sim)
+    base = fit(sim, throw=False)
+    members = [core.Model.of(()), core.Model.of([E.Saturation()]), core.Model.of([E.IronReluctance()]),
+               core.Model.of([E.Hysteresis()])]
+    for model in members[:2]:
+        theta0 = jnp.asarray(np.concatenate([base.theta, np.zeros(model.n)]))
+        alone = core.solve_and_measure(theta0, prob, model, max_steps=60, every_row=True)
+        with core.compiled_together(members):
+            together = core.solve_and_measure(theta0, prob, model, max_steps=60, every_row=True)
+        assert together[0].shape == alone[0].shape and together[4].shape == alone[4].shape
+        assert float(together[3]) < core.EDM_MAX and float(alone[3]) < core.EDM_MAX
+        # both converged to the same optimum (EDM < 1e-6: within 1e-3 standard errors); 1e-7 relative is the
+        # agreement of two Levenberg-Marquardt paths that stop at different round-off
+        np.testing.assert_allclose(np.asarray(together[0]), np.asarray(alone[0]), rtol=1e-7, atol=1e-9)
+        for k in (4, 5, 6):              # Jacobian, standardized residuals, every row's Jacobian
+            a, t = np.asarray(alone[k]), np.asarray(together[k])
+            np.testing.assert_allclose(t, a, rtol=1e-6, atol=1e-9 * np.abs(a).max())
+
+
+def test_a_step_budget_is_a_traced_number_and_is_kept():
+    """One compiled solve serves every budget: a budget of one step per round stops there and says so."""
+    sim = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=jnp.asarray(1.3))], seed=4).data
+    prob, _ = core.build_problem(sim)
+    model = core.Model.of([E.Saturation()])
+    theta0 = jnp.asarray(np.concatenate([fit(sim, throw=False).theta, np.zeros(model.n)]))
+    short = core.solve(theta0, prob, model, max_steps=1)
+    assert int(short[2]) <= core.REWEIGHTINGS
+    assert short[1] == core.optx.RESULTS.nonlinear_max_steps_reached
+    full = core.solve(theta0, prob, model, max_steps=60)
+    assert full[1] == core.optx.RESULTS.successful and int(full[2]) > core.REWEIGHTINGS

@@ -433,10 +433,20 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     ceiling of what any effect expressible in flux density, gap, the other axis and approach direction could
     explain.  Its force check joins ``force_check`` as ``"discrepancy"``.
     """
+    from ambfit.estimation.core import Model, compiled_together
+
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
+    # the ideal law and every candidate share one compiled solve (a cold diagnosis is dominated by compiling)
+    with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]):
+        return _diagnose(df, cands, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline,
+                         progress, check_force, discrepancy, noise)
+
+
+def _diagnose(df, cands, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline, progress,
+              check_force, discrepancy, noise) -> Diagnosis:
     base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
     fold_name, tests = folds(df)
-    cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
     count = {"done": 0, "total": 1 + len(cands)}
 
     def heldout(effects, before):

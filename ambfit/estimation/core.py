@@ -27,6 +27,8 @@ The data arrays themselves come from :mod:`ambfit.estimation.problem`.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -74,6 +76,13 @@ FIRST_STEPS = 3
 23 of them short.  Near the optimum further steps are mostly rejected on round-off, so a
 small fixed budget plus the EDM check is both faster and safer than waiting for
 optimistix's own termination.  A fit that is not there yet gets a second solve."""
+
+
+RTOL = 1e-6
+"""Levenberg-Marquardt's own stopping tolerance (relative and absolute, on the step and on the residuals).
+Convergence is judged by ``EDM_MAX``; with 1e-8 the solver spent about half of its steps near the optimum
+having steps rejected on round-off (840 rig readings: 27 steps against 5 for the ideal law, 54 against 30 for
+fringing, the estimate and its EDM the same)."""
 
 
 class FitError(RuntimeError):
@@ -276,14 +285,111 @@ def standardized(theta, prob: Problem, model: Model = IDEAL):
     return f / s
 
 
-def _edm(theta, prob, model):
+class _Budgeted(optx.LevenbergMarquardt):
+    """Levenberg-Marquardt that also stops after ``budget`` steps, a traced number: every step budget runs the
+    same compiled solve (optimistix's own ``max_steps`` is part of what is compiled)."""
+
+    budget: jnp.ndarray
+
+    def __init__(self, rtol: float, atol: float, budget):
+        super().__init__(rtol=rtol, atol=atol)
+        self.budget = budget
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = super().terminate(fn, y, args, options, state, tags)
+        over = state.num_steps >= self.budget
+        return done | over, optx.RESULTS.where(done | ~over, result, optx.RESULTS.nonlinear_max_steps_reached)
+
+
+# --- one compiled solve for a set of models ------------------------------------------------------------------
+#
+# A diagnosis fits a dozen models; traced and compiled one by one, the Levenberg-Marquardt machinery is built
+# again for each and dominates a cold start.  Within :func:`compiled_together` the models of a set share one
+# compiled solve: theta is padded to the widest model's effect parameters (the padding's prior residuals hold
+# it at 0), the force is a ``lax.switch`` over the members, and only the member fitted runs.
+
+_TOGETHER: contextvars.ContextVar[tuple] = contextvars.ContextVar("ambfit_models_together", default=())
+
+
+@contextlib.contextmanager
+def compiled_together(models: Sequence[Model]):
+    """Within this block, a solve of any model shaped like one of ``models`` runs the one compiled solve of
+    the whole set (one compilation instead of one per model; the fit is the same)."""
+    token = _TOGETHER.set(tuple(models))
+    try:
+        yield
+    finally:
+        _TOGETHER.reset(token)
+
+
+def _shape(model: Model):
+    leaves, tree = jax.tree_util.tree_flatten(model)
+    return tree, tuple(np.shape(x) for x in leaves)
+
+
+def _members(model: Model) -> tuple[tuple, int]:
+    """The set ``model`` is solved in and its index there (itself alone outside :func:`compiled_together`)."""
+    group = _TOGETHER.get()
+    if group:
+        key = _shape(model)
+        for i, m in enumerate(group):
+            if _shape(m) == key:
+                return group[:i] + (model,) + group[i + 1:], i
+    return (model,), 0
+
+
+def _switch(fn, theta, prob, models, index):
+    """``fn(theta of models[index], prob, models[index])``; ``theta`` is padded to the widest member."""
+    head = theta.shape[0] - max(m.n for m in models)
+    branches = [lambda th, m=m: fn(th[: head + m.n], prob, m) for m in models]
+    return branches[0](theta) if len(models) == 1 else jax.lax.switch(index, branches, theta)
+
+
+@jax.custom_jvp
+def _force_in(theta, prob, models, index):
+    """:func:`force_misfit` of ``models[index]`` on the padded ``theta``.
+
+    Its derivative is the member's Jacobian, computed inside the switch with the force (forward mode, the
+    padding's columns zero): differentiating through ``lax.switch`` instead would make every step carry the
+    linearization points of every member, and warm solves ran 1.4x slower."""
+    return _switch(force_misfit, theta, prob, models, index)
+
+
+@_force_in.defjvp
+def _force_in_jvp(primals, tangents):
+    theta, prob, models, index = primals
+    head = theta.shape[0] - max(m.n for m in models)
+
+    def value_and_jacobian(th, p, m):
+        def f(t):
+            y = force_misfit(t[: head + m.n], p, m)
+            return y, y
+        jac, y = jax.jacfwd(f, has_aux=True)(th)
+        return y, jac
+
+    branches = [lambda th, m=m: value_and_jacobian(th, prob, m) for m in models]
+    y, jac = jax.lax.switch(index, branches, theta)
+    return y, jac @ tangents[0]
+
+
+def _weighted_in(theta, args):
+    """Residuals with the noise ``s`` held, the effect priors of the padded theta last (what is differentiated)."""
+    prob, models, index, s = args
+    f = force_misfit(theta, prob, models[0]) if len(models) == 1 else _force_in(theta, prob, models, index)
+    n = max(m.n for m in models)
+    r = prob.mask * f / s
+    return jnp.concatenate([r, theta[theta.shape[0] - n:]]) if n else r
+
+
+def _edm(theta, prob, models, index):
     """Estimated distance to the minimum, the Jacobian it was computed from, and the same Jacobian with every
     row at weight 1 (held-out rows too: what studentized residuals and leverages need)."""
-    f, s = misfit(theta, prob, model)
-    j_all = jax.jacfwd(_weighted)(theta, (eqx.tree_at(lambda p: p.mask, prob, jnp.ones_like(prob.mask)), model, s))
+    f, s = _switch(misfit, theta, prob, models, index)
+    ones = eqx.tree_at(lambda p: p.mask, prob, jnp.ones_like(prob.mask))
+    j_all = jax.jacfwd(_weighted_in)(theta, (ones, models, index, s))
     # the mask multiplies each row's residual and the weights are held: its rows scale likewise
     j = j_all * jnp.concatenate([prob.mask, jnp.ones(j_all.shape[0] - prob.mask.shape[0])])[:, None]
-    g = j.T @ _with_priors(theta, prob.mask * f / s, model)
+    g = j.T @ _weighted_in(theta, (prob, models, index, s))
     h = j.T @ j
     # Held parameters (k without a known load, loads of held-out groups) have zero columns: unit diagonal,
     # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
@@ -292,42 +398,57 @@ def _edm(theta, prob, model):
     return g @ jnp.linalg.solve(h, g), j, j_all, f / s
 
 
-def _solve(theta0, prob, model, max_steps, rtol, atol):
+@eqx.filter_jit
+def _solve_in(theta0, prob, models, index, budget):
+    solver = _Budgeted(rtol=RTOL, atol=RTOL, budget=budget)
+
     def round_(_, carry):
         theta, steps, _ = carry
-        s = misfit(theta, prob, model)[1]
-        sol = optx.least_squares(_weighted, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta,
-                                 args=(prob, model, s), max_steps=max_steps, throw=False)
+        s = _switch(misfit, theta, prob, models, index)[1]
+        sol = optx.least_squares(_weighted_in, solver, theta, args=(prob, models, index, s), max_steps=None,
+                                 throw=False)
         return sol.value, steps + sol.stats["num_steps"], sol.result
 
     # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
     theta, steps, result = jax.lax.fori_loop(
         0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
-    edm, j, j_all, z = _edm(theta, prob, model)
+    edm, j, j_all, z = _edm(theta, prob, models, index)
     return theta, result, steps, edm, j, j_all, z
 
 
-@eqx.filter_jit
-def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS, rtol: float = 1e-8,
-          atol: float = 1e-8):
+def _solve(theta0, prob, model, max_steps):
+    """The solve of ``model`` (in its set, see :func:`compiled_together`), cut back to the model's own entries."""
+    models, index = _members(model)
+    pad = max(m.n for m in models) - model.n
+    theta0 = jnp.asarray(theta0)
+    if pad:
+        theta0 = jnp.concatenate([theta0, jnp.zeros(pad)])
+    theta, result, steps, edm, j, j_all, z = _solve_in(theta0, prob, models, jnp.asarray(index),
+                                                         jnp.asarray(max_steps))
+    if pad:
+        width, rows = theta.shape[-1] - pad, j.shape[-2] - pad
+        theta, j, j_all = theta[..., :width], j[..., :rows, :width], j_all[..., :rows, :width]
+    return theta, result, steps, edm, j, j_all, z
+
+
+def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS):
     """Levenberg-Marquardt from ``theta0``; returns ``(theta, result, num_steps, edm)`` (jit- and vmap-safe).
 
-    ``REWEIGHTINGS`` rounds with the effective-variance weights held fixed; ``num_steps`` counts
-    the steps of all rounds; ``result`` is the last round's optimistix result; ``edm`` decides
-    convergence (see ``EDM_MAX``).
+    ``REWEIGHTINGS`` rounds with the effective-variance weights held fixed, at most ``max_steps`` steps each
+    (a traced number: every budget runs the same compiled solve); ``num_steps`` counts the steps of all
+    rounds; ``result`` is the last round's optimistix result; ``edm`` decides convergence (see ``EDM_MAX``).
     """
-    return _solve(theta0, prob, model, max_steps, rtol, atol)[:4]
+    return _solve(theta0, prob, model, max_steps)[:4]
 
 
-@eqx.filter_jit
 def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS,
                       every_row: bool = False):
     """:func:`solve`, plus the Jacobian of :func:`residuals` and the standardized residuals of every row at the
     solution: ``(theta, result, num_steps, edm, jacobian, z)``, and with ``every_row`` the Jacobian with every
-    row at weight 1 as a seventh entry (a single fit's outlier test and leverages need it: no second compiled
-    function).  One compiled function per model and step budget, which is what a single fit needs (the
-    diagnosis fits dozens of models, and compile time dominates there)."""
-    theta, result, steps, edm, j, j_all, z = _solve(theta0, prob, model, max_steps, 1e-8, 1e-8)
+    row at weight 1 as a seventh entry (a single fit's outlier test and leverages need it).  One compiled
+    function per model, or per set of models within :func:`compiled_together` (the diagnosis fits dozens of
+    models, and compile time dominates there)."""
+    theta, result, steps, edm, j, j_all, z = _solve(theta0, prob, model, max_steps)
     out = theta, result, steps, edm, j, z
     return out + (j_all,) if every_row else out
 
