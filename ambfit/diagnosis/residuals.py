@@ -116,7 +116,7 @@ class Where:
 def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins: int = 6,
           alpha: float = 0.01, bearing: Bearing = PAPER_BEARING) -> Where:
     """Where the baseline fit's standardized residuals are structured (see the module docstring)."""
-    from scipy.stats import chi2, norm
+    from scipy.special import chdtrc, ndtri     # chi2.sf, norm.isf (scipy.stats alone takes 0.6 s to import)
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     result = result or fit(df, bearing=bearing)
@@ -148,8 +148,8 @@ def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins
                 dof += 1
                 cells.append(Region(var, ax, float(vals[sel].min()), float(vals[sel].max()), n, zbar * np.sqrt(n),
                                     zbar))
-            tests.append({"variable": var, "axis": ax, "chi2": stat, "dof": dof, "p_value": float(chi2.sf(stat, dof))})
-    threshold = float(norm.isf(alpha / (2 * max(len(cells), 1))))
+            tests.append({"variable": var, "axis": ax, "chi2": stat, "dof": dof, "p_value": float(chdtrc(dof, stat))})
+    threshold = float(-ndtri(alpha / (2 * max(len(cells), 1))))
     regions = sorted([c for c in cells if abs(c.z) > threshold], key=lambda r: -abs(r.z))
     table = pd.DataFrame(tests, columns=["variable", "axis", "chi2", "dof", "p_value"])   # none on tiny designs
     return Where(tests=table.sort_values("p_value").reset_index(drop=True), regions=regions,

@@ -34,7 +34,6 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-import scipy.linalg
 
 from ambfit.data import Dataset
 from ambfit.estimation.core import Model, build_problem, free_mask, noise_std, row_jacobian, si_scale
@@ -232,11 +231,13 @@ class _Evidence:
         self.gram, self.g, self.yy, self.n = x.T @ x, x.T @ y, float(y @ y), len(y)
         self.noise_known = noise_known
 
-    def __call__(self, scale) -> float:
-        chol = np.linalg.cholesky(np.eye(len(scale)) + scale[:, None] * self.gram * scale[None, :])
-        h = scipy.linalg.solve_triangular(chol, scale * self.g, lower=True)
-        quad = self.yy - float(h @ h)
-        logdet = 2.0 * float(np.sum(np.log(np.diag(chol))))
+    def __call__(self, scales) -> np.ndarray:
+        """The log evidence of each row of ``scales`` [trials, m] (one batched factorization)."""
+        scales = np.atleast_2d(scales)
+        chol = np.linalg.cholesky(np.eye(scales.shape[1]) + scales[:, :, None] * self.gram * scales[:, None, :])
+        h = np.linalg.solve(chol, (scales * self.g)[:, :, None])[:, :, 0]      # L^-1 Xs^T y
+        quad = self.yy - np.sum(h * h, axis=1)
+        logdet = 2.0 * np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)
         if self.noise_known:
             return -0.5 * (quad + logdet + self.n * np.log(2 * np.pi))
         return -0.5 * (self.n * np.log(2 * np.pi * quad / self.n) + self.n + logdet)
@@ -247,24 +248,19 @@ def _scales(x, y, group, n_groups, noise_known):
     group's log Bayes factor (with it against without it, the others at their scales)."""
     evidence = _Evidence(x, y, noise_known)
     grid = np.concatenate([[0.0], TAU_GRID])
-    common = [(evidence(np.full(x.shape[1], t)), t) for t in TAU_GRID]
-    best, t0 = max(common)
-    tau = np.full(n_groups, t0)
+    common = evidence(np.repeat(TAU_GRID[:, None], x.shape[1], axis=1))
+    j = int(np.argmax(common))
+    best, tau = common[j], np.full(n_groups, TAU_GRID[j])
     for _ in range(2):
         for g in range(n_groups):
-            vals = []
-            for t in grid:
-                trial = tau.copy()
-                trial[g] = t
-                vals.append(evidence(trial[group]))
+            trials = np.repeat(tau[None, :], len(grid), axis=0)
+            trials[:, g] = grid
+            vals = evidence(trials[:, group])
             j = int(np.argmax(vals))
             tau[g], best = grid[j], vals[j]
-    bayes = []
-    for g in range(n_groups):
-        without = tau.copy()
-        without[g] = 0.0
-        bayes.append(best - evidence(without[group]))
-    return tau, np.asarray(bayes)
+    without = np.repeat(tau[None, :], n_groups, axis=0)
+    without[np.arange(n_groups), np.arange(n_groups)] = 0.0
+    return tau, best - evidence(without[:, group])
 
 
 def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,

@@ -41,9 +41,10 @@ def force(result: FitResult, axis: str, i_top, i_bottom, x, *, y=0.0, sigma_i: f
     return f.reshape(shape), s.reshape(shape)
 
 
-def predict(result: FitResult, data) -> np.ndarray:
+def predict(result: FitResult, data, *, rows: Readings | None = None) -> np.ndarray:
     """The force [N] the fitted model gives for every row of ``data`` (its own axis, both axes' currents),
-    at the fit's gap, origin, k and effect parameters.  Rows of an axis whose k was not identified are NaN."""
+    at the fit's gap, origin, k and effect parameters.  Rows of an axis whose k was not identified are NaN.
+    ``rows``: ``data``'s readings when the caller has them (pairing the axes by time is the slow part)."""
     from ambfit.data import Dataset, readings
 
     df = data.frame if isinstance(data, Dataset) else data
@@ -52,7 +53,7 @@ def predict(result: FitResult, data) -> np.ndarray:
     params = BearingParams(jnp.asarray([vals.get("g_v0", nominal), vals.get("g_w0", nominal)]),
                            jnp.asarray([vals.get("v0", 0.0), vals.get("w0", 0.0)]),
                            jnp.asarray([vals.get("k_v", np.nan), vals.get("k_w", np.nan)]))
-    return np.asarray(_force(params, readings(df), result.effects, result.bearing))
+    return np.asarray(_force(params, readings(df) if rows is None else rows, result.effects, result.bearing))
 
 
 @eqx.filter_jit
@@ -82,7 +83,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     RMS beyond that floor, ``sqrt(max(rms_rel^2 - noise_floor_rel^2, 0))`` (the model's own error; the
     readings' noise and the model's error add in quadrature).
     """
-    from ambfit.data import Dataset
+    from ambfit.data import Dataset, readings
     from ambfit.estimation.fit import fit
     from ambfit.physics.bearing import PAPER_BEARING
 
@@ -100,6 +101,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     if base is None:
         base = fit(df, effects, bearing=bearing, max_steps=max_steps, throw=False, **fit_kw)
     rel, per_load, skipped, rel_d, floor = [], [], [], [], []
+    rows = readings(df)
     for g in groups:
         out = (keys == g).to_numpy() & known
         ax = g.split(":")[0]
@@ -109,7 +111,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         res = fit(df, effects, bearing=bearing, mask=(~out).astype(float), start_from=base, max_steps=max_steps,
                   throw=False, **fit_kw)
         load = df.loc[out, "load_N"].to_numpy(float)
-        predicted = predict(res, df)
+        predicted = predict(res, df, rows=rows)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
         rel.append(r)
         floor.append(force_noise(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))[out] / load)
