@@ -116,7 +116,8 @@ class Where:
 def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins: int = 6,
           alpha: float = 0.01, bearing: Bearing = PAPER_BEARING) -> Where:
     """Where the baseline fit's standardized residuals are structured (see the module docstring)."""
-    from scipy.special import chdtrc, ndtri     # chi2.sf, norm.isf (scipy.stats alone takes 0.6 s to import)
+    # chi2.sf and norm.isf from scipy.special: scipy.stats alone takes 0.6 s to import
+    from scipy.special import chdtrc, ndtri
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     result = result or fit(df, bearing=bearing)
