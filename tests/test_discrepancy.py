@@ -146,3 +146,23 @@ def test_identify_writes_effects_and_discrepancy_into_the_model_for_ambfit_force
     write_csv(data, tmp_path / "again.csv")
     r = CliRunner().invoke(app, ["identify", str(csv), str(tmp_path / "again.csv"), "--effect", "saturation"])
     assert r.exit_code == 2 and "one data set" in r.output
+
+
+def test_the_evidence_grid_is_the_gaussian_marginal_likelihood():
+    """``_Evidence`` (batched over trial scales, with the m x m identities of its docstring) against the marginal
+    likelihood written directly: ``y ~ N(0, I + X S^2 X^T)`` (noise known), and with the noise level profiled
+    out, ``max over sigma^2`` of ``N(0, sigma^2 (I + X S^2 X^T))`` at ``sigma^2 = y^T C^-1 y / n``."""
+    from scipy.stats import multivariate_normal
+
+    from ambfit.estimation.discrepancy import _Evidence
+
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(size=(40, 5)), rng.normal(size=40)
+    scales = np.array([[0.0] * 5, [0.3, 0.3, 1.0, 2.0, 0.0], [1e-3, 5.0, 0.1, 0.1, 0.1]])
+    for known in (True, False):
+        got = _Evidence(x, y, known)(scales)
+        for s, value in zip(scales, got):
+            c = np.eye(40) + (x * s) @ (x * s).T
+            var = 1.0 if known else y @ np.linalg.solve(c, y) / 40
+            # float64 round-off of two routes through a 40 x 40 determinant: ~1e-13 relative is observed
+            assert value == pytest.approx(multivariate_normal.logpdf(y, cov=var * c), rel=1e-10)

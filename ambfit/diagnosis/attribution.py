@@ -439,11 +439,12 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
     # the ideal law and every candidate share one compiled solve (a cold diagnosis is dominated by compiling)
     with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]):
-        return _diagnose(df, cands, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline,
-                         progress, check_force, discrepancy, noise)
+        return _diagnose(df, cands, bearing=bearing, floor_tolerance=floor_tolerance, min_shrink=min_shrink,
+                         pairs=pairs, pair_verdict=pair_verdict, max_steps=max_steps, baseline=baseline,
+                         progress=progress, check_force=check_force, discrepancy=discrepancy, noise=noise)
 
 
-def _diagnose(df, cands, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline, progress,
+def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline, progress,
               check_force, discrepancy, noise) -> Diagnosis:
     base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
     fold_name, tests = folds(df)

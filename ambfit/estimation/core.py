@@ -254,22 +254,15 @@ def _ideal_misfit(p: Unpacked, prob: Problem, cos_alpha: float):
     return f - target(prob, p.loads), s
 
 
-def _with_priors(theta, r, model: Model):
-    if not model.n:
-        return r
-    return jnp.concatenate([r, theta[theta.shape[0] - model.n:]])   # prior residuals: q ~ N(0, 1)
-
-
-def _weighted(theta, args):
-    """Residuals with the noise ``s`` held (the function Levenberg-Marquardt and the Jacobians differentiate)."""
-    prob, model, s = args
-    return _with_priors(theta, prob.mask * force_misfit(theta, prob, model) / s, model)
+def _with_priors(theta, r, n: int):
+    """The rows' residuals ``r``, then the priors' of the last ``n`` entries of theta (``q ~ N(0, 1)``)."""
+    return jnp.concatenate([r, theta[theta.shape[0] - n:]]) if n else r
 
 
 def residuals(theta, prob: Problem, model: Model = IDEAL):
     """Standardized residuals of every row (held-out rows masked to 0), then the effect priors' residuals."""
     f, s = misfit(theta, prob, model)
-    return _with_priors(theta, prob.mask * f / jax.lax.stop_gradient(s), model)
+    return _with_priors(theta, prob.mask * f / jax.lax.stop_gradient(s), model.n)
 
 
 @eqx.filter_jit
@@ -351,7 +344,9 @@ def _force_in(theta, prob, models, index):
 
     Its derivative is the member's Jacobian, computed inside the switch with the force (forward mode, the
     padding's columns zero): differentiating through ``lax.switch`` instead would make every step carry the
-    linearization points of every member, and warm solves ran 1.4x slower."""
+    linearization points of every member, and warm solves ran 1.4x slower.  Only ``theta`` is differentiated:
+    tangents of the readings or of the models' fields are dropped (nothing differentiates the solve with
+    respect to the data; a caller that does must solve outside :func:`compiled_together`)."""
     return _switch(force_misfit, theta, prob, models, index)
 
 
@@ -376,9 +371,7 @@ def _weighted_in(theta, args):
     """Residuals with the noise ``s`` held, the effect priors of the padded theta last (what is differentiated)."""
     prob, models, index, s = args
     f = force_misfit(theta, prob, models[0]) if len(models) == 1 else _force_in(theta, prob, models, index)
-    n = max(m.n for m in models)
-    r = prob.mask * f / s
-    return jnp.concatenate([r, theta[theta.shape[0] - n:]]) if n else r
+    return _with_priors(theta, prob.mask * f / s, max(m.n for m in models))
 
 
 def _edm(theta, prob, models, index):
@@ -456,7 +449,7 @@ def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: in
 @eqx.filter_jit
 def jacobian(theta, prob: Problem, model: Model = IDEAL):
     """Jacobian ``d r / d theta`` of :func:`residuals` [rows + effect priors, params] (scaled parameters)."""
-    return jax.jacfwd(_weighted)(theta, (prob, model, misfit(theta, prob, model)[1]))
+    return jax.jacfwd(_weighted_in)(theta, (prob, (model,), 0, misfit(theta, prob, model)[1]))
 
 
 @eqx.filter_jit
