@@ -453,7 +453,7 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
     def heldout(effects, before):
         # the model on every row first; each fold starts from it (the same model, so its effect parameters too)
         # (a circuit of the whole bearing starts further from the ideal law: it gets the default step budget)
-        steps = max(max_steps, 200) if any(getattr(e, "needs_other_axis", False) for e in effects) else max_steps
+        steps = _budget(effects, max_steps)
         full = base if not effects else fit(df, effects, bearing=bearing, start_from=base, max_steps=steps,
                                             throw=False, **noise)
         zs, fitted = [], []
@@ -537,11 +537,16 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         if check_force else None)
 
 
+def _budget(effects, max_steps: int) -> int:
+    """Levenberg-Marquardt steps per round for a model's fits: a circuit of the whole bearing starts further from
+    the ideal law and gets at least the default budget of :func:`ambfit.fit` (200)."""
+    return max(max_steps, 200) if any(getattr(e, "needs_other_axis", False) for e in effects) else max_steps
+
+
 def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True, max_steps: int = 60) -> dict | None:
     """Contract section 3's ``force_check``: leave-one-load-out for the ideal law, the verdict's model and the
     discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
-    effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis (the same
-    compiled solve: a budget is part of what is compiled)."""
+    effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
@@ -559,9 +564,8 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
         out["discrepancy"] = ideal["discrepancy"]
     if with_effects:
         try:
-            circuit = any(getattr(e, "needs_other_axis", False) for e in verdict_fit.effects)
             v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, discrepancy=discrepancy,
-                            max_steps=max(max_steps, 200) if circuit else max_steps, **noise)
+                            max_steps=_budget(verdict_fit.effects, max_steps), **noise)
         except FitError as exc:
             v, out["verdict"] = None, {"model": verdict_fit.model, "error": str(exc)}
         if v is not None:

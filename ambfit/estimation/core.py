@@ -205,13 +205,15 @@ def force_misfit(theta, prob: Problem, model: Model = IDEAL):
     effective-variance weights are held within a round, so tracing their derivatives there would only be
     thrown away, and a cold diagnosis is dominated by tracing and compiling)."""
     p = unpack(theta, prob, model)
+    return _force(p.params, p.effects, prob, model) - target(prob, p.loads)
+
+
+def _force(params: BearingParams, effects: tuple, prob: Problem, model: Model):
+    """Each row's force [N]: Eq. 4 for the ideal model (a small program to trace), else the effect pipeline."""
     if not model.effects:
         a, r = prob.ax, prob.readings
-        f = ideal_force(p.params.g0[a], p.params.x0[a], p.params.k[a], r.i_top, r.i_bottom, r.x,
-                        model.bearing.cos_alpha)
-    else:
-        f = evaluate(p.params, prob.readings, p.effects, bearing=model.bearing)[0]
-    return f - target(prob, p.loads)
+        return ideal_force(params.g0[a], params.x0[a], params.k[a], r.i_top, r.i_bottom, r.x, model.bearing.cos_alpha)
+    return evaluate(params, prob.readings, effects, bearing=model.bearing)[0]
 
 
 def misfit(theta, prob: Problem, model: Model = IDEAL):
@@ -308,7 +310,8 @@ _TOGETHER: contextvars.ContextVar[tuple] = contextvars.ContextVar("ambfit_models
 def compiled_together(models: Sequence[Model]):
     """Within this block, a solve of any model shaped like one of ``models`` runs the one compiled solve of
     the whole set (one compilation instead of one per model; the fit is the same)."""
-    token = _TOGETHER.set(tuple(models))
+    models = tuple(models)
+    token = _TOGETHER.set((models, [_shape(m) for m in models]))      # the members' shapes, once per block
     try:
         yield
     finally:
@@ -322,12 +325,12 @@ def _shape(model: Model):
 
 def _members(model: Model) -> tuple[tuple, int]:
     """The set ``model`` is solved in and its index there (itself alone outside :func:`compiled_together`)."""
-    group = _TOGETHER.get()
-    if group:
+    if _TOGETHER.get():
+        group, shapes = _TOGETHER.get()
         key = _shape(model)
-        for i, m in enumerate(group):
-            if _shape(m) == key:
-                return group[:i] + (model,) + group[i + 1:], i
+        if key in shapes:
+            i = shapes.index(key)
+            return group[:i] + (model,) + group[i + 1:], i
     return (model,), 0
 
 
@@ -456,11 +459,7 @@ def jacobian(theta, prob: Problem, model: Model = IDEAL):
 def _unit_force(theta, prob: Problem, model: Model):
     """The model's force with k = 1 on every row."""
     p = unpack(theta, prob, model)
-    ones = BearingParams(p.params.g0, p.params.x0, jnp.ones(2))
-    if not model.effects:
-        a, r = prob.ax, prob.readings
-        return ideal_force(ones.g0[a], ones.x0[a], 1.0, r.i_top, r.i_bottom, r.x, model.bearing.cos_alpha)
-    return evaluate(ones, prob.readings, p.effects, bearing=model.bearing)[0]
+    return _force(BearingParams(p.params.g0, p.params.x0, jnp.ones(2)), p.effects, prob, model)
 
 
 def seed_loads_and_k(theta, prob: Problem, model: Model = IDEAL):
