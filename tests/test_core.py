@@ -97,6 +97,21 @@ def test_masked_rows_give_zero_residual_but_keep_their_standardized_residual():
     assert abs(hand[1]) > 1.0                        # the held-out row does have a misfit to hide
 
 
+def test_a_held_noise_replaces_the_propagated_one_row_by_row():
+    # Nested models compared by their χ² rise hold the full model's noise (Problem.with_noise): the held std
+    # replaces s_eff where it is given (> 0), on both the closed-form and the automatic-differentiation path.
+    prob, _ = core.build_problem(TWO_ROWS)
+    theta = jnp.asarray(core.to_theta(G0, X0, K))
+    hand = [eq4_by_hand(a) for a in range(2)]
+    held = prob.with_noise([3.0 * hand[0][1], 0.0])           # row 0 held at 3 s_eff, row 1 propagated
+    for model in (core.IDEAL, core.Model.of((E.Effect(),))):
+        f, s = (np.asarray(a) for a in core.misfit(theta, held, model))
+        assert s[0] == pytest.approx(3.0 * hand[0][1], rel=REL) and s[1] == pytest.approx(hand[1][1], rel=REL)
+        np.testing.assert_allclose(np.asarray(core.standardized(theta, held, model)),
+                                   [hand[0][0] / (3.0 * hand[0][1]), hand[1][0] / hand[1][1]], rtol=1e-10)
+    assert np.all(np.asarray(core.build_problem(TWO_ROWS)[0].s_held) == 0.0)    # propagated unless asked
+
+
 def test_effect_parameters_carry_a_unit_gaussian_prior_residual():
     # Saturation: b_sat in (1.0, 1.3) T -> centre 1.15, width 0.3; sharpness in (3, 6) -> centre 4.5, width 3.
     # CurrentOffset.top is signed, in (4, 15) mA -> centre 0, width 15 mA.

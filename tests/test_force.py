@@ -176,3 +176,27 @@ def test_the_circuit_fits_the_fem_bearing_and_moves_gap_and_origin_to_the_drawin
     assert "magnetic_circuit.iron_scale" in mec.names
     linear = ambfit.fit(ds, [mec.effects[0].without("saturation")], bearing=fem, start_from=mec, throw=False)
     assert linear.chi2 - mec.chi2 > 3 * np.sqrt(2 * mec.dof)
+
+
+def test_the_circuit_families_decide_each_piece_from_bounds_on_its_refit():
+    # Each piece switched off, the circuit refitted with the full model's noise held (the same weights for
+    # every χ²): saturation matters on this bearing; a rise is bracketed by its bounds (equal once the refit is
+    # settled), and a piece counts only when its lower bound clears 3 sd of χ².
+    from ambfit.diagnosis.attribution import circuit_families
+
+    ds = read_csv(FEM_SLICE)
+    fem = ambfit.Bearing.from_toml(FEM_BEARING)
+    ideal = ambfit.fit(ds, bearing=fem, throw=False)
+    mec = ambfit.fit(ds, [MagneticCircuit()], bearing=fem, start_from=ideal, throw=False)
+    fams = circuit_families(ds.frame, mec, fem)
+    threshold = 3 * np.sqrt(2 * mec.dof)
+    by = {f["piece"]: f for f in fams}
+    assert set(by) == set(MagneticCircuit.PIECES)
+    assert by["saturation"]["significant"] and by["saturation"]["decided"]
+    for f in fams:
+        lo, hi = f["delta_chi2_bounds"]
+        assert lo <= f["delta_chi2"] <= hi
+        assert f["significant"] == (lo > threshold) and f["decided"] == (lo > threshold or hi <= threshold)
+        if f["converged"] and f["piece"] != "iron":
+            assert lo == hi
+    assert [f["delta_chi2"] for f in fams] == sorted((f["delta_chi2"] for f in fams), reverse=True)

@@ -313,7 +313,7 @@ def _numpy_problem(prob: Problem, lo: int, hi: int, k_free, gidx) -> Problem:
     return Problem(readings=readings, s_top=np.asarray(prob.s_top)[lo:hi], s_bottom=np.asarray(prob.s_bottom)[lo:hi],
                    s_x=np.asarray(prob.s_x)[lo:hi], load=np.asarray(prob.load)[lo:hi],
                    known=np.asarray(prob.known)[lo:hi], gidx=gidx, k_free=np.asarray(k_free),
-                   mask=np.asarray(prob.mask)[lo:hi])
+                   mask=np.asarray(prob.mask)[lo:hi], s_held=np.asarray(prob.s_held)[lo:hi])
 
 
 def _build_joined(frames: list[pd.DataFrame], sigma_i, sigma_x):
@@ -428,7 +428,7 @@ def _pad(probs: list[Problem], rows: int) -> Problem:
     return Problem(readings=readings, s_top=stack(lambda p: p.s_top), s_bottom=stack(lambda p: p.s_bottom),
                    s_x=stack(lambda p: p.s_x), load=stack(lambda p: p.load, 0.0), known=stack(lambda p: p.known, True),
                    gidx=stack(lambda p: p.gidx, -1), k_free=jnp.asarray(np.stack([np.asarray(p.k_free) for p in probs])),
-                   mask=stack(lambda p: p.mask, 0.0))
+                   mask=stack(lambda p: p.mask, 0.0), s_held=stack(lambda p: p.s_held, 0.0))
 
 
 @eqx.filter_jit

@@ -239,7 +239,12 @@ def misfit(theta, prob: Problem, model: Model = IDEAL):
     f, lin = jax.linearize(force, r.i_top, r.i_bottom, r.x)
     dt, db, dx = lin(ones, zeros, zeros), lin(zeros, ones, zeros), lin(zeros, zeros, ones)
     s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
-    return f - target(prob, p.loads), s
+    return f - target(prob, p.loads), _held(prob, s)
+
+
+def _held(prob: Problem, s):
+    """The propagated noise ``s``, or the problem's held noise where it gives one (:meth:`Problem.with_noise`)."""
+    return jnp.where(prob.s_held > 0, prob.s_held, s)
 
 
 def _ideal_misfit(p: Unpacked, prob: Problem, cos_alpha: float):
@@ -253,7 +258,7 @@ def _ideal_misfit(p: Unpacked, prob: Problem, cos_alpha: float):
     db = 2 * k * r.i_bottom / g_bottom**2
     dx = 2 * k * cos_alpha * (r.i_top**2 / g_top**3 + r.i_bottom**2 / g_bottom**3)
     s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
-    return f - target(prob, p.loads), s
+    return f - target(prob, p.loads), _held(prob, s)
 
 
 def _with_priors(theta, r, n: int):

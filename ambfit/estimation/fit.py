@@ -134,7 +134,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         sigma_i: float | None = None, sigma_x: float | None = None, mask=None, start_from: FitResult | None = None,
         require_k: bool = False, max_condition: float = 1e8, max_relative_gap_std: float = 0.1,
         p_min: float = 1e-3, max_steps: int = 200, loss: str = "auto", alpha: float = robust.ALPHA,
-        debias: int = 0, seed: int = 0, throw: bool = True) -> FitResult:
+        debias: int = 0, seed: int = 0, held_noise=None, throw: bool = True) -> FitResult:
     """Weighted least squares of gap, origin (k with known loads, nuisance loads, effect parameters).
 
     Parameters
@@ -176,6 +176,10 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         (:mod:`ambfit.estimation.debias`, ideal law only); 0 (default) reports the plain estimate.
     seed : int
         Seed of the bootstrap.
+    held_noise : array[n], optional
+        Each row's effective force noise std [N], held instead of propagated through the model at each
+        reweighting round: nested models compared by their χ² rise hold the full model's (the same weights for
+        every model, and a plain least-squares objective for Levenberg-Marquardt).
     throw : bool
         Raise :class:`FitError` when the fit did not converge or the design does not identify
         the parameters (default, as optimistix does); with False the result carries the failed
@@ -204,6 +208,8 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     if debias and model.n:
         raise ValueError("the bootstrap bias correction (debias) is implemented for the ideal law only")
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask)
+    if held_noise is not None:
+        prob = prob.with_noise(held_noise)
     if require_k:
         _require_k(meta)
     inherited = ()

@@ -26,7 +26,9 @@ class Problem(eqx.Module):
 
     ``k_free[a]`` is whether axis ``a`` has a known load (so ``k`` is identifiable);
     ``gidx`` indexes the nuisance load of rows without a known load (-1 otherwise);
-    ``mask`` is 1 for rows the fit uses, 0 for held-out rows.
+    ``mask`` is 1 for rows the fit uses, 0 for held-out rows; ``s_held`` is each row's force noise std [N]
+    held fixed instead of propagated through the model (0: propagated, the default; nested models compared by
+    their χ² rise hold the full model's, see :meth:`with_noise`).
     """
 
     readings: Readings
@@ -38,6 +40,7 @@ class Problem(eqx.Module):
     gidx: jnp.ndarray
     k_free: jnp.ndarray
     mask: jnp.ndarray
+    s_held: jnp.ndarray
 
     ax = property(lambda self: self.readings.axis)
     x = property(lambda self: self.readings.x)
@@ -52,6 +55,10 @@ class Problem(eqx.Module):
     def with_mask(self, mask) -> Problem:
         """The same problem with other row weights (``mask``: 0 leaves a row out; robust losses use sqrt(w))."""
         return eqx.tree_at(lambda p: p.mask, self, jnp.asarray(mask, dtype=float))
+
+    def with_noise(self, s) -> Problem:
+        """The same problem with each row's effective force noise std ``s`` [N] held (0 where it is propagated)."""
+        return eqx.tree_at(lambda p: p.s_held, self, jnp.asarray(s, dtype=float))
 
     def with_readings(self, i_top, i_bottom, x) -> Problem:
         """The same problem with other current and position readings (bootstrap, design)."""
@@ -157,5 +164,5 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x) -> tuple[Problem, Meta]:
     m = np.ones(len(df))
     prob = Problem(readings=r, s_top=jnp.asarray(st), s_bottom=jnp.asarray(sb), s_x=jnp.asarray(sx),
                    load=jnp.asarray(np.nan_to_num(load)), known=jnp.asarray(known), gidx=jnp.asarray(gidx),
-                   k_free=jnp.asarray(k_free), mask=jnp.asarray(m))
+                   k_free=jnp.asarray(k_free), mask=jnp.asarray(m), s_held=jnp.zeros(len(df)))
     return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
