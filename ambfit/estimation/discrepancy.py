@@ -223,8 +223,10 @@ class _Evidence:
     """log N(y | 0, sigma^2 (I + X diag(scale^2) X^T)) for many ``scale`` vectors; sigma = 1 for known noise,
     else profiled.
 
-    With ``G = X^T X`` and ``g = X^T y`` computed once, ``Xs = X diag(scale)`` and ``C = I + Xs^T Xs = L L^T``:
-    ``y^T (I + Xs Xs^T)^-1 y = |y|^2 - |L^-1 Xs^T y|^2`` and ``det(I + Xs Xs^T) = det C`` (all m x m).
+    With ``G = X^T X`` and ``g = X^T y`` computed once, ``Xs = X diag(scale)`` and ``C = I + Xs^T Xs``:
+    ``det(I + Xs Xs^T) = det C`` and ``y^T (I + Xs Xs^T)^-1 y = |y|^2 - g_s^T C^-1 g_s`` with ``g_s = Xs^T y``,
+    which is the last pivot of the Cholesky factor of ``[[C, g_s], [g_s^T, |y|^2]]`` squared (its Schur
+    complement): one factorization of an (m+1) x (m+1) matrix per trial gives both, no triangular solve.
     """
 
     def __init__(self, x, y, noise_known: bool):
@@ -234,10 +236,15 @@ class _Evidence:
     def __call__(self, scales) -> np.ndarray:
         """The log evidence of each row of ``scales`` [trials, m] (one batched factorization)."""
         scales = np.atleast_2d(scales)
-        chol = np.linalg.cholesky(np.eye(scales.shape[1]) + scales[:, :, None] * self.gram * scales[:, None, :])
-        h = np.linalg.solve(chol, (scales * self.g)[:, :, None])[:, :, 0]      # L^-1 Xs^T y
-        quad = self.yy - np.sum(h * h, axis=1)
-        logdet = 2.0 * np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)
+        t, m = scales.shape
+        aug = np.empty((t, m + 1, m + 1))
+        aug[:, :m, :m] = scales[:, :, None] * self.gram * scales[:, None, :]
+        aug[:, np.arange(m), np.arange(m)] += 1.0
+        aug[:, :m, m] = aug[:, m, :m] = scales * self.g
+        aug[:, m, m] = self.yy
+        pivots = np.diagonal(np.linalg.cholesky(aug), axis1=1, axis2=2)
+        quad = pivots[:, m] ** 2
+        logdet = 2.0 * np.sum(np.log(pivots[:, :m]), axis=1)
         if self.noise_known:
             return -0.5 * (quad + logdet + self.n * np.log(2 * np.pi))
         return -0.5 * (self.n * np.log(2 * np.pi * quad / self.n) + self.n + logdet)
