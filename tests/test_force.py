@@ -200,3 +200,20 @@ def test_the_circuit_families_decide_each_piece_from_bounds_on_its_refit():
         if f["converged"] and f["piece"] != "iron":
             assert lo == hi
     assert [f["delta_chi2"] for f in fams] == sorted((f["delta_chi2"] for f in fams), reverse=True)
+
+
+def test_a_force_check_reuses_a_refit_whose_left_out_rows_are_a_fold():
+    # A diagnosis has already refitted each model with each fold held out; where a fold is exactly one known
+    # load's rows (the FEM's load ids are per axis), the force check takes that refit instead of repeating it.
+    from ambfit.diagnosis.attribution import folds
+
+    df = read_csv(FEM_SLICE).frame
+    fem = ambfit.Bearing.from_toml(FEM_BEARING)
+    base = ambfit.fit(df, bearing=fem, throw=False)
+    plain = force_check(df, (), bearing=fem, base=base, max_steps=60)
+    refits = [(test, ambfit.fit(df, bearing=fem, mask=(~test).astype(float), start_from=base, max_steps=60,
+                                throw=False), None) for test in folds(df)[1]]
+    assert force_check(df, (), bearing=fem, base=base, max_steps=60, fitted=refits) == plain
+    # it does take them: another fold's refit in the first fold's place changes the figures
+    swapped = [(refits[0][0], refits[1][1], None)] + refits[1:]
+    assert force_check(df, (), bearing=fem, base=base, max_steps=60, fitted=swapped)["rms_rel"] != plain["rms_rel"]

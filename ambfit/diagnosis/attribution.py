@@ -200,7 +200,7 @@ class Diagnosis:
             rec["law"] = self.law
         rec["steps"] = self.steps()
         if self.discrepancy is not None:
-            rec["discrepancy"] = {k: v for k, v in self.discrepancy.items() if k not in ("fit", "host")}
+            rec["discrepancy"] = {k: v for k, v in self.discrepancy.items() if k not in ("fit", "host", "folds")}
             if self.discrepancy.get("fit") is not None:
                 rec["discrepancy"] |= self.discrepancy["fit"].summary()
         # what ambfit force needs to measure with either model
@@ -588,8 +588,8 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         verdict_fit=verdict_fit, operating=operating_variables(df, base),
         parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
         best_pair=best_pair, families=families, law=law, discrepancy=disc,
-        force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy, max_steps)
-        if check_force else None)
+        force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy, max_steps,
+                                  _fold_fits([ideal] + ranking, disc)) if check_force else None)
 
 
 def _budget(effects, max_steps: int) -> int:
@@ -598,17 +598,30 @@ def _budget(effects, max_steps: int) -> int:
     return max(max_steps, 200) if any(getattr(e, "needs_other_axis", False) for e in effects) else max_steps
 
 
-def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True, max_steps: int = 60) -> dict | None:
+def _fold_fits(cands, disc) -> dict:
+    """Each model's cross-validation refits as ``(held-out mask, fit, discrepancy or None)``, by the fit's model
+    name: a force check whose left-out load is a fold reuses them (the same model, start and step budget)."""
+    out = {c.fit.model: [(t, f, None) for t, f in c.folds] for c in cands}
+    names = {c.effect: c.fit.model for c in cands}
+    for effect, folds_ in ((disc or {}).get("folds") or {}).items():
+        out[names[effect]] = folds_
+    return out
+
+
+def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True, max_steps: int = 60,
+                  fitted=None) -> dict | None:
     """Contract section 3's ``force_check``: leave-one-load-out for the ideal law, the verdict's model and the
     discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
-    effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis."""
+    effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis; a left-out
+    load that is one of the diagnosis' folds reuses that fold's refit (``fitted``, by model name)."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
     with_effects = verdict_fit is not None and bool(verdict_fit.effects)
+    fitted = fitted or {}
     try:
         ideal = force_check(df, (), bearing=bearing, base=base, discrepancy=discrepancy and not with_effects,
-                            max_steps=max_steps, **noise)
+                            max_steps=max_steps, fitted=fitted.get(base.model, ()), **noise)
     except FitError as exc:
         return {"method": "leave-one-load-out", "error": str(exc)}
     if ideal is None:
@@ -620,7 +633,8 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
     if with_effects:
         try:
             v = force_check(df, verdict_fit.effects, bearing=bearing, base=verdict_fit, discrepancy=discrepancy,
-                            max_steps=_budget(verdict_fit.effects, max_steps), **noise)
+                            max_steps=_budget(verdict_fit.effects, max_steps),
+                            fitted=fitted.get(verdict_fit.model, ()), **noise)
         except FitError as exc:
             v, out["verdict"] = None, {"model": verdict_fit.model, "error": str(exc)}
         if v is not None:
@@ -641,15 +655,17 @@ than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995
 no hysteresis, gives its direction group 3.3)."""
 
 
-def _corrected_heldout(cand: Candidate, df, groups, noise) -> np.ndarray:
-    """Held-out residuals of ``cand``'s folds with the discrepancy (``groups``) fitted on each fold's training rows."""
+def _corrected_heldout(cand: Candidate, df, groups, noise) -> tuple[np.ndarray, list]:
+    """Held-out residuals of ``cand``'s folds with the discrepancy (``groups``) fitted on each fold's training rows,
+    and the folds as ``(held-out mask, fit, discrepancy)``."""
     from ambfit.estimation.discrepancy import fit_discrepancy
 
-    zs = []
+    zs, folds_ = [], []
     for test, f in cand.folds:
         d = fit_discrepancy(f, df, mask=(~test).astype(float), groups=groups, **noise)
         zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test))
-    return np.concatenate(zs)
+        folds_.append((test, f, d))
+    return np.concatenate(zs), folds_
 
 
 def _law_differs(df, best: Candidate, before: float, noise) -> dict:
@@ -658,7 +674,7 @@ def _law_differs(df, best: Candidate, before: float, noise) -> dict:
 
     group = SIGNATURES[best.effect]
     full = fit_discrepancy(best.fit, df, groups=(group,), **noise)
-    z = _corrected_heldout(best, df, (group,), noise)
+    z, _ = _corrected_heldout(best, df, (group,), noise)
     after = excess(z)
     return {"family": best.effect, "signature": group, "log_bayes": full.log_bayes[group],
             "signature_clear": bool(full.log_bayes[group] > LOG_BAYES_CLEAR),
@@ -674,7 +690,7 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
     from ambfit.estimation.discrepancy import GROUPS, fit_discrepancy
 
     out = {"groups": list(GROUPS)}
-    z = _corrected_heldout(ideal, df, GROUPS, noise)
+    z, out["folds"] = _corrected_heldout(ideal, df, GROUPS, noise)
     host = verdict if verdict is not None and verdict.fit.effects else ideal
     fits = {c.effect: fit_discrepancy(c.fit, df, **noise) for c in ([ideal] if host is ideal else [ideal, host])}
     z_in = ideal.fit.residuals
@@ -682,8 +698,9 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
     # in sample (every row fitted): what is left of the ideal law's excess once the correction is added
     out["ideal"] = {"heldout_excess_after": excess(z), "shrink": shrink(before, excess(z)),
                     "insample_shrink": shrink(excess(z_in[kept]), excess((z_in + fits[ideal.effect].row_correction)[kept]))}
+    out["folds"] = {ideal.effect: out["folds"]}
     if host is not ideal:
-        z = _corrected_heldout(host, df, GROUPS, noise)
+        z, out["folds"][host.effect] = _corrected_heldout(host, df, GROUPS, noise)
         out["verdict"] = {"model": host.effect, "heldout_excess_after": excess(z), "shrink": shrink(before, excess(z))}
     out["fit"] = fits[host.effect]
     out["host"] = host.fit

@@ -63,7 +63,7 @@ def _force(params, readings, effects, bearing):
 
 
 def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None, max_steps: int = 200,
-                discrepancy: bool = False, **fit_kw) -> dict | None:
+                discrepancy: bool = False, fitted=(), **fit_kw) -> dict | None:
     """Leave-one-load-out force measurement (contract sections 2 and 3, ``force_check``).
 
     Each distinct known load of an axis in turn is left out, the model (the ideal law plus ``effects``)
@@ -74,7 +74,10 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
 
     ``base`` is the fit of all rows with the same model (its estimate starts each refit).  With
     ``discrepancy``, each refit also gets the model-discrepancy term (:mod:`ambfit.estimation.discrepancy`)
-    fitted on the same rows, and the figures of the model with it are under ``"discrepancy"``.
+    fitted on the same rows, and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
+    refits already made with the same model, start and settings, as ``(held-out rows mask, FitResult,
+    Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose left-out rows are exactly one of
+    these masks reuses that refit instead of repeating it.
 
     Besides the contract's per-reading figures, ``rms_rel_mean`` is the RMS over the left-out loads of the
     mean relative error of each load's readings (a force measured by averaging its readings),
@@ -108,8 +111,10 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         if not (known & ~out & (df["axis"] == ax).to_numpy()).any():
             skipped.append(g)
             continue
-        res = fit(df, effects, bearing=bearing, mask=(~out).astype(float), start_from=base, max_steps=max_steps,
-                  throw=False, **fit_kw)
+        res, d = next(((f, d) for held, f, d in fitted if np.array_equal(held, out)), (None, None))
+        if res is None:
+            res = fit(df, effects, bearing=bearing, mask=(~out).astype(float), start_from=base, max_steps=max_steps,
+                      throw=False, **fit_kw)
         load = df.loc[out, "load_N"].to_numpy(float)
         predicted = predict(res, df, rows=rows)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
@@ -121,8 +126,9 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         if discrepancy:
             from ambfit.estimation.discrepancy import fit_discrepancy
 
-            d = fit_discrepancy(res, df, mask=(~out).astype(float), sigma_i=fit_kw.get("sigma_i"),
-                                sigma_x=fit_kw.get("sigma_x"))
+            if d is None:
+                d = fit_discrepancy(res, df, mask=(~out).astype(float), sigma_i=fit_kw.get("sigma_i"),
+                                    sigma_x=fit_kw.get("sigma_x"))
             rd = (predicted[out] + d.row_correction_n[out] - load) / load
             rel_d.append(rd)
             entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
