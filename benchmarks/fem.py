@@ -182,7 +182,8 @@ def main():
         md += ["", "Each piece switched off, the circuit refitted with the full model's noise weights held (every χ² "
                "weighs the readings alike). A refit runs until its χ² is settled (EDM below 1 % of the threshold "
                "3 sd of χ²) or its piece's significance is decided, taking its χ² to fall by at most 10 EDMs more; "
-               "iron_reluctance is the ideal-iron refit less the constant-permeability one."]
+               "iron_reluctance is the ideal-iron refit (started from the constant-permeability one, the nearer model) less "
+               "the constant-permeability one."]
         md.append("")
     md += ["| circuit parameter | identified | drawing implies | note |", "|---|---|---|---|"]
     for k, v in out["circuit_vs_drawing"].items():
