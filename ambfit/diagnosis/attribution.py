@@ -382,8 +382,9 @@ EDM_MARGIN = 10.0
 """Before it is settled, a refit's χ² is taken to fall by at most this many EDMs more; a piece is decided
 significant when its rise clears the threshold by that margin, and not significant as soon as its rise is below
 the threshold (χ² only falls as the refit goes on).  The margin is an estimate, not a bound: far from the
-minimum the Gauss-Newton EDM can understate what is left (on the FEM bearing, a refit stopped after 2 x 10 steps
-with EDM 34 later fell by 590), so a refit that has not settled is reported with ``converged`` false."""
+minimum the Gauss-Newton EDM can understate what is left (on the FEM bearing, the ideal-iron refit stopped at
+EDM 34 with χ² 590 above what a longer run reached), so a refit that has not settled is reported with
+``converged`` false."""
 
 
 def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_steps: int = 200, step: int = 20,
