@@ -311,6 +311,12 @@ def file_rows(df: pd.DataFrame) -> np.ndarray:
     return np.arange(1, len(df) + 1)
 
 
+def zero_based(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` indexed 0..n-1: itself when it already is (no copy: a table fitted many times keeps its identity,
+    see :func:`ambfit.estimation.problem.owned`), else ``reset_index(drop=True)``."""
+    return df if df.index.equals(pd.RangeIndex(len(df))) else df.reset_index(drop=True)
+
+
 def load_groups(df: pd.DataFrame) -> pd.Series:
     """The static-load group of each row: ``load_id`` and axis, or experiment and axis when no ``load_id``."""
     if "load_id" in df.columns:

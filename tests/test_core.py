@@ -5,6 +5,7 @@ References are computed by hand in the test with the ``math`` module or, for the
 analytic Jacobian of Eq. 4 written out here (not the library's automatic derivative).
 """
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -315,3 +316,27 @@ def test_a_step_budget_is_a_traced_number_and_is_kept():
     assert short[1] == core.optx.RESULTS.nonlinear_max_steps_reached
     full = core.solve(theta0, prob, model, max_steps=60)
     assert full[1] == core.optx.RESULTS.successful and int(full[2]) > core.REWEIGHTINGS
+
+
+def test_a_model_is_built_once_per_set_of_effect_instances_and_bearing():
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    sat = E.Saturation()
+    model = core.Model.of((sat,))
+    assert core.Model.of([sat]) is model                                   # the same instances: the same model
+    assert core.Model.of((E.Saturation(),)) is not model                   # another instance is looked at afresh
+    other = core.Model.of((sat,), dataclasses.replace(PAPER_BEARING, nominal_gap=500e-6))
+    assert other is not model and other.bearing.nominal_gap == 500e-6
+
+
+def test_a_table_owned_by_its_caller_is_hashed_once_and_a_changed_table_is_seen():
+    from ambfit.estimation import problem
+
+    table = TWO_ROWS.copy()
+    outside, _ = core.build_problem(table)
+    with problem.owned(table):
+        inside, _ = core.build_problem(table)
+    np.testing.assert_array_equal(np.asarray(inside.i_top), np.asarray(outside.i_top))
+    table.loc[0, "i_top_A"] = 1.70            # changed in place after the block: the content key sees it
+    changed, _ = core.build_problem(table)
+    assert float(changed.i_top[0]) == 1.70

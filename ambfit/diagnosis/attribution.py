@@ -48,15 +48,16 @@ def shrink(before: float, after: float) -> float:
     return 1.0 - after / before if before > 0 else 0.0
 
 
-def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray) -> np.ndarray:
+def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, groups=None) -> np.ndarray:
     """Standardized residuals of the ``test`` rows (bool mask) under a fit that held them out.
 
     A nuisance load that no training row constrained is refitted on the test rows alone
     (its weighted mean misfit is removed, one number per group): the held-out check is
-    about the shape of the force law, not about an unknown load the training data never saw.
+    about the shape of the force law, not about an unknown load the training data never saw.  ``groups``: the
+    rows' load groups (:func:`ambfit.data.load_groups`), when the caller has them.
     """
     z = fitted.residuals.copy()
-    groups = load_groups(data.reset_index(drop=True)).to_numpy()
+    groups = load_groups(data.reset_index(drop=True)).to_numpy() if groups is None else np.asarray(groups)
     known = data["load_N"].notna().to_numpy() if "load_N" in data else np.zeros(len(data), bool)
     for g in np.unique(groups[test & ~known]):
         m = groups == g
@@ -493,11 +494,12 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     explain.  Its force check joins ``force_check`` as ``"discrepancy"``.
     """
     from ambfit.estimation.core import Model, compiled_together
+    from ambfit.estimation.problem import owned
 
-    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)   # its own copy (see owned)
     cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
     # the ideal law and every candidate share one compiled solve (a cold diagnosis is dominated by compiling)
-    with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]):
+    with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]), owned(df):
         return _diagnose(df, cands, bearing=bearing, floor_tolerance=floor_tolerance, min_shrink=min_shrink,
                          pairs=pairs, pair_verdict=pair_verdict, max_steps=max_steps, baseline=baseline,
                          progress=progress, check_force=check_force, discrepancy=discrepancy, noise=noise)
@@ -507,6 +509,7 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
               check_force, discrepancy, noise) -> Diagnosis:
     base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
     fold_name, tests = folds(df)
+    groups = load_groups(df).to_numpy()
     count = {"done": 0, "total": 1 + len(cands)}
 
     def heldout(effects, before):
@@ -519,7 +522,7 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         for test in tests:
             f = fit(df, effects, bearing=bearing, mask=(~test).astype(float), start_from=full, max_steps=steps,
                     throw=False, **noise)
-            zs.append(heldout_residuals(f, df, test))
+            zs.append(heldout_residuals(f, df, test, groups))
             fitted.append((test, f))
         name = "+".join(type(e).name for e in effects) or "ideal"
         z = np.concatenate(zs)
@@ -665,9 +668,11 @@ def _corrected_heldout(cand: Candidate, df, groups, noise) -> tuple[np.ndarray, 
     from ambfit.estimation.discrepancy import fit_discrepancy
 
     zs, folds_ = [], []
+    loads = load_groups(df).to_numpy()
     for test, f in cand.folds:
         d = fit_discrepancy(f, df, mask=(~test).astype(float), groups=groups, **noise)
-        zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test))
+        zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
+                                    loads))
         folds_.append((test, f, d))
     return np.concatenate(zs), folds_
 

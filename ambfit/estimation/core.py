@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -103,6 +104,11 @@ def to_theta(g0, x0, k, loads=(), q=()) -> np.ndarray:
 
 # --- the model: force law plus effects with free parameters ------------------------------------------------
 
+_MODELS: OrderedDict = OrderedDict()
+"""The last models built, by their effects' identities and bearing: a diagnosis builds the same dozen models a
+hundred times, 1 ms each.  Effects are immutable modules, so an instance's identity fixes what the model is."""
+_MODELS_SIZE = 64
+
 class Model(eqx.Module):
     """What is fitted beyond gap, origin, k and loads: effects whose ``RANGES`` fields are free.
 
@@ -119,6 +125,20 @@ class Model(eqx.Module):
 
     @classmethod
     def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING) -> Model:
+        """The model of ``effects`` (their ``ranges()`` fields free) on ``bearing``."""
+        effects = tuple(effects)
+        key = (tuple(map(id, effects)), bearing)
+        if key in _MODELS:
+            _MODELS.move_to_end(key)
+            return _MODELS[key][1]
+        model = cls._of(effects, bearing)
+        _MODELS[key] = effects, model          # holding the effects: their identities stay theirs while keyed
+        if len(_MODELS) > _MODELS_SIZE:
+            _MODELS.popitem(last=False)
+        return model
+
+    @classmethod
+    def _of(cls, effects: tuple, bearing: Bearing) -> Model:
         fields, centre, width = [], [], []
         effects = list(effects)
         for i, e in enumerate(effects):

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit.data import Dataset
+from ambfit.data import Dataset, zero_based
 from ambfit.estimation.core import Model, build_problem, free_mask, noise_std, row_jacobian, si_scale
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import AXES, Bearing
@@ -278,7 +278,7 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     held-out fit; ``groups`` the basis groups to use (:data:`GROUPS`).  The fit itself is not changed: see
     the module docstring for why it need not be.
     """
-    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    df = zero_based(data.frame if isinstance(data, Dataset) else data)
     basis = Basis.of(result.bearing, groups)
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x)
     model = Model.of(result.effects, result.bearing)

@@ -49,7 +49,7 @@ import numpy as np
 import optimistix as optx
 import pandas as pd
 
-from ambfit.data import Dataset, file_rows, load_groups
+from ambfit.data import Dataset, file_rows, load_groups, zero_based
 from ambfit.estimation import closed_form, plausibility, robust
 from ambfit.estimation.core import (
     EDM_MAX,
@@ -203,7 +203,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     if loss not in robust.LOSSES:
         raise ValueError(f"loss must be one of {robust.LOSSES}, got {loss!r}")
     rows = file_rows(df)
-    df = df.reset_index(drop=True)
+    df = zero_based(df)
     model = Model.of(effects, bearing)
     if debias and model.n:
         raise ValueError("the bootstrap bias correction (debias) is implemented for the ideal law only")

@@ -86,12 +86,12 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     RMS beyond that floor, ``sqrt(max(rms_rel^2 - noise_floor_rel^2, 0))`` (the model's own error; the
     readings' noise and the model's error add in quadrature).
     """
-    from ambfit.data import Dataset, readings
+    from ambfit.data import Dataset, readings, zero_based
     from ambfit.estimation.fit import fit
     from ambfit.physics.bearing import PAPER_BEARING
 
     bearing = PAPER_BEARING if bearing is None else bearing
-    df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    df = zero_based(data.frame if isinstance(data, Dataset) else data)
     if "load_N" not in df.columns:
         return None
     # a known load of 0 N has no relative error: its rows are left out of the figure (and counted)
