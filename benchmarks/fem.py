@@ -29,6 +29,7 @@ import numpy as np
 
 import ambfit
 from ambfit.data import read_csv
+from ambfit.diagnosis import attribution
 from ambfit.estimation.measure import force_check, force_noise
 from ambfit.physics.circuit import MECParams
 from ambfit.physics.effects import MagneticCircuit
@@ -180,10 +181,11 @@ def main():
                   "{:.0f} – {:.0f}".format(*f["delta_chi2_bounds"]))
                + f" | {'yes' if f['significant'] else 'no'} |" for f in dg.families]
         md += ["", "Each piece switched off, the circuit refitted with the full model's noise weights held (every χ² "
-               "weighs the readings alike). A refit runs until its χ² is settled (EDM below 1 % of the threshold "
-               "3 sd of χ²) or its piece's significance is decided, taking its χ² to fall by at most 10 EDMs more; "
-               "iron_reluctance is the ideal-iron refit (started from the constant-permeability one, the nearer model) less "
-               "the constant-permeability one."]
+               "weighs the readings alike). A refit runs until its χ² is settled (EDM below "
+               f"{100 * attribution.SETTLED_EDM:g} % of the threshold, {attribution.SIGNIFICANT_DCHI2:g} sd of χ²) or "
+               "its piece's significance is decided, taking its χ² to fall by at most "
+               f"{attribution.EDM_MARGIN:g} EDMs more; iron_reluctance is the ideal-iron refit (started from the "
+               "constant-permeability one, the nearer model) less the constant-permeability one."]
         md.append("")
     md += ["| circuit parameter | identified | drawing implies | note |", "|---|---|---|---|"]
     for k, v in out["circuit_vs_drawing"].items():

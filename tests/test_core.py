@@ -329,13 +329,17 @@ def test_a_model_is_built_once_per_set_of_effect_instances_and_bearing():
     assert other is not model and other.bearing.nominal_gap == 500e-6
 
 
-def test_a_table_owned_by_its_caller_is_hashed_once_and_a_changed_table_is_seen():
+def test_a_table_owned_by_its_caller_is_hashed_once_and_a_changed_table_is_seen(monkeypatch):
     from ambfit.estimation import problem
 
     table = TWO_ROWS.copy()
     outside, _ = core.build_problem(table)
+    hashed = []
+    monkeypatch.setattr(problem, "_digest", lambda df, _d=problem._digest: hashed.append(1) or _d(df))
     with problem.owned(table):
-        inside, _ = core.build_problem(table)
+        for _ in range(3):
+            inside, _ = core.build_problem(table)
+    assert len(hashed) == 1                   # on entering the block, not once per build
     np.testing.assert_array_equal(np.asarray(inside.i_top), np.asarray(outside.i_top))
     table.loc[0, "i_top_A"] = 1.70            # changed in place after the block: the content key sees it
     changed, _ = core.build_problem(table)

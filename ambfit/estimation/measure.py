@@ -230,13 +230,18 @@ class FittedModel:
                 raise ModelFileError(f"{source}: {exc}") from None
             for piece in spec.get("off", []):
                 e = e.without(piece)
-            for field in e.ranges():
+            held = spec.get("held", {})
+            # every parameter the file gives: estimated (under its name) or held (an older file may have
+            # estimated one that is held now)
+            for field in type(e).RANGES:
                 shared = f"{spec['name']}.{field}"
                 per_axis = [vals.get(f"{shared}[{ax}]") for ax in AXES]
                 if shared in vals:
                     e = _set_field(e, field, jnp.full(2, vals[shared]))
                 elif all(v is not None for v in per_axis):
                     e = _set_field(e, field, jnp.asarray(per_axis, dtype=float))
+                elif field in held:
+                    e = _set_field(e, field, jnp.broadcast_to(jnp.asarray(held[field], dtype=float), (2,)))
             effects.append(e)
         model = "+".join(s["name"] for s in state.get("effects", [])) or "ideal"
         disc = None
@@ -263,7 +268,7 @@ class FittedModel:
                                jnp.stack([v.get("k_v", jnp.nan), v.get("k_w", jnp.nan)]))
         effects = []
         for e in self.effects:
-            for field in e.ranges():
+            for field in type(e).RANGES:
                 shared = f"{type(e).name}.{field}"
                 if shared in v:
                     e = _set_field(e, field, jnp.stack([v[shared], v[shared]]))

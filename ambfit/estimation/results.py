@@ -321,7 +321,8 @@ class FitResult:
         keep = [j for j, n in enumerate(self.names) if not n.startswith("load[")]
         return {"names": [self.names[j] for j in keep], "values": [float(self.values[j]) for j in keep],
                 "covariance": [[float(self.cov[i, j]) for j in keep] for i in keep],
-                "effects": [{"name": type(e).name, "off": list(getattr(e, "off", ()))} for e in self.effects],
+                "effects": [{"name": type(e).name, "off": list(getattr(e, "off", ())), "held": _held_fields(e)}
+                            for e in self.effects],
                 "bearing": self.bearing.name, "units": "SI (m, N·m²/A², effect parameters as named)"}
 
     def to_dataframe(self):
@@ -383,3 +384,12 @@ class FitResult:
         return (f"<b>least squares ({html.escape(self.model)})</b>, {self.n_rows} rows, "
                 f"χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof"
                 f"<table><tr><th>parameter</th><th>estimate</th><th>unit</th></tr>{rows}</table><ul>{health}</ul>")
+
+
+def _held_fields(effect) -> dict:
+    """The values of an effect's parameters that were held, not fitted (``RANGES`` fields outside ``ranges()``),
+    as plain lists: what a model file needs besides the estimates to give the same forces."""
+    import numpy as np
+
+    return {f: np.asarray(getattr(effect, f), dtype=float).tolist() for f in type(effect).RANGES
+            if f not in effect.ranges()}
