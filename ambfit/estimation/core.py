@@ -438,14 +438,19 @@ def _solve_in(theta0, prob, models, index, budget):
 
 
 def _solve(theta0, prob, model, max_steps):
-    """The solve of ``model`` (in its set, see :func:`compiled_together`), cut back to the model's own entries."""
+    """The solve of ``model`` (in its set, see :func:`compiled_together`), cut back to the model's own entries.
+
+    Called with concrete values, the padding and the cutting are done in NumPy (each eager JAX operation is a
+    dispatch, and a diagnosis solves a hundred times); under ``jit`` or ``vmap`` in JAX."""
     models, index = _members(model)
     pad = max(m.n for m in models) - model.n
-    theta0 = jnp.asarray(theta0)
+    xp = jnp if isinstance(theta0, jax.core.Tracer) else np
     if pad:
-        theta0 = jnp.concatenate([theta0, jnp.zeros(pad)])
+        theta0 = xp.concatenate([xp.asarray(theta0), xp.zeros(pad)])
     theta, result, steps, edm, j, j_all, z = _solve_in(theta0, prob, models, jnp.asarray(index),
                                                          jnp.asarray(max_steps))
+    if xp is np:
+        theta, steps, edm, j, j_all, z = (np.asarray(a) for a in (theta, steps, edm, j, j_all, z))
     if pad:
         width, rows = theta.shape[-1] - pad, j.shape[-2] - pad
         theta, j, j_all = theta[..., :width], j[..., :rows, :width], j_all[..., :rows, :width]
