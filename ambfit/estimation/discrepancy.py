@@ -227,6 +227,7 @@ class _Evidence:
     ``det(I + Xs Xs^T) = det C`` and ``y^T (I + Xs Xs^T)^-1 y = |y|^2 - g_s^T C^-1 g_s`` with ``g_s = Xs^T y``,
     which is the last pivot of the Cholesky factor of ``[[C, g_s], [g_s^T, |y|^2]]`` squared (its Schur
     complement): one factorization of an (m+1) x (m+1) matrix per trial gives both, no triangular solve.
+    :meth:`along` and :meth:`common` give whole grids of one scale from one factorization.
     """
 
     def __init__(self, x, y, noise_known: bool):
@@ -243,31 +244,62 @@ class _Evidence:
         aug[:, :m, m] = aug[:, m, :m] = scales * self.g
         aug[:, m, m] = self.yy
         pivots = np.diagonal(np.linalg.cholesky(aug), axis1=1, axis2=2)
-        quad = pivots[:, m] ** 2
-        logdet = 2.0 * np.sum(np.log(pivots[:, :m]), axis=1)
+        return self._log(pivots[:, m] ** 2, 2.0 * np.sum(np.log(pivots[:, :m]), axis=1))
+
+    def _log(self, quad, logdet):
         if self.noise_known:
             return -0.5 * (quad + logdet + self.n * np.log(2 * np.pi))
         return -0.5 * (self.n * np.log(2 * np.pi * quad / self.n) + self.n + logdet)
 
+    def common(self, grid) -> np.ndarray:
+        """The log evidence with every column at each scale of ``grid`` (one eigendecomposition of ``G``)."""
+        lam, vec = np.linalg.eigh(self.gram)
+        c2 = (vec.T @ self.g) ** 2
+        t2 = np.asarray(grid, dtype=float)[:, None] ** 2
+        return self._log(self.yy - np.sum(t2 * c2 / (1.0 + t2 * lam), axis=1),
+                         np.sum(np.log1p(t2 * np.maximum(lam, 0.0)), axis=1))
+
+    def along(self, scales, cols, grid) -> np.ndarray:
+        """The log evidence at ``scales`` [m] with the columns ``cols`` (bool [m]) set to each scale of ``grid``.
+
+        With the other columns ``A`` fixed, ``C`` factors through ``C_A = I + S_A G_AA S_A``: ``det C = det C_A
+        det(I + t^2 M)`` and ``g_s^T C^-1 g_s = a + t^2 w^T (I + t^2 M)^-1 w``, where ``M = G_BB - G_BA S_A
+        C_A^-1 S_A G_AB``, ``w = g_B - G_BA S_A C_A^-1 S_A g_A`` and ``a = g_A^T S_A C_A^-1 S_A g_A`` (block
+        elimination): one Cholesky of ``C_A`` and one eigendecomposition of ``M`` for the whole grid.
+        """
+        a_, b_ = ~cols, cols
+        sa = np.asarray(scales, dtype=float)[a_]
+        chol = np.linalg.cholesky(np.eye(len(sa)) + sa[:, None] * self.gram[np.ix_(a_, a_)] * sa[None, :])
+        # h = L_A^-1 S_A [G_AB, g_A]; h^T h = [G_BA, g_A^T] S_A C_A^-1 S_A [G_AB, g_A]
+        h = np.linalg.solve(chol, sa[:, None] * np.column_stack([self.gram[np.ix_(a_, b_)], self.g[a_]]))
+        proj = h.T @ h
+        m_ = self.gram[np.ix_(b_, b_)] - proj[:-1, :-1]
+        w = self.g[b_] - proj[:-1, -1]
+        a = float(proj[-1, -1])
+        lam, vec = np.linalg.eigh(0.5 * (m_ + m_.T))
+        lam = np.maximum(lam, 0.0)                            # PSD up to round-off
+        c2 = (vec.T @ w) ** 2
+        t2 = np.asarray(grid, dtype=float)[:, None] ** 2
+        logdet = 2.0 * np.sum(np.log(np.diagonal(chol))) + np.sum(np.log1p(t2 * lam), axis=1)
+        return self._log(self.yy - a - np.sum(t2 * c2 / (1.0 + t2 * lam), axis=1), logdet)
+
 
 def _scales(x, y, group, n_groups, noise_known):
     """Each group's prior sd by coordinate ascent of the marginal likelihood over ``TAU_GRID`` and 0, and each
-    group's log Bayes factor (with it against without it, the others at their scales)."""
+    group's log Bayes factor (with it against without it, the others at their scales).  Each step evaluates the
+    whole grid of one group from one factorization (:meth:`_Evidence.along`)."""
     evidence = _Evidence(x, y, noise_known)
     grid = np.concatenate([[0.0], TAU_GRID])
-    common = evidence(np.repeat(TAU_GRID[:, None], x.shape[1], axis=1))
+    common = evidence.common(TAU_GRID)
     j = int(np.argmax(common))
     best, tau = common[j], np.full(n_groups, TAU_GRID[j])
     for _ in range(2):
         for g in range(n_groups):
-            trials = np.repeat(tau[None, :], len(grid), axis=0)
-            trials[:, g] = grid
-            vals = evidence(trials[:, group])
+            vals = evidence.along(tau[group], group == g, grid)
             j = int(np.argmax(vals))
             tau[g], best = grid[j], vals[j]
-    without = np.repeat(tau[None, :], n_groups, axis=0)
-    without[np.arange(n_groups), np.arange(n_groups)] = 0.0
-    return tau, best - evidence(without[:, group])
+    without = np.array([evidence.along(tau[group], group == g, [0.0])[0] for g in range(n_groups)])
+    return tau, best - without
 
 
 def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
