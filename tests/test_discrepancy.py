@@ -148,29 +148,37 @@ def test_identify_writes_effects_and_discrepancy_into_the_model_for_ambfit_force
     assert r.exit_code == 2 and "one data set" in r.output
 
 
-def test_the_evidence_grid_is_the_gaussian_marginal_likelihood():
-    """``_Evidence`` (batched over trial scales, with the m x m identities of its docstring) against the marginal
-    likelihood written directly: ``y ~ N(0, I + X S^2 X^T)`` (noise known), and with the noise level profiled
-    out, ``max over sigma^2`` of ``N(0, sigma^2 (I + X S^2 X^T))`` at ``sigma^2 = y^T C^-1 y / n``."""
+def _marginal_likelihood(x, y, scales, known):
+    """``log N(y | 0, I + X S^2 X^T)`` (noise known), or with the noise level profiled out, ``max over sigma^2`` of
+    ``N(0, sigma^2 (I + X S^2 X^T))`` at ``sigma^2 = y^T C^-1 y / n``: written directly, n x n."""
     from scipy.stats import multivariate_normal
 
+    c = np.eye(len(y)) + (x * scales) @ (x * scales).T
+    var = 1.0 if known else y @ np.linalg.solve(c, y) / len(y)
+    return multivariate_normal.logpdf(y, cov=var * c)
+
+
+def test_the_evidence_grid_is_the_gaussian_marginal_likelihood():
+    """``_Evidence`` (the m x m identities of its docstring) against the marginal likelihood written directly,
+    each scale vector reached as the grid of its last column with the others held."""
     from ambfit.estimation.discrepancy import _Evidence
 
     rng = np.random.default_rng(3)
     x, y = rng.normal(size=(40, 5)), rng.normal(size=40)
     scales = np.array([[0.0] * 5, [0.3, 0.3, 1.0, 2.0, 0.0], [1e-3, 5.0, 0.1, 0.1, 0.1]])
+    last = np.arange(5) == 4
     for known in (True, False):
-        got = _Evidence(x, y, known)(scales)
-        for s, value in zip(scales, got):
-            c = np.eye(40) + (x * s) @ (x * s).T
-            var = 1.0 if known else y @ np.linalg.solve(c, y) / 40
+        ev = _Evidence(x, y, known)
+        for s in scales:
+            value = ev.along(s, last, [s[4]])[0]
             # float64 round-off of two routes through a 40 x 40 determinant: ~1e-13 relative is observed
-            assert value == pytest.approx(multivariate_normal.logpdf(y, cov=var * c), rel=1e-10)
+            assert value == pytest.approx(_marginal_likelihood(x, y, s, known), rel=1e-10)
+        assert ev.common([0.0])[0] == pytest.approx(_marginal_likelihood(x, y, scales[0], known), rel=1e-10)
 
 
 def test_each_grid_of_one_group_is_the_evidence_with_that_group_scaled():
     # _scales walks the grid of one group at a time from one factorization (block elimination of the other
-    # groups, an eigendecomposition of the rest); every value must be the batched evidence of the full scales.
+    # groups, an eigendecomposition of the rest); every value must be the evidence of the full scales.
     from ambfit.estimation.discrepancy import TAU_GRID, _Evidence
 
     rng = np.random.default_rng(5)
@@ -183,7 +191,8 @@ def test_each_grid_of_one_group_is_the_evidence_with_that_group_scaled():
             for g in range(3):
                 trials = np.repeat(np.asarray(tau)[None, :], len(grid), axis=0)
                 trials[:, g] = grid
-                # ~1e-12 relative agreement is observed (two routes through a 7 x 7 factorization)
-                np.testing.assert_allclose(ev.along(np.asarray(tau)[group], group == g, grid), ev(trials[:, group]),
-                                           rtol=1e-9)
-        np.testing.assert_allclose(ev.common(grid), ev(np.repeat(grid[:, None], 7, axis=1)), rtol=1e-9)
+                # ~1e-12 relative agreement is observed (two routes through a 60 x 60 determinant)
+                np.testing.assert_allclose(ev.along(np.asarray(tau)[group], group == g, grid),
+                                           [_marginal_likelihood(x, y, t[group], known) for t in trials], rtol=1e-9)
+        np.testing.assert_allclose(ev.common(grid), [_marginal_likelihood(x, y, np.full(7, t), known) for t in grid],
+                                   rtol=1e-9)

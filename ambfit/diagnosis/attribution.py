@@ -15,7 +15,7 @@ import html
 import numpy as np
 import pandas as pd
 
-from ambfit.data import Dataset, load_groups
+from ambfit.data import Dataset, load_groups, zero_based
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import NoiseFloor, Where, noise_floor, operating_variables, where
 from ambfit.estimation.fit import fit
@@ -57,7 +57,7 @@ def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, g
     rows' load groups (:func:`ambfit.data.load_groups`), when the caller has them.
     """
     z = fitted.residuals.copy()
-    groups = load_groups(data.reset_index(drop=True)).to_numpy() if groups is None else np.asarray(groups)
+    groups = load_groups(zero_based(data)).to_numpy() if groups is None else np.asarray(groups)
     known = data["load_N"].notna().to_numpy() if "load_N" in data else np.zeros(len(data), bool)
     for g in np.unique(groups[test & ~known]):
         m = groups == g
@@ -455,7 +455,7 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
         rise, lo, hi = bounds(piece)
         out.append({"piece": piece, "family": names[piece], "delta_chi2": rise, "delta_chi2_bounds": [lo, hi],
                     "significant": bool(lo > threshold), "converged": _settled(f, threshold),
-                    "decided": bool(lo > threshold or hi <= threshold), "edm": f.edm, "steps": spent[piece]})
+                    "decided": bool(decided(piece)), "edm": f.edm, "steps": spent[piece]})
     return sorted(out, key=lambda r: -r["delta_chi2"])
 
 
@@ -712,7 +712,7 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
     from ambfit.estimation.discrepancy import GROUPS, fit_discrepancy
 
     out = {"groups": list(GROUPS)}
-    z, out["folds"] = _corrected_heldout(ideal, df, GROUPS, noise)
+    z, ideal_folds = _corrected_heldout(ideal, df, GROUPS, noise)
     host = verdict if verdict is not None and verdict.fit.effects else ideal
     fits = {c.effect: fit_discrepancy(c.fit, df, **noise) for c in ([ideal] if host is ideal else [ideal, host])}
     z_in = ideal.fit.residuals
@@ -720,7 +720,7 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
     # in sample (every row fitted): what is left of the ideal law's excess once the correction is added
     out["ideal"] = {"heldout_excess_after": excess(z), "shrink": shrink(before, excess(z)),
                     "insample_shrink": shrink(excess(z_in[kept]), excess((z_in + fits[ideal.effect].row_correction)[kept]))}
-    out["folds"] = {ideal.effect: out["folds"]}
+    out["folds"] = {ideal.effect: ideal_folds}
     if host is not ideal:
         z, out["folds"][host.effect] = _corrected_heldout(host, df, GROUPS, noise)
         out["verdict"] = {"model": host.effect, "heldout_excess_after": excess(z), "shrink": shrink(before, excess(z))}

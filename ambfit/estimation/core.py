@@ -109,6 +109,7 @@ _MODELS: OrderedDict = OrderedDict()
 hundred times, 1 ms each.  Effects are immutable modules, so an instance's identity fixes what the model is."""
 _MODELS_SIZE = 64
 
+
 class Model(eqx.Module):
     """What is fitted beyond gap, origin, k and loads: effects whose ``RANGES`` fields are free.
 

@@ -220,31 +220,17 @@ class Discrepancy:
 
 
 class _Evidence:
-    """log N(y | 0, sigma^2 (I + X diag(scale^2) X^T)) for many ``scale`` vectors; sigma = 1 for known noise,
+    """log N(y | 0, sigma^2 (I + X diag(scale^2) X^T)) for grids of ``scale`` vectors; sigma = 1 for known noise,
     else profiled.
 
     With ``G = X^T X`` and ``g = X^T y`` computed once, ``Xs = X diag(scale)`` and ``C = I + Xs^T Xs``:
-    ``det(I + Xs Xs^T) = det C`` and ``y^T (I + Xs Xs^T)^-1 y = |y|^2 - g_s^T C^-1 g_s`` with ``g_s = Xs^T y``,
-    which is the last pivot of the Cholesky factor of ``[[C, g_s], [g_s^T, |y|^2]]`` squared (its Schur
-    complement): one factorization of an (m+1) x (m+1) matrix per trial gives both, no triangular solve.
-    :meth:`along` and :meth:`common` give whole grids of one scale from one factorization.
+    ``det(I + Xs Xs^T) = det C`` and ``y^T (I + Xs Xs^T)^-1 y = |y|^2 - g_s^T C^-1 g_s`` with ``g_s = Xs^T y``
+    (all m x m).  :meth:`along` and :meth:`common` give a whole grid of one scale from one factorization.
     """
 
     def __init__(self, x, y, noise_known: bool):
         self.gram, self.g, self.yy, self.n = x.T @ x, x.T @ y, float(y @ y), len(y)
         self.noise_known = noise_known
-
-    def __call__(self, scales) -> np.ndarray:
-        """The log evidence of each row of ``scales`` [trials, m] (one batched factorization)."""
-        scales = np.atleast_2d(scales)
-        t, m = scales.shape
-        aug = np.empty((t, m + 1, m + 1))
-        aug[:, :m, :m] = scales[:, :, None] * self.gram * scales[:, None, :]
-        aug[:, np.arange(m), np.arange(m)] += 1.0
-        aug[:, :m, m] = aug[:, m, :m] = scales * self.g
-        aug[:, m, m] = self.yy
-        pivots = np.diagonal(np.linalg.cholesky(aug), axis1=1, axis2=2)
-        return self._log(pivots[:, m] ** 2, 2.0 * np.sum(np.log(pivots[:, :m]), axis=1))
 
     def _log(self, quad, logdet):
         if self.noise_known:

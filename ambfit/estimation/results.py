@@ -389,7 +389,5 @@ class FitResult:
 def _held_fields(effect) -> dict:
     """The values of an effect's parameters that were held, not fitted (``RANGES`` fields outside ``ranges()``),
     as plain lists: what a model file needs besides the estimates to give the same forces."""
-    import numpy as np
-
     return {f: np.asarray(getattr(effect, f), dtype=float).tolist() for f in type(effect).RANGES
             if f not in effect.ranges()}
