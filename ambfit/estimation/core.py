@@ -403,15 +403,36 @@ def _weighted_in(theta, args):
     return _with_priors(theta, prob.mask * f / s, max(m.n for m in models))
 
 
-def _edm(theta, prob, models, index):
-    """Estimated distance to the minimum, the Jacobian it was computed from, and the same Jacobian with every
-    row at weight 1 (held-out rows too: what studentized residuals and leverages need)."""
-    f, s = _switch(misfit, theta, prob, models, index)
-    ones = eqx.tree_at(lambda p: p.mask, prob, jnp.ones_like(prob.mask))
-    j_all = jax.jacfwd(_weighted_in)(theta, (ones, models, index, s))
+def _measured(theta, prob: Problem, model: Model, width: int):
+    """``F - L``, the effective noise std ``s_eff`` and ``d(F - L)/d theta`` of ``model`` at the padded
+    ``theta`` (its first ``width`` entries are the model's; the padding's columns are zero), from one batched
+    forward pass: a tangent per entry of theta, then one per reading (top current, bottom current, position)."""
+    r = prob.readings
+
+    def force(th, it, ib, x):
+        return force_misfit(th[:width], prob.with_readings(it, ib, x), model)
+
+    p, n = theta.shape[0], r.x.shape[0]
+    basis = jnp.concatenate([jnp.eye(p), jnp.zeros((3, p))])
+    rows = [jnp.zeros((p + 3, n)).at[p + k].set(1.0) for k in range(3)]
+    f, d = jax.vmap(lambda *t: jax.jvp(force, (theta, r.i_top, r.i_bottom, r.x), t), out_axes=(None, 1))(
+        basis, *rows)
+    dt, db, dx = d[:, p], d[:, p + 1], d[:, p + 2]
+    s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
+    return f, _held(prob, s), d[:, :p]
+
+
+def _edm(theta, measured, prob, n: int):
+    """Estimated distance to the minimum, the Jacobian it was computed from, the same Jacobian with every row at
+    weight 1 (held-out rows too: what studentized residuals and leverages need) and ``(F - L) / s_eff``, from
+    ``measured = (F - L, s_eff, d(F - L)/d theta)`` at ``theta`` (:func:`_measured`); ``n``: the priors' rows."""
+    f, s, jac = measured
+    # the Jacobian of _weighted_in with the noise held at the solution's: rows d(F - L)/d theta / s, then the
+    # priors' rows d theta[-n:] / d theta
+    j_all = jnp.concatenate([jac / s[:, None], jnp.eye(theta.shape[0])[theta.shape[0] - n:]])
     # the mask multiplies each row's residual and the weights are held: its rows scale likewise
-    j = j_all * jnp.concatenate([prob.mask, jnp.ones(j_all.shape[0] - prob.mask.shape[0])])[:, None]
-    g = j.T @ _weighted_in(theta, (prob, models, index, s))
+    j = j_all * jnp.concatenate([prob.mask, jnp.ones(n)])[:, None]
+    g = j.T @ _with_priors(theta, prob.mask * f / s, n)
     h = j.T @ j
     # Held parameters (k without a known load, loads of held-out groups) have zero columns: unit diagonal,
     # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
@@ -423,18 +444,32 @@ def _edm(theta, prob, models, index):
 @eqx.filter_jit
 def _solve_in(theta0, prob, models, index, budget):
     solver = _Budgeted(rtol=RTOL, atol=RTOL, budget=budget)
+    n = max(m.n for m in models)
+    branches = [lambda th, m=m: _measured(th, prob, m, theta0.shape[0] - n + m.n) for m in models]
 
-    def round_(_, carry):
-        theta, steps, _ = carry
-        s = _switch(misfit, theta, prob, models, index)[1]
-        sol = optx.least_squares(_weighted_in, solver, theta, args=(prob, models, index, s), max_steps=None,
-                                 throw=False)
-        return sol.value, steps + sol.stats["num_steps"], sol.result
+    def measure(theta):
+        return branches[0](theta) if len(models) == 1 else jax.lax.switch(index, branches, theta)
+
+    def round_(i, carry):
+        theta, steps, result, _ = carry
+        # the force, noise and Jacobian where the round starts: its weights, and after the last round the
+        # solution's measurements (one place in the program computes them: each place the models are traced
+        # and compiled again, and a cold diagnosis is dominated by compiling)
+        at = measure(theta)
+
+        def lm(_):
+            sol = optx.least_squares(_weighted_in, solver, theta, args=(prob, models, index, at[1]), max_steps=None,
+                                     throw=False)
+            return sol.value, steps + sol.stats["num_steps"], sol.result
+
+        theta, steps, result = jax.lax.cond(i < REWEIGHTINGS, lm, lambda _: (theta, steps, result), None)
+        return theta, steps, result, at
 
     # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
-    theta, steps, result = jax.lax.fori_loop(
-        0, REWEIGHTINGS, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful))
-    edm, j, j_all, z = _edm(theta, prob, models, index)
+    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(measure, theta0))
+    theta, steps, result, at = jax.lax.fori_loop(
+        0, REWEIGHTINGS + 1, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful, blank))
+    edm, j, j_all, z = _edm(theta, at, prob, n)
     return theta, result, steps, edm, j, j_all, z
 
 
