@@ -221,8 +221,9 @@ def test_a_force_check_reuses_a_refit_whose_left_out_rows_are_a_fold():
     fem = ambfit.Bearing.from_toml(FEM_BEARING)
     base = ambfit.fit(df, bearing=fem, throw=False)
     plain = force_check(df, (), bearing=fem, base=base, max_steps=60)
-    refits = [(test, ambfit.fit(df, bearing=fem, mask=(~test).astype(float), start_from=base, max_steps=60,
-                                throw=False), None) for test in folds(df)[1]]
+    # (refitted as the diagnosis does: the full fit's outliers left out, not tested again)
+    refits = [(test, ambfit.fit(df, bearing=fem, mask=(~test & base.fitted_rows).astype(float), start_from=base,
+                                max_steps=60, alpha=0.0, throw=False), None) for test in folds(df)[1]]
     assert force_check(df, (), bearing=fem, base=base, max_steps=60, fitted=refits) == plain
     # it does take them: another fold's refit in the first fold's place changes the figures
     swapped = [(refits[0][0], refits[1][1], None)] + refits[1:]

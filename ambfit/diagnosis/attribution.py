@@ -532,9 +532,13 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         full = base if not effects else fit(df, effects, bearing=bearing, start_from=base, max_steps=steps,
                                             throw=False, **noise)
         zs, fitted = [], []
+        # the readings the model's fit of every row named outliers are left out of every fold, which is not tested
+        # again (alpha=0): one outlier test per model, not one per fold, whose Cauchy-weighted anchor would
+        # cost a solve per fold of a misfitting candidate only to conclude that it does not fit
+        keep = full.fitted_rows
         for test in tests:
-            f = fit(df, effects, bearing=bearing, mask=(~test).astype(float), start_from=full, max_steps=steps,
-                    throw=False, **noise)
+            f = fit(df, effects, bearing=bearing, mask=(~test & keep).astype(float), start_from=full, max_steps=steps,
+                    throw=False, alpha=0.0, **noise)
             zs.append(heldout_residuals(f, df, test, groups))
             fitted.append((test, f))
         name = "+".join(type(e).name for e in effects) or "ideal"
@@ -683,7 +687,7 @@ def _corrected_heldout(cand: Candidate, df, groups, noise) -> tuple[np.ndarray, 
     zs, folds_ = [], []
     loads = load_groups(df).to_numpy()
     for test, f in cand.folds:
-        d = fit_discrepancy(f, df, mask=(~test).astype(float), groups=groups, **noise)
+        d = fit_discrepancy(f, df, groups=groups, **noise)          # on the rows the fold's fit used
         zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
                                     loads))
         folds_.append((test, f, d))

@@ -30,6 +30,7 @@ likelihood) over a grid; the coefficients' posterior gives the correction's stan
 from __future__ import annotations
 
 import dataclasses
+from collections import OrderedDict
 
 import jax.numpy as jnp
 import numpy as np
@@ -48,6 +49,10 @@ what depends on the other axis (its currents and position: coupling through the 
 direction from which each coil current was approached (hysteresis).  Each group has its own prior scale."""
 TAU_GRID = np.logspace(-7, 2, 19)
 """Prior standard deviations tried for each group's coefficients (dimensionless: a fraction of ``F_ref``)."""
+
+
+_MATRICES: OrderedDict = OrderedDict()
+_MATRICES_SIZE = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,11 +122,23 @@ class Basis:
         return cls(**kw | {"groups": tuple(kw["groups"])})
 
     def matrix(self, readings) -> np.ndarray:
-        """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis."""
+        """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis.
+
+        The last few readings' matrices are kept, by the readings' identity (a built problem's readings are
+        shared by every fit of its table: a diagnosis fits the discrepancy on one table 18 times)."""
+        key = (self, id(readings))
+        if key in _MATRICES:
+            _MATRICES.move_to_end(key)
+            return _MATRICES[key][1]
         ax = np.asarray(readings.axis)
         cols = np.stack([c for _, _, c in self._columns(*self._features(readings))], axis=1)
-        return self.f_ref * np.concatenate([np.where((ax == a)[:, None], cols, 0.0) for a in range(len(AXES))],
-                                           axis=1)
+        out = self.f_ref * np.concatenate([np.where((ax == a)[:, None], cols, 0.0) for a in range(len(AXES))],
+                                          axis=1)
+        out.flags.writeable = False
+        _MATRICES[key] = readings, out          # holding the readings: their identity stays theirs while keyed
+        if len(_MATRICES) > _MATRICES_SIZE:
+            _MATRICES.popitem(last=False)
+        return out
 
     def group_index(self) -> np.ndarray:
         """Index into ``groups`` of every column."""

@@ -170,7 +170,8 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         ``outliers`` and left out.  ``linear``: plain least squares (outliers are still named, not
         left out).  ``huber``/``cauchy``: robust losses by reweighting (:mod:`ambfit.estimation.robust`).
     alpha : float
-        False-alarm probability of the outlier test on clean data.
+        False-alarm probability of the outlier test on clean data; 0: no test (a refit that leaves out the
+        readings its model's fit of every row named, as cross-validation folds do).
     debias : int
         Number of synthetic data sets for the parametric-bootstrap bias correction
         (:mod:`ambfit.estimation.debias`, ideal law only); 0 (default) reports the plain estimate.
@@ -308,6 +309,8 @@ def _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows
     if loss in ("huber", "cauchy"):
         res, w = _reweighted(res, prob, meta, df, model, max_steps, thresholds, loss, base)
         return dataclasses.replace(res, loss=loss, weights=w, rows=rows, plain_shift=_shift(plain, res))
+    if alpha <= 0:                                     # no outlier test
+        return dataclasses.replace(res, loss=loss, rows=rows, weights=base)
     fitted = base > 0
     limit = robust.threshold(int(fitted.sum()), alpha)
     if not np.any(np.abs(_studentized(res, prob, meta, model)[fitted]) > limit):

@@ -70,7 +70,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     is fitted on the rest, and the force it predicts for the left-out readings is compared with the
     known load: the RMS and the largest of ``(F_predicted - load_N) / load_N`` over all left-out
     readings, and per load.  A load is skipped when leaving it out leaves its axis without a known load
-    (k could not be calibrated).  None when fewer than two distinct known loads exist.
+    (k could not be calibrated).  Readings that the fit of every row (``base``) named outliers are left out of
+    every refit, which does not test them again.  None when fewer than two distinct known loads exist.
 
     ``base`` is the fit of all rows with the same model (its estimate starts each refit).  With
     ``discrepancy``, each refit also gets the model-discrepancy term (:mod:`ambfit.estimation.discrepancy`)
@@ -103,6 +104,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         return None
     if base is None:
         base = fit(df, effects, bearing=bearing, max_steps=max_steps, throw=False, **fit_kw)
+    keep = base.fitted_rows
     rel, per_load, skipped, rel_d, floor = [], [], [], [], []
     rows = readings(df)
     for g in groups:
@@ -113,8 +115,9 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
             continue
         res, d = next(((f, d) for held, f, d in fitted if np.array_equal(held, out)), (None, None))
         if res is None:
-            res = fit(df, effects, bearing=bearing, mask=(~out).astype(float), start_from=base, max_steps=max_steps,
-                      throw=False, **fit_kw)
+            # the readings the fit of every row named outliers stay out, not tested again (as a diagnosis' folds)
+            res = fit(df, effects, bearing=bearing, mask=(~out & keep).astype(float), start_from=base,
+                      max_steps=max_steps, throw=False, alpha=0.0, **fit_kw)
         load = df.loc[out, "load_N"].to_numpy(float)
         predicted = predict(res, df, rows=rows)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
@@ -127,8 +130,7 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
             from ambfit.estimation.discrepancy import fit_discrepancy
 
             if d is None:
-                d = fit_discrepancy(res, df, mask=(~out).astype(float), sigma_i=fit_kw.get("sigma_i"),
-                                    sigma_x=fit_kw.get("sigma_x"))
+                d = fit_discrepancy(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
             rd = (predicted[out] + d.row_correction_n[out] - load) / load
             rel_d.append(rd)
             entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
