@@ -306,22 +306,6 @@ def standardized(theta, prob: Problem, model: Model = IDEAL):
     return f / s
 
 
-class _Budgeted(optx.LevenbergMarquardt):
-    """Levenberg-Marquardt that also stops after ``budget`` steps, a traced number: every step budget runs the
-    same compiled solve (optimistix's own ``max_steps`` is part of what is compiled)."""
-
-    budget: jnp.ndarray
-
-    def __init__(self, rtol: float, atol: float, budget):
-        super().__init__(rtol=rtol, atol=atol)
-        self.budget = budget
-
-    def terminate(self, fn, y, args, options, state, tags):
-        done, result = super().terminate(fn, y, args, options, state, tags)
-        over = state.num_steps >= self.budget
-        return done | over, optx.RESULTS.where(done | ~over, result, optx.RESULTS.nonlinear_max_steps_reached)
-
-
 # --- one compiled solve for a set of models ------------------------------------------------------------------
 #
 # A diagnosis fits a dozen models; traced and compiled one by one, the Levenberg-Marquardt machinery is built
@@ -360,47 +344,12 @@ def _members(model: Model) -> tuple[tuple, int]:
     return (model,), 0
 
 
-def _switch(fn, theta, prob, models, index):
-    """``fn(theta of models[index], prob, models[index])``; ``theta`` is padded to the widest member."""
-    head = theta.shape[0] - max(m.n for m in models)
-    branches = [lambda th, m=m: fn(th[: head + m.n], prob, m) for m in models]
-    return branches[0](theta) if len(models) == 1 else jax.lax.switch(index, branches, theta)
-
-
-@jax.custom_jvp
-def _force_in(theta, prob, models, index):
-    """:func:`force_misfit` of ``models[index]`` on the padded ``theta``.
-
-    Its derivative is the member's Jacobian, computed inside the switch with the force (forward mode, the
-    padding's columns zero): differentiating through ``lax.switch`` instead would make every step carry the
-    linearization points of every member, and warm solves ran 1.4x slower.  Only ``theta`` is differentiated:
-    tangents of the readings or of the models' fields are dropped (nothing differentiates the solve with
-    respect to the data; a caller that does must solve outside :func:`compiled_together`)."""
-    return _switch(force_misfit, theta, prob, models, index)
-
-
-@_force_in.defjvp
-def _force_in_jvp(primals, tangents):
-    theta, prob, models, index = primals
-    head = theta.shape[0] - max(m.n for m in models)
-
-    def value_and_jacobian(th, p, m):
-        def f(t):
-            y = force_misfit(t[: head + m.n], p, m)
-            return y, y
-        jac, y = jax.jacfwd(f, has_aux=True)(th)
-        return y, jac
-
-    branches = [lambda th, m=m: value_and_jacobian(th, prob, m) for m in models]
-    y, jac = jax.lax.switch(index, branches, theta)
-    return y, jac @ tangents[0]
-
-
-def _weighted_in(theta, args):
-    """Residuals with the noise ``s`` held, the effect priors of the padded theta last (what is differentiated)."""
-    prob, models, index, s = args
-    f = force_misfit(theta, prob, models[0]) if len(models) == 1 else _force_in(theta, prob, models, index)
-    return _with_priors(theta, prob.mask * f / s, max(m.n for m in models))
+def _weighted(theta, measured, mask, n: int):
+    """Residuals ``mask (F - L) / s`` then the effect priors' (the last ``n`` entries of theta), and their Jacobian
+    with the noise ``s`` held, from ``measured = (F - L, s, d(F - L)/d theta)`` (:func:`_measured`)."""
+    f, s, jac = measured
+    return (_with_priors(theta, mask * f / s, n),
+            jnp.concatenate([mask[:, None] * jac / s[:, None], jnp.eye(theta.shape[0])[theta.shape[0] - n:]]))
 
 
 def _measured(theta, prob: Problem, model: Model, width: int):
@@ -426,51 +375,89 @@ def _edm(theta, measured, prob, n: int):
     """Estimated distance to the minimum, the Jacobian it was computed from, the same Jacobian with every row at
     weight 1 (held-out rows too: what studentized residuals and leverages need) and ``(F - L) / s_eff``, from
     ``measured = (F - L, s_eff, d(F - L)/d theta)`` at ``theta`` (:func:`_measured`); ``n``: the priors' rows."""
-    f, s, jac = measured
-    # the Jacobian of _weighted_in with the noise held at the solution's: rows d(F - L)/d theta / s, then the
-    # priors' rows d theta[-n:] / d theta
-    j_all = jnp.concatenate([jac / s[:, None], jnp.eye(theta.shape[0])[theta.shape[0] - n:]])
-    # the mask multiplies each row's residual and the weights are held: its rows scale likewise
-    j = j_all * jnp.concatenate([prob.mask, jnp.ones(n)])[:, None]
-    g = j.T @ _with_priors(theta, prob.mask * f / s, n)
+    # the Jacobian with the noise held at the solution's, every row at weight 1; the mask multiplies each row's
+    # residual and the weights are held: its rows scale likewise
+    r, j = _weighted(theta, measured, prob.mask, n)
+    j_all = _weighted(theta, measured, jnp.ones_like(prob.mask), n)[1]
+    g = j.T @ r
     h = j.T @ j
     # Held parameters (k without a known load, loads of held-out groups) have zero columns: unit diagonal,
     # zero gradient.  g^T (J^T J)^-1 g; a singular J^T J otherwise gives inf/nan, i.e. "not converged", and
     # the identifiability checks then say why.
     h = h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0))
+    f, s, _ = measured
     return g @ jnp.linalg.solve(h, g), j, j_all, f / s
+
+
+def _damped_step(jac, r, step_size):
+    """The Levenberg-Marquardt step from ``(J, r)``: the least-squares solution of ``[J; sqrt(1/step_size) I] x =
+    [r; 0]`` by QR (optimistix's ``DampedNewtonDescent`` with lineax's QR; the step is ``-x``)."""
+    ok = step_size > jnp.finfo(step_size.dtype).eps
+    damping = jnp.where(ok, 1.0 / jnp.where(ok, step_size, 1.0), jnp.finfo(step_size.dtype).max)
+    p = jac.shape[1]
+    q, upper = jnp.linalg.qr(jnp.concatenate([jac, jnp.sqrt(damping) * jnp.eye(p)]), mode="reduced")
+    return jax.scipy.linalg.solve_triangular(upper, q.T @ jnp.concatenate([r, jnp.zeros(p)]), lower=False)
+
+
+def _cauchy(y, y_diff, f, f_diff):
+    """Optimistix's Cauchy termination: both the step and the change of the residuals are small (max norm)."""
+    y_done = jnp.max(jnp.abs(y_diff) / (RTOL + RTOL * jnp.abs(y))) < 1
+    return y_done & (jnp.max(jnp.abs(f_diff) / (RTOL + RTOL * jnp.abs(f))) < 1)
 
 
 @eqx.filter_jit
 def _solve_in(theta0, prob, models, index, budget):
-    solver = _Budgeted(rtol=RTOL, atol=RTOL, budget=budget)
+    """``REWEIGHTINGS`` rounds of Levenberg-Marquardt, then the measurements at the solution.
+
+    The iteration is optimistix's ``LevenbergMarquardt`` written out (damped Newton steps with step size
+    ``1/lambda``, its ``ClassicalTrustRegion``: accept when the loss falls by 1 % of the predicted reduction,
+    step size x3.5 above 99 %, x0.25 on rejection; Cauchy termination at ``rtol = atol = RTOL``; its first step
+    evaluates the start), with the effective-variance weights held within a round and at most ``budget`` steps
+    per round (a traced number: every budget runs the same compiled solve).  Written out so that one place in
+    the program evaluates the model (force, noise and Jacobian, :func:`_measured`): a round's start, each trial
+    point and the solution.  Each place the models are traced and compiled again, and a cold diagnosis is
+    dominated by compiling (optimistix added a second, its linearization).
+    """
     n = max(m.n for m in models)
-    branches = [lambda th, m=m: _measured(th, prob, m, theta0.shape[0] - n + m.n) for m in models]
+    p = theta0.shape[0]
+    branches = [lambda th, m=m: _measured(th, prob, m, p - n + m.n) for m in models]
 
     def measure(theta):
         return branches[0](theta) if len(models) == 1 else jax.lax.switch(index, branches, theta)
 
-    def round_(i, carry):
-        theta, steps, result, _ = carry
-        # the force, noise and Jacobian where the round starts: its weights, and after the last round the
-        # solution's measurements (one place in the program computes them: each place the models are traced
-        # and compiled again, and a cold diagnosis is dominated by compiling)
-        at = measure(theta)
+    def body(c):
+        f, s_now, jf = measure(c["y_eval"])
+        start, final = c["start"], c["start"] & (c["round"] == REWEIGHTINGS)
+        s = jnp.where(start, s_now, c["s"])                  # a round holds the weights of its start
+        r_e, j_e = _weighted(c["y_eval"], (f, s, jf), prob.mask, n)
+        # the trust region (a round's start is always accepted, its step size reset to 1)
+        r, y = jnp.where(start, 0.0, c["r"]), jnp.where(start, c["y_eval"], c["y"])
+        loss_diff = 0.5 * (r_e @ r_e - r @ r)
+        predicted = 0.5 * (jnp.sum((c["jac"] @ (c["y_eval"] - y) + r) ** 2) - r @ r)
+        accept = start | (loss_diff <= 0.01 * predicted)
+        good = ~start & (loss_diff < 0.99 * predicted) & (predicted < 0)
+        step_size = jnp.where(start, 1.0, jnp.where(accept, jnp.where(good, 3.5, 1.0), 0.25) * c["step_size"])
+        done = accept & _cauchy(c["y_eval"], c["y_eval"] - y, r_e, r_e - r)
+        y, r, jac = (jnp.where(accept, new, old) for new, old in ((c["y_eval"], y), (r_e, r), (j_e, c["jac"])))
+        steps = jnp.where(start, 1, c["steps"] + 1)
+        over = done | (steps >= budget)
+        return {"y": y, "r": r, "jac": jac, "s": s, "step_size": step_size, "steps": steps,
+                "y_eval": jnp.where(over, y, y - _damped_step(jac, r, step_size)),
+                "start": over, "round": c["round"] + over.astype(int), "total": c["total"] + jnp.where(final, 0, 1),
+                "result": optx.RESULTS.where(over & ~final, optx.RESULTS.where(done, optx.RESULTS.successful,
+                                                                       optx.RESULTS.nonlinear_max_steps_reached),
+                                             c["result"]),
+                # the loop ends after the measurement at the solution: the last one is the solution's
+                "final": final, "at": (f, s_now, jf)}
 
-        def lm(_):
-            sol = optx.least_squares(_weighted_in, solver, theta, args=(prob, models, index, at[1]), max_steps=None,
-                                     throw=False)
-            return sol.value, steps + sol.stats["num_steps"], sol.result
-
-        theta, steps, result = jax.lax.cond(i < REWEIGHTINGS, lm, lambda _: (theta, steps, result), None)
-        return theta, steps, result, at
-
-    # A loop rather than unrolled rounds: the solver is traced and compiled once (cold start).
     blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(measure, theta0))
-    theta, steps, result, at = jax.lax.fori_loop(
-        0, REWEIGHTINGS + 1, round_, (theta0, jnp.asarray(0), optx.RESULTS.successful, blank))
-    edm, j, j_all, z = _edm(theta, at, prob, n)
-    return theta, result, steps, edm, j, j_all, z
+    m = blank[0].shape[0] + n
+    init = {"y": theta0, "r": jnp.zeros(m), "jac": jnp.zeros((m, p)), "s": blank[1], "step_size": jnp.asarray(1.0),
+            "steps": jnp.asarray(0), "y_eval": theta0, "start": jnp.asarray(True), "round": jnp.asarray(0),
+            "total": jnp.asarray(0), "result": optx.RESULTS.successful, "final": jnp.asarray(False), "at": blank}
+    c = jax.lax.while_loop(lambda c: ~c["final"], body, init)
+    edm, j, j_all, z = _edm(c["y"], c["at"], prob, n)
+    return c["y"], c["result"], c["total"], edm, j, j_all, z
 
 
 def _solve(theta0, prob, model, max_steps):
@@ -518,7 +505,7 @@ def solve_and_measure(theta0, prob: Problem, model: Model = IDEAL, max_steps: in
 @eqx.filter_jit
 def jacobian(theta, prob: Problem, model: Model = IDEAL):
     """Jacobian ``d r / d theta`` of :func:`residuals` [rows + effect priors, params] (scaled parameters)."""
-    return jax.jacfwd(_weighted_in)(theta, (prob, (model,), 0, misfit(theta, prob, model)[1]))
+    return _weighted(theta, _measured(theta, prob, model, theta.shape[0]), prob.mask, model.n)[1]
 
 
 @eqx.filter_jit
