@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-from collections import OrderedDict
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -39,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ambfit._recent import Recent
 from ambfit.estimation.problem import Meta, Problem, build_problem  # noqa: F401  (build_problem: the core's entry)
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
@@ -70,6 +70,12 @@ full Gauss-Newton step would still gain), must fall below this, i.e. every param
 about 1e-3 standard errors of the optimum (iminuit's criterion).  Optimistix's own test is
 reported too, but near the optimum its trust region rejects steps on round-off and it can
 stop late or never while the solution is already exact."""
+
+EDM_ROUND = 1e-2 * EDM_MAX
+"""A round of Levenberg-Marquardt also stops once its estimated distance to the minimum (with the round's weights)
+is below this: every parameter within 1e-4 standard errors of the round's optimum.  Near the optimum optimistix's
+Cauchy test waits for a step that changes neither theta nor the residuals by 1e-6 relative, and the trust region
+rejects steps on round-off meanwhile."""
 
 FIRST_STEPS = 3
 """Levenberg-Marquardt steps per round of the first solve: enough for every one of 60 rig data sets
@@ -104,10 +110,9 @@ def to_theta(g0, x0, k, loads=(), q=()) -> np.ndarray:
 
 # --- the model: force law plus effects with free parameters ------------------------------------------------
 
-_MODELS: OrderedDict = OrderedDict()
+_MODELS = Recent(64)
 """The last models built, by their effects' identities and bearing: a diagnosis builds the same dozen models a
 hundred times, 1 ms each.  Effects are immutable modules, so an instance's identity fixes what the model is."""
-_MODELS_SIZE = 64
 
 
 class Model(eqx.Module):
@@ -129,13 +134,11 @@ class Model(eqx.Module):
         """The model of ``effects`` (their ``ranges()`` fields free) on ``bearing``."""
         effects = tuple(effects)
         key = (tuple(map(id, effects)), bearing)
-        if key in _MODELS:
-            _MODELS.move_to_end(key)
-            return _MODELS[key][1]
+        hit = _MODELS.get(key)
+        if hit is not None:
+            return hit[1]
         model = cls._of(effects, bearing)
-        _MODELS[key] = effects, model          # holding the effects: their identities stay theirs while keyed
-        if len(_MODELS) > _MODELS_SIZE:
-            _MODELS.popitem(last=False)
+        _MODELS.put(key, (effects, model))      # holding the effects: their identities stay theirs while keyed
         return model
 
     @classmethod
@@ -399,6 +402,13 @@ def _damped_step(jac, r, step_size):
     return jax.scipy.linalg.solve_triangular(upper, q.T @ jnp.concatenate([r, jnp.zeros(p)]), lower=False)
 
 
+def _distance(jac, r):
+    """``g^T (J^T J)^-1 g`` with ``g = J^T r``: the χ² a full Gauss-Newton step would still gain (held parameters'
+    zero columns get a unit diagonal)."""
+    g, h = jac.T @ r, jac.T @ jac
+    return g @ jnp.linalg.solve(h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0)), g)
+
+
 def _cauchy(y, y_diff, f, f_diff):
     """Optimistix's Cauchy termination: both the step and the change of the residuals are small (max norm)."""
     y_done = jnp.max(jnp.abs(y_diff) / (RTOL + RTOL * jnp.abs(y))) < 1
@@ -439,6 +449,7 @@ def _solve_in(theta0, prob, models, index, budget):
         step_size = jnp.where(start, 1.0, jnp.where(accept, jnp.where(good, 3.5, 1.0), 0.25) * c["step_size"])
         done = accept & _cauchy(c["y_eval"], c["y_eval"] - y, r_e, r_e - r)
         y, r, jac = (jnp.where(accept, new, old) for new, old in ((c["y_eval"], y), (r_e, r), (j_e, c["jac"])))
+        done = done | (accept & (_distance(jac, r) < EDM_ROUND))
         steps = jnp.where(start, 1, c["steps"] + 1)
         over = done | (steps >= budget)
         return {"y": y, "r": r, "jac": jac, "s": s, "step_size": step_size, "steps": steps,
