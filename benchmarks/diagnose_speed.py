@@ -157,8 +157,9 @@ def main():
           f"| `ambfit.diagnose`, again (warm, median of 3) | {out['in_process_warm_s']:.2f} | ≤ {TARGET_WARM_S:.0f} "
           f"({met(out['in_process_warm_s'], TARGET_WARM_S)}) |", "",
           f"A cold diagnosis compiles {c['solves']} least-squares solve(s) for the ideal law and every candidate "
-          "together (`core.compiled_together`: one Levenberg-Marquardt program, the force a switch over the "
-          f"models, the step budget a traced number) in {c['seconds compiling solves']:.1f} s of "
+          "together (`core.compiled_together`: one Levenberg-Marquardt program that evaluates the model in one "
+          "place, force, noise and Jacobian from a switch over the models; the step budget a traced number) in "
+          f"{c['seconds compiling solves']:.1f} s of "
           f"XLA compilation and {c['seconds tracing solves']:.1f} s of tracing; {c['all compilations']} compilations "
           f"in all ({c['seconds compiling']:.1f} s compiling, {c['seconds tracing']:.1f} s tracing). Before, each "
           "model and step budget compiled its own solve: 11 of them, 14.0 s compiling and 6.0 s tracing.", "",

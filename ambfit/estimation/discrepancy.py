@@ -30,12 +30,12 @@ likelihood) over a grid; the coefficients' posterior gives the correction's stan
 from __future__ import annotations
 
 import dataclasses
-from collections import OrderedDict
 
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from ambfit._recent import Recent
 from ambfit.data import Dataset, zero_based
 from ambfit.estimation.core import Model, build_problem, free_mask, noise_std, row_jacobian, si_scale
 from ambfit.estimation.results import FitResult
@@ -51,8 +51,7 @@ TAU_GRID = np.logspace(-7, 2, 19)
 """Prior standard deviations tried for each group's coefficients (dimensionless: a fraction of ``F_ref``)."""
 
 
-_MATRICES: OrderedDict = OrderedDict()
-_MATRICES_SIZE = 8
+_MATRICES = Recent(8)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,17 +126,15 @@ class Basis:
         The last few readings' matrices are kept, by the readings' identity (a built problem's readings are
         shared by every fit of its table: a diagnosis fits the discrepancy on one table 18 times)."""
         key = (self, id(readings))
-        if key in _MATRICES:
-            _MATRICES.move_to_end(key)
-            return _MATRICES[key][1]
+        hit = _MATRICES.get(key)
+        if hit is not None:
+            return hit[1]
         ax = np.asarray(readings.axis)
         cols = np.stack([c for _, _, c in self._columns(*self._features(readings))], axis=1)
         out = self.f_ref * np.concatenate([np.where((ax == a)[:, None], cols, 0.0) for a in range(len(AXES))],
                                           axis=1)
         out.flags.writeable = False
-        _MATRICES[key] = readings, out          # holding the readings: their identity stays theirs while keyed
-        if len(_MATRICES) > _MATRICES_SIZE:
-            _MATRICES.popitem(last=False)
+        _MATRICES.put(key, (readings, out))     # holding the readings: their identity stays theirs while keyed
         return out
 
     def group_index(self) -> np.ndarray:

@@ -12,13 +12,13 @@ import contextlib
 import contextvars
 import dataclasses
 import hashlib
-from collections import OrderedDict
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from ambfit._recent import Recent
 from ambfit.data import Dataset, load_groups, readings
 from ambfit.physics.model import Readings
 
@@ -110,10 +110,9 @@ def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
     return st, sb, sx, "; ".join(sources)
 
 
-_BUILT: OrderedDict = OrderedDict()
+_BUILT = Recent(8)
 """The last few tables' problems, by content: the diagnosis and the force check fit one table dozens of times
 with different masks, and building its readings (pairing the axes by time) costs more than a warm fit."""
-_BUILT_SIZE = 8
 
 
 _OWNED: contextvars.ContextVar = contextvars.ContextVar("owned", default=None)
@@ -160,14 +159,11 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     """
     df = data.frame if isinstance(data, Dataset) else data
     key = _content_key(df, sigma_i, sigma_x)
-    if key in _BUILT:
-        _BUILT.move_to_end(key)
-        prob, meta = _BUILT[key]
-    else:
-        prob, meta = _build(df, sigma_i, sigma_x)
-        _BUILT[key] = prob, meta
-        if len(_BUILT) > _BUILT_SIZE:
-            _BUILT.popitem(last=False)
+    hit = _BUILT.get(key)
+    if hit is None:
+        hit = _build(df, sigma_i, sigma_x)
+        _BUILT.put(key, hit)
+    prob, meta = hit
     return (prob if mask is None else prob.with_mask(mask)), meta
 
 
