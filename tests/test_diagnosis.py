@@ -96,3 +96,46 @@ def test_diagnosis_record_follows_the_formula_on_a_saturating_rig():
     assert r0["shrink"] == pytest.approx(1.0 - r0["heldout_excess_after"] / r0["heldout_excess_before"], rel=REL)
     assert rec["verdict"] != "none" and rec["shrink"] == pytest.approx(r0["shrink"], rel=REL)
     assert rec["heldout_excess_before"] > 3.0 and 0.0 < rec["shrink"] < 1.0   # structured before, partly removed
+
+
+def test_two_threads_give_the_one_thread_diagnosis():
+    # The fits run two at a time (threads=2, the default); each is the same computation as one after another,
+    # and the results come back in the candidates' order: the same records.  Up to round-off: with two threads
+    # BLAS runs one thread per fit, which sums the discrepancy's matrix products in another order (1e-14
+    # relative measured; a fit swapped with another candidate's differs in the first digits).
+    import json
+
+    proto = P.perturbation((1.0, 1.4, 1.8), (20e-6, 40e-6), center=(-33.3e-6, 11.3e-6))
+    data = rig.simulate(rig.PAPER_RIG, proto, (E.Saturation(b_sat=1.2, sharpness=5.0),), seed=5).data
+    cands = [E.Saturation(), E.Fringing(), E.CurrentOffset()]
+    one, two = (json.loads(json.dumps(A.diagnose(data, candidates=cands, threads=t).to_json(), default=float))
+                for t in (1, 2))
+
+    def same(a, b, path="record"):
+        assert type(a) is type(b), path
+        if isinstance(a, dict):
+            assert a.keys() == b.keys(), path
+            for k in a:
+                same(a[k], b[k], f"{path}/{k}")
+        elif isinstance(a, list):
+            assert len(a) == len(b), path
+            for j, (x, y) in enumerate(zip(a, b)):
+                same(x, y, f"{path}[{j}]")
+        elif isinstance(a, float):
+            assert a == pytest.approx(b, rel=1e-9, abs=1e-300), path
+        else:
+            assert a == b, path
+
+    same(one, two)
+    assert [r["effect"] for r in one["ranking"]] == [r["effect"] for r in two["ranking"]]
+
+
+def test_recent_drops_the_least_recently_used():
+    from ambfit._recent import Recent
+
+    r = Recent(2)
+    r.put("a", 1)
+    r.put("b", 2)
+    assert r.get("a") == 1          # "a" used: "b" is now the least recent
+    r.put("c", 3)
+    assert r.get("b") is None and r.get("a") == 1 and r.get("c") == 3 and len(r) == 2
