@@ -1,6 +1,6 @@
 """Speed of the least-squares fit against scipy.optimize.least_squares on the same residuals.
 
-1. One fit of ~1000 readings after compilation: our jitted optimistix LM vs
+1. One fit of ~1000 readings after compilation: our jitted LM (optimistix's iteration, written out in the core) vs
    scipy's MINPACK LM (``method="lm"``) given the same jitted residual and Jacobian
    functions and the same start.  Target: >= 3x faster.
 2. 1000 data sets of the paper's Table 2 protocol (80 readings each), same

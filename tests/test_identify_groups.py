@@ -97,7 +97,9 @@ def test_by_any_column_judges_each_group_on_its_own(bearings, tmp_path):
     assert run(TABLE2, "--json", tmp_path / "a.json").exit_code == 0
     alone = json.loads((tmp_path / "a.json").read_text())
     assert t["g_v0_um"][0] == pytest.approx(alone["params"]["g_v0_um"]["value"], rel=1e-9)
-    assert abs(t["g_v0_um"][1] - t["g_v0_um"][0]) < 1e-6
+    # the same optimum, reached in another scaling (k 1000 x): equal to the fit's convergence tolerance, which
+    # stops a round within 1e-4 standard errors of its optimum (core.EDM_ROUND); measured 5e-6 µm = 4e-6 sd
+    assert abs(t["g_v0_um"][1] - t["g_v0_um"][0]) < 1e-4 * alone["params"]["g_v0_um"]["std"]
     assert "2 of 3 group(s) not fine: B (implausible); C (fit failed)" in r.output
     js = json.loads(out.read_text())
     assert js["by"] == "bearing" and [g["value"] for g in js["groups"]] == ["A", "B", "C"]
