@@ -106,6 +106,20 @@ def test_force_check_leaves_each_known_load_out():
     assert force_check(one[one.axis == "v"]) is None                   # one known load: nothing to leave out
 
 
+def test_force_check_over_threads_is_the_same_check():
+    # A diagnosis spreads the left-out loads over its threads (each): the same refits, in the loads' order
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ambfit.rig import protocol
+    from ambfit.rig import virtual as rig
+
+    sim = rig.simulate(rig.PAPER_RIG, protocol.rich(), seed=4)
+    base = ambfit.fit(sim.data)
+    with ThreadPoolExecutor(2) as pool:
+        spread = force_check(sim.data, base=base, each=lambda fn, items: list(pool.map(fn, items)))
+    assert spread == force_check(sim.data, base=base)          # per-load records too, in the loads' order
+
+
 def test_force_command_single_reading_and_file(tmp_path, table2_fit):
     model = tmp_path / "m.json"
     model.write_text(json.dumps(table2_fit.to_json()))

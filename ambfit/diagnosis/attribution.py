@@ -550,12 +550,19 @@ class _Each:
             self.limits.restore_original_limits()
 
     def __call__(self, fn, items) -> list:
+        return [f.result() for f in [self.submit(fn, x) for x in items]]
+
+    def submit(self, fn, *args):
+        """``fn(*args)`` as a future: queued on the pool (a task may queue more), or run now without one."""
         if self.pool is None:
-            return [fn(x) for x in items]
+            from concurrent.futures import Future
+
+            done = Future()
+            done.set_result(fn(*args))
+            return done
         import contextvars
 
-        futures = [self.pool.submit(contextvars.copy_context().run, fn, x) for x in items]
-        return [f.result() for f in futures]
+        return self.pool.submit(contextvars.copy_context().run, fn, *args)
 
 
 def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline, progress,
@@ -573,9 +580,7 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         # each fold starts from the model's fit of every row (the same model, so its effect parameters too); a
         # circuit of the whole bearing starts further from the ideal law: it gets the default step budget
         steps = [_budget(effects, max_steps) for effects in effect_sets]
-        full = each(lambda k: base if not effect_sets[k] else fit(
-            df, effect_sets[k], bearing=bearing, start_from=base, max_steps=steps[k], throw=False, **noise),
-            range(len(effect_sets)))
+        full = [None] * len(effect_sets)
         left = [len(tests)] * len(effect_sets)
 
         def refit(job):
@@ -593,7 +598,13 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
                         progress("candidate effects", count["done"], count["total"])
             return f
 
-        refits = each(refit, [(k, test) for k in range(len(effect_sets)) for test in tests])
+        def fit_all_then_folds(k):
+            full[k] = base if not effect_sets[k] else fit(
+                df, effect_sets[k], bearing=bearing, start_from=base, max_steps=steps[k], throw=False, **noise)
+            return [each.submit(refit, (k, test)) for test in tests]     # a model's folds as soon as it is fitted
+
+        queued = [each.submit(fit_all_then_folds, k) for k in range(len(effect_sets))]
+        refits = [f.result() for q in queued for f in q.result()]
         out = []
         for k, effects in enumerate(effect_sets):
             fitted = refits[k * len(tests):(k + 1) * len(tests)]
@@ -694,7 +705,7 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
     discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
     effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis; a left-out
     load that is one of the diagnosis' folds reuses that fold's refit (``fitted``, by model name).  ``each``: how
-    the two checks are run (:class:`_Each`; default one after the other)."""
+    each check's left-out loads are run (:class:`_Each`; default one after the other)."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
@@ -708,11 +719,12 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
         effects, fitted_all, with_discrepancy, steps = job
         try:
             return force_check(df, effects, bearing=bearing, base=fitted_all, discrepancy=with_discrepancy,
-                               max_steps=steps, fitted=fitted.get(fitted_all.model, ()), **noise)
+                               max_steps=steps, fitted=fitted.get(fitted_all.model, ()), each=each, **noise)
         except FitError as exc:
             return exc
 
-    ideal, *verdict = (each or _Each(1))(check, jobs)
+    # one check after the other, each spreading its left-out loads over the threads
+    ideal, *verdict = [check(job) for job in jobs]
     if isinstance(ideal, FitError):
         return {"method": "leave-one-load-out", "error": str(ideal)}
     if ideal is None:

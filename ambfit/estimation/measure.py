@@ -63,7 +63,7 @@ def _force(params, readings, effects, bearing):
 
 
 def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None, max_steps: int = 200,
-                discrepancy: bool = False, fitted=(), **fit_kw) -> dict | None:
+                discrepancy: bool = False, fitted=(), each=None, **fit_kw) -> dict | None:
     """Leave-one-load-out force measurement (contract sections 2 and 3, ``force_check``).
 
     Each distinct known load of an axis in turn is left out, the model (the ideal law plus ``effects``)
@@ -78,7 +78,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     fitted on the same rows, and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
     refits already made with the same model, start and settings, as ``(held-out rows mask, FitResult,
     Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose left-out rows are exactly one of
-    these masks reuses that refit instead of repeating it.
+    these masks reuses that refit instead of repeating it.  ``each(fn, items)``, if given, maps the left-out loads
+    (a diagnosis passes its thread pool; default one after another).
 
     Besides the contract's per-reading figures, ``rms_rel_mean`` is the RMS over the left-out loads of the
     mean relative error of each load's readings (a force measured by averaging its readings),
@@ -105,14 +106,14 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     if base is None:
         base = fit(df, effects, bearing=bearing, max_steps=max_steps, throw=False, **fit_kw)
     keep = base.fitted_rows
-    rel, per_load, skipped, rel_d, floor = [], [], [], [], []
     rows = readings(df)
-    for g in groups:
+
+    def one(g):
+        """The left-out load ``g``'s relative errors, noise floor, record (and with the discrepancy's errors)."""
         out = (keys == g).to_numpy() & known
         ax = g.split(":")[0]
         if not (known & ~out & (df["axis"] == ax).to_numpy()).any():
-            skipped.append(g)
-            continue
+            return None
         res, d = next(((f, d) for held, f, d in fitted if np.array_equal(held, out)), (None, None))
         if res is None:
             # the readings the fit of every row named outliers stay out, not tested again (as a diagnosis' folds)
@@ -121,20 +122,24 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         load = df.loc[out, "load_N"].to_numpy(float)
         predicted = predict(res, df, rows=rows)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
-        rel.append(r)
-        floor.append(force_noise(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))[out] / load)
+        floor = force_noise(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))[out] / load
         entry = {"axis": ax, "load_N": float(load[0]), "rows": int(out.sum()),
                  "rms_rel": float(np.sqrt(np.mean(r**2))), "mean_rel": float(np.mean(r)),
                  "converged": bool(res.converged)}
+        rd = None
         if discrepancy:
             from ambfit.estimation.discrepancy import fit_discrepancy
 
             if d is None:
                 d = fit_discrepancy(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
             rd = (predicted[out] + d.row_correction_n[out] - load) / load
-            rel_d.append(rd)
             entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
-        per_load.append(entry)
+        return r, floor, entry, rd
+
+    done = (each or (lambda fn, items: [fn(x) for x in items]))(one, groups)
+    skipped = [g for g, x in zip(groups, done) if x is None]
+    kept = [x for x in done if x is not None]
+    rel, floor, per_load, rel_d = ([x[j] for x in kept] for j in range(4))
     if not rel:
         return None
     noise = float(np.sqrt(np.mean(np.concatenate(floor) ** 2)))
