@@ -88,7 +88,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     RMS beyond that floor, ``sqrt(max(rms_rel^2 - noise_floor_rel^2, 0))`` (the model's own error; the
     readings' noise and the model's error add in quadrature).
     """
-    from ambfit.data import Dataset, readings, zero_based
+    from ambfit.data import Dataset, zero_based
+    from ambfit.estimation.core import build_problem
     from ambfit.estimation.fit import fit
     from ambfit.physics.bearing import PAPER_BEARING
 
@@ -106,7 +107,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     if base is None:
         base = fit(df, effects, bearing=bearing, max_steps=max_steps, throw=False, **fit_kw)
     keep = base.fitted_rows
-    rows = readings(df)
+    # the readings of the built problem the refits share (pairing the axes by time is the slow part)
+    rows = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))[0].readings
 
     def one(g):
         """The left-out load ``g``'s relative errors, noise floor, record (and with the discrepancy's errors)."""
