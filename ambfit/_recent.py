@@ -7,7 +7,7 @@ from collections import OrderedDict
 
 
 class Recent:
-    """The last ``size`` values stored, by key; the least recently used is dropped first.  Every operation holds a
+    """The last ``size`` values stored, by key; the least recently used is dropped first.  Getting and storing hold a
     lock, so threads may share one."""
 
     def __init__(self, size: int):

@@ -60,10 +60,14 @@ def test_heldout_residuals_refit_only_loads_no_training_row_saw():
                        "load_N": [np.nan, np.nan, np.nan, np.nan, np.nan, 5.0, 5.0]})
     z = np.array([0.3, 1.0, -2.0, 4.0, 2.0, 3.0, 1.0])
     test = np.array([False, True, True, True, True, True, True])
-    out = A.heldout_residuals(types.SimpleNamespace(residuals=z), df, test)
+    out = A.heldout_residuals(types.SimpleNamespace(residuals=z, fitted_rows=~test), df, test)
     # b: 4 and 2 minus their mean 3 -> 1, -1
     np.testing.assert_array_equal(out, [1.0, -2.0, 1.0, -1.0, 3.0, 1.0])
     assert z[3] == 4.0                                    # the fit's residuals are not modified
+    # a's one training row left out of the fit as an outlier: no row the fit used saw a's load, refitted too
+    # (1 and -2 minus their mean -0.5 -> 1.5, -1.5)
+    out = A.heldout_residuals(types.SimpleNamespace(residuals=z, fitted_rows=np.zeros(7, bool)), df, test)
+    np.testing.assert_array_equal(out, [1.5, -1.5, 1.0, -1.0, 3.0, 1.0])
 
 
 def test_folds_follow_the_operating_regions():
@@ -128,6 +132,8 @@ def test_two_threads_give_the_one_thread_diagnosis():
 
     same(one, two)
     assert [r["effect"] for r in one["ranking"]] == [r["effect"] for r in two["ranking"]]
+    with pytest.raises(ValueError, match="threads"):
+        A.diagnose(data, candidates=cands, threads=0)
 
 
 def test_recent_drops_the_least_recently_used():

@@ -52,7 +52,7 @@ def shrink(before: float, after: float) -> float:
 def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, groups=None) -> np.ndarray:
     """Standardized residuals of the ``test`` rows (bool mask) under a fit that held them out.
 
-    A nuisance load that no training row constrained is refitted on the test rows alone
+    A nuisance load that no row the fit used constrained is refitted on the test rows alone
     (its weighted mean misfit is removed, one number per group): the held-out check is
     about the shape of the force law, not about an unknown load the training data never saw.  ``groups``: the
     rows' load groups (:func:`ambfit.data.load_groups`), when the caller has them.
@@ -60,9 +60,10 @@ def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, g
     z = fitted.residuals.copy()
     groups = load_groups(zero_based(data)).to_numpy() if groups is None else np.asarray(groups)
     known = data["load_N"].notna().to_numpy() if "load_N" in data else np.zeros(len(data), bool)
+    train = fitted.fitted_rows & ~test          # the rows the fit used (a fold leaves out its model's outliers too)
     for g in np.unique(groups[test & ~known]):
         m = groups == g
-        if not np.any(m & ~test):
+        if not np.any(m & train):
             zz = z[m & test]
             z[m & test] = zz - zz.mean()
     return z[test]
@@ -495,7 +496,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     ``baseline`` is the ideal fit of these data when the caller already has it.  ``progress``, if given, is
     called as ``progress("candidate effects", done, total)`` after each model's held-out fits (from a worker
     thread).  ``threads``: how many fits run at once (each compiled solve releases the interpreter while it runs;
-    1: one after another, the same results).
+    1: one after another, the same results to round-off).  A model's fold refits leave out the readings its fit
+    of every row named outliers (one outlier test per model; that fit saw the held-out rows too).
 
     **A family whose law differs from the library's**: when the verdict would be ``unexplained`` and the best
     single candidate has a residual signature of its own (:data:`SIGNATURES`: hysteresis, residuals that
@@ -528,11 +530,18 @@ class _Each:
     of the caller's context (the compiled set and the owned table are context variables).  While the threads
     run, BLAS is held to one thread each (threadpoolctl): its own workers, spinning between the small matrix
     products of a fit, took the core the second fit needed (840 rig readings, warm: 1.47 s with one fit at a
-    time, 1.37 with two, 1.09 with two and BLAS held)."""
+    time, 1.37 with two, 1.09 with two and BLAS held).  The limit is process-wide: set by the first of
+    overlapping diagnoses, restored by the last."""
+
+    _lock = threading.Lock()
+    _active = 0
+    _limits = None
 
     def __init__(self, threads: int):
+        if not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"threads must be a whole number of at least 1, got {threads!r}")
         self.threads = threads
-        self.pool = self.limits = None
+        self.pool = None
 
     def __enter__(self):
         if self.threads > 1:
@@ -540,14 +549,20 @@ class _Each:
 
             from threadpoolctl import threadpool_limits
 
-            self.limits = threadpool_limits(limits=1, user_api="blas")
+            with _Each._lock:
+                if _Each._active == 0:
+                    _Each._limits = threadpool_limits(limits=1, user_api="blas")
+                _Each._active += 1
             self.pool = ThreadPoolExecutor(self.threads, thread_name_prefix="ambfit-diagnose")
         return self
 
     def __exit__(self, *exc):
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
-            self.limits.restore_original_limits()
+            with _Each._lock:
+                _Each._active -= 1
+                if _Each._active == 0:
+                    _Each._limits.restore_original_limits()
 
     def __call__(self, fn, items) -> list:
         return [f.result() for f in [self.submit(fn, x) for x in items]]
@@ -603,8 +618,15 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
                 df, effect_sets[k], bearing=bearing, start_from=base, max_steps=steps[k], throw=False, **noise)
             return [each.submit(refit, (k, test)) for test in tests]     # a model's folds as soon as it is fitted
 
-        queued = [each.submit(fit_all_then_folds, k) for k in range(len(effect_sets))]
-        refits = [f.result() for q in queued for f in q.result()]
+        # the first refit runs on this thread: a solve not yet compiled (a diagnosis given its baseline) is then
+        # compiled once, not by two threads at the same time
+        full[0] = base if not effect_sets[0] else fit(
+            df, effect_sets[0], bearing=bearing, start_from=base, max_steps=steps[0], throw=False, **noise)
+        first = refit((0, tests[0]))
+        queued = [[each.submit(refit, (0, test)) for test in tests[1:]]]
+        heads = [each.submit(fit_all_then_folds, k) for k in range(1, len(effect_sets))]
+        queued += [h.result() for h in heads]
+        refits = [first] + [f.result() for q in queued for f in q]
         out = []
         for k, effects in enumerate(effect_sets):
             fitted = refits[k * len(tests):(k + 1) * len(tests)]
@@ -755,7 +777,7 @@ no hysteresis, gives its direction group 3.3)."""
 
 
 def _corrected_heldout(cand: Candidate, df, groups, noise) -> tuple[np.ndarray, list]:
-    """Held-out residuals of ``cand``'s folds with the discrepancy (``groups``) fitted on each fold's training rows,
+    """Held-out residuals of ``cand``'s folds with the discrepancy (``groups``) fitted on the rows each fold's fit used,
     and the folds as ``(held-out mask, fit, discrepancy)``."""
     from ambfit.estimation.discrepancy import fit_discrepancy
 

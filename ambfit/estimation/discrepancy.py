@@ -52,6 +52,7 @@ TAU_GRID = np.logspace(-7, 2, 19)
 
 
 _MATRICES = Recent(8)
+"""The last few basis matrices, by basis and readings (see :meth:`Basis.matrix`)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -114,13 +114,13 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
         """The left-out load ``g``'s relative errors, noise floor, record (and with the discrepancy's errors)."""
         out = (keys == g).to_numpy() & known
         ax = g.split(":")[0]
-        if not (known & ~out & (df["axis"] == ax).to_numpy()).any():
+        if not (known & ~out & keep & (df["axis"] == ax).to_numpy()).any():
             return None
         res, d = next(((f, d) for held, f, d in fitted if np.array_equal(held, out)), (None, None))
         if res is None:
             # the readings the fit of every row named outliers stay out, not tested again (as a diagnosis' folds)
             res = fit(df, effects, bearing=bearing, mask=(~out & keep).astype(float), start_from=base,
-                      max_steps=max_steps, throw=False, alpha=0.0, **fit_kw)
+                      max_steps=max_steps, throw=False, **(fit_kw | {"alpha": 0.0}))
         load = df.loc[out, "load_N"].to_numpy(float)
         predicted = predict(res, df, rows=rows)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
