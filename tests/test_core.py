@@ -344,3 +344,39 @@ def test_a_table_owned_by_its_caller_is_hashed_once_and_a_changed_table_is_seen(
     table.loc[0, "i_top_A"] = 1.70            # changed in place after the block: the content key sees it
     changed, _ = core.build_problem(table)
     assert float(changed.i_top[0]) == 1.70
+
+
+def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch):
+    """The solve's iteration is optimistix's LevenbergMarquardt written out (one place evaluates the model).  One
+    round with the weights held and our extra EDM stop off gives optimistix's iterates from a far start (150 µm off
+    in gap, 60 µm in origin, the effect two prior widths off): the same point and result after 2, 3, 5 and 12
+    steps, through rejected steps too.  Red when the trust region's step-size factors differ (measured: 3 for 3.5
+    and 0.5 for 0.25 each fail it; an acceptance cutoff of 0.1 for 0.01 does not, no step here falls between)."""
+    import equinox as eqx
+    import optimistix as optx
+
+    sim = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=jnp.asarray(1.3))], seed=4).data
+    prob, _ = core.build_problem(sim)
+    model = core.Model.of([E.Saturation()])
+    base = fit(sim, throw=False)
+    theta0 = np.concatenate([base.theta, np.zeros(model.n)])
+    theta0[:4] += np.array([150e-6, -150e-6, 60e-6, -60e-6]) / core.SCALE_HEAD[:4]
+    theta0[-model.n:] = 2.0                    # the effect two prior widths off
+    theta0 = jnp.asarray(theta0)
+    monkeypatch.setattr(core, "REWEIGHTINGS", 1)
+    monkeypatch.setattr(core, "EDM_ROUND", 0.0)
+    solve = eqx.filter_jit(core._solve_in.__wrapped__)      # compiled afresh: it reads the patched constants
+    s0 = core.misfit(theta0, prob, model)[1]
+
+    def residuals(theta, _):
+        return core._with_priors(theta, prob.mask * core.force_misfit(theta, prob, model) / s0, model.n)
+
+    lm = optx.LevenbergMarquardt(rtol=core.RTOL, atol=core.RTOL)
+    for budget in (2, 3, 5, 12):
+        ours = solve(theta0, prob, (model,), jnp.asarray(0), jnp.asarray(budget))
+        ref = optx.least_squares(residuals, lm, theta0, max_steps=budget, throw=False)
+        assert ours[1] == ref.result, budget
+        assert int(ours[2]) == int(ref.stats["num_steps"]), budget
+        np.testing.assert_allclose(np.asarray(ours[0]), np.asarray(ref.value), rtol=1e-10, atol=1e-12)
+    # the path went through rejected steps too (the trust region's shrinking branch was compared)
+    assert int(ref.state.num_accepted_steps) < int(ref.stats["num_steps"])
