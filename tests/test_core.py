@@ -352,6 +352,8 @@ def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch)
     in gap, 60 µm in origin, the effect two prior widths off): the same point and result after 2, 3, 5 and 12
     steps, through rejected steps too.  Red when the trust region's step-size factors differ (measured: 3 for 3.5
     and 0.5 for 0.25 each fail it; an acceptance cutoff of 0.1 for 0.01 does not, no step here falls between)."""
+    import types
+
     import equinox as eqx
     import optimistix as optx
 
@@ -365,7 +367,11 @@ def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch)
     theta0 = jnp.asarray(theta0)
     monkeypatch.setattr(core, "REWEIGHTINGS", 1)
     monkeypatch.setattr(core, "EDM_ROUND", 0.0)
-    solve = eqx.filter_jit(core._solve_in.__wrapped__)      # compiled afresh: it reads the patched constants
+    # a new function object of the same code, compiled afresh: it reads the patched constants (the library's own
+    # compiled solve may already hold a trace with them unpatched, from an earlier test)
+    code = core._solve_in.__wrapped__
+    solve = eqx.filter_jit(types.FunctionType(code.__code__, code.__globals__, "solve", code.__defaults__,
+                                              code.__closure__))
     s0 = core.misfit(theta0, prob, model)[1]
 
     def residuals(theta, _):
