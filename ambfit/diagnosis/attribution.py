@@ -10,6 +10,7 @@ candidate that removes the structure; ``shrink = 1 - excess_after / excess_befor
 from __future__ import annotations
 
 import dataclasses
+import functools
 import html
 import threading
 
@@ -613,15 +614,17 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
                         progress("candidate effects", count["done"], count["total"])
             return f
 
-        def fit_all_then_folds(k):
+        def fit_all(k):
             full[k] = base if not effect_sets[k] else fit(
                 df, effect_sets[k], bearing=bearing, start_from=base, max_steps=steps[k], throw=False, **noise)
+
+        def fit_all_then_folds(k):
+            fit_all(k)
             return [each.submit(refit, (k, test)) for test in tests]     # a model's folds as soon as it is fitted
 
         # the first refit runs on this thread: a solve not yet compiled (a diagnosis given its baseline) is then
         # compiled once, not by two threads at the same time
-        full[0] = base if not effect_sets[0] else fit(
-            df, effect_sets[0], bearing=bearing, start_from=base, max_steps=steps[0], throw=False, **noise)
+        fit_all(0)
         first = refit((0, tests[0]))
         queued = [[each.submit(refit, (0, test)) for test in tests[1:]]]
         heads = [each.submit(fit_all_then_folds, k) for k in range(1, len(effect_sets))]
@@ -818,9 +821,9 @@ def _discrepancy(df, ideal: Candidate, verdict: Candidate | None, before: float,
     host = verdict if verdict is not None and verdict.fit.effects else ideal
     models = [ideal] if host is ideal else [ideal, host]
     # each model's folds corrected, and the correction on every row
-    done = (each or _Each(1))(lambda job: _corrected_heldout(job[1], df, GROUPS, noise) if job[0] == "folds"
-                              else fit_discrepancy(job[1].fit, df, **noise),
-                              [("folds", c) for c in models] + [("all", c) for c in models])
+    tasks = ([functools.partial(_corrected_heldout, c, df, GROUPS, noise) for c in models]
+             + [functools.partial(fit_discrepancy, c.fit, df, **noise) for c in models])
+    done = (each or _Each(1))(lambda task: task(), tasks)
     corrected, fits = done[:len(models)], {c.effect: d for c, d in zip(models, done[len(models):])}
     (z, ideal_folds) = corrected[0]
     z_in = ideal.fit.residuals

@@ -264,12 +264,13 @@ def misfit(theta, prob: Problem, model: Model = IDEAL):
     # dominated by tracing)
     f, lin = jax.linearize(force, r.i_top, r.i_bottom, r.x)
     dt, db, dx = lin(ones, zeros, zeros), lin(zeros, ones, zeros), lin(zeros, zeros, ones)
+    return f - target(prob, p.loads), _effective_noise(prob, dt, db, dx)
+
+
+def _effective_noise(prob: Problem, dt, db, dx):
+    """``s_eff`` from the force's derivatives with respect to the top and bottom currents and the position
+    (effective variance), or the problem's held noise where it gives one (:meth:`Problem.with_noise`)."""
     s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
-    return f - target(prob, p.loads), _held(prob, s)
-
-
-def _held(prob: Problem, s):
-    """The propagated noise ``s``, or the problem's held noise where it gives one (:meth:`Problem.with_noise`)."""
     return jnp.where(prob.s_held > 0, prob.s_held, s)
 
 
@@ -283,8 +284,7 @@ def _ideal_misfit(p: Unpacked, prob: Problem, cos_alpha: float):
     dt = 2 * k * r.i_top / g_top**2
     db = 2 * k * r.i_bottom / g_bottom**2
     dx = 2 * k * cos_alpha * (r.i_top**2 / g_top**3 + r.i_bottom**2 / g_bottom**3)
-    s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
-    return f - target(prob, p.loads), _held(prob, s)
+    return f - target(prob, p.loads), _effective_noise(prob, dt, db, dx)
 
 
 def _with_priors(theta, r, n: int):
@@ -373,8 +373,7 @@ def _measured(theta, prob: Problem, model: Model, width: int):
     f, d = jax.vmap(lambda *t: jax.jvp(force, (theta, r.i_top, r.i_bottom, r.x), t), out_axes=(None, 1))(
         basis, *rows)
     dt, db, dx = d[:, p], d[:, p + 1], d[:, p + 2]
-    s = jnp.sqrt((dt * prob.s_top) ** 2 + (db * prob.s_bottom) ** 2 + (dx * prob.s_x) ** 2)
-    return f, _held(prob, s), d[:, :p]
+    return f, _effective_noise(prob, dt, db, dx), d[:, :p]
 
 
 def _edm(theta, measured, prob, n: int):
