@@ -341,17 +341,22 @@ def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -
     change from the previous reading; a change below ``threshold`` [A] keeps the
     previous direction; the first reading counts as rising (from zero current).
     """
-    out = np.zeros(len(df))
+    n = len(df)
+    if n == 0:
+        return np.zeros(0)
     exp = df["experiment"].astype(str) if "experiment" in df.columns else pd.Series("", index=df.index)
-    for _, idx in df.groupby([exp, df["axis"]], sort=False).groups.items():
-        pos = df.index.get_indexer(idx)
-        i = df[column].to_numpy()[pos]
-        d, prev = np.empty(len(i)), 1.0
-        for j in range(len(i)):
-            if j > 0 and abs(i[j] - i[j - 1]) >= threshold:
-                prev = float(np.sign(i[j] - i[j - 1]))
-            d[j] = prev
-        out[pos] = d
+    code = df.groupby([exp, df["axis"]], sort=False).ngroup().to_numpy()
+    order = np.argsort(code, kind="stable")              # each group's rows together, in file order
+    i, c = df[column].to_numpy(float)[order], code[order]
+    step = np.diff(i, prepend=np.nan)
+    first = np.r_[True, c[1:] != c[:-1]]
+    with np.errstate(invalid="ignore"):
+        d = np.where(first, 1.0, np.where(np.abs(step) >= threshold, np.sign(step), np.nan))
+    # a small change keeps the previous direction: carry the last set value forward (each group starts with one)
+    last = np.where(np.isnan(d), 0, np.arange(n))
+    np.maximum.accumulate(last, out=last)
+    out = np.empty(n)
+    out[order] = d[last]
     return out
 
 
