@@ -122,6 +122,36 @@ def _predicted_std(x, it, ib, sigma, n_avg, bearing) -> float:
     return float(np.sqrt(np.sum(np.square(grads))) * sigma / math.sqrt(n_avg))
 
 
+def eq6(i_top_1, i_bottom_1, i_top_2, i_bottom_2):
+    """Eq. 6's ratio ``P = sqrt((i_t1^2 - i_t2^2) / (i_b1^2 - i_b2^2))`` on arrays of any shape (NaN where the
+    radicand is not positive and finite)."""
+    num = np.square(i_top_1) - np.square(i_top_2)
+    den = np.square(i_bottom_1) - np.square(i_bottom_2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rad = num / den
+        return np.where(np.isfinite(rad) & (rad > 0), np.sqrt(np.abs(rad)), np.nan)
+
+
+def eq7_system(p, x, cos_alpha):
+    """Eq. 7's rows at each position, ``A [g0, x0 c]^T = C`` with ``A = [1 - P, -(1 + P)]``, ``C = (1 + P) x c``:
+    ``(A, C)``, arrays[..., positions, 2] and [..., positions] from ``p``, ``x`` [m] of shape [..., positions]."""
+    p = np.asarray(p, dtype=float)
+    return np.stack([1.0 - p, -(1.0 + p)], axis=-1), (1.0 + p) * np.asarray(x, dtype=float) * cos_alpha
+
+
+def eq7(p, x, cos_alpha):
+    """Eq. 7 at two positions (the last axis of ``p`` and ``x`` [m]) for any leading shape: ``(g0, x0)`` [m] by
+    Cramer's rule, NaN where the system is singular; ``cos_alpha`` a float or an array of the leading shape.
+    :func:`solve` takes more positions by least squares."""
+    cos_alpha = np.asarray(cos_alpha, dtype=float)
+    a, c = eq7_system(p, x, cos_alpha[..., None])
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g0 = (c[..., 0] * a[..., 1, 1] - a[..., 0, 1] * c[..., 1]) / det
+        u = (a[..., 0, 0] * c[..., 1] - a[..., 1, 0] * c[..., 0]) / det
+    return g0, u / cos_alpha
+
+
 def ratio(i_top_1, i_bottom_1, i_top_2, i_bottom_2) -> float:
     """Eq. 6's ratio ``P = sqrt((i_t1^2 - i_t2^2) / (i_b1^2 - i_b2^2))`` at one position.
 
@@ -134,13 +164,14 @@ def ratio(i_top_1, i_bottom_1, i_top_2, i_bottom_2) -> float:
             f"the two bias settings give equal {'bottom' if den == 0.0 else 'top'} currents "
             f"(i_top {i_top_1:.6g}/{i_top_2:.6g} A, i_bottom {i_bottom_1:.6g}/{i_bottom_2:.6g} A): "
             "Eq. 6 needs two different biases")
-    rad = num / den
-    if not (math.isfinite(rad) and rad > 0.0):
+    p = float(eq6(i_top_1, i_bottom_1, i_top_2, i_bottom_2))
+    if not math.isfinite(p):
+        rad = num / den
         raise ClosedFormError(
             f"Eq. 6 radicand (i_t1^2 - i_t2^2)/(i_b1^2 - i_b2^2) = {num:.6g}/{den:.6g} = {rad:.6g} is not positive: "
             "top and bottom currents did not move the same way between the two biases (noise larger than the "
             "bias step, a changed load, or a clipped coil)")
-    return math.sqrt(rad)
+    return p
 
 
 def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
@@ -179,15 +210,17 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
     if _propagate:
         _check_step(it, ib, sigma_i, n_avg)
     p = np.array([ratio(it[j, 0], ib[j, 0], it[j, 1], ib[j, 1]) for j in range(len(x))])
-    a = np.stack([1.0 - p, -(1.0 + p)], axis=1)
-    rhs = (1.0 + p) * x * c
+    a, rhs = eq7_system(p, x, c)
     sv = np.linalg.svd(a, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
     if not cond < MAX_CONDITION:
         raise ClosedFormError(f"Eq. 7's matrix is singular (condition number {cond:.3g}); the ratios P "
                               f"{p.tolist()} do not separate gap and origin")
-    sol = np.linalg.solve(a, rhs) if len(x) == 2 else np.linalg.lstsq(a, rhs, rcond=None)[0]
-    g0, x0 = float(sol[0]), float(sol[1] / c)
+    if len(x) == 2:
+        g0, x0 = (float(v) for v in eq7(p, x, c))
+    else:
+        sol = np.linalg.lstsq(a, rhs, rcond=None)[0]
+        g0, x0 = float(sol[0]), float(sol[1] / c)
     u = (x0 + x) * c
     if not (g0 > 0 and np.all(np.abs(u) < g0)):
         raise ClosedFormError(f"non-physical solution g0 = {g0 * 1e6:.4g} µm, x0 = {x0 * 1e6:.4g} µm: "

@@ -1,0 +1,220 @@
+"""Where a fit starts: the closed form (Eq. 7) over each data set's position/bias pairs, a grid where an axis has
+none, and ``k`` and the nuisance loads profiled at that gap and origin (:func:`ambfit.estimation.profile.profile`).
+
+Vectorised over data sets: a study's thousands of data sets arrive as one joined table and get their starts in
+one pass.  Never the truth: a start only has to lie in the basin of the least-squares minimum.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from ambfit.estimation.closed_form import POSITION_TOLERANCE, eq6, eq7
+from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, to_theta
+from ambfit.estimation.problem import Meta, Problem
+from ambfit.estimation.profile import profile
+from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
+from ambfit.physics.model import ideal_force, pole_gaps
+
+
+def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray]]:
+    """Eq. 6-7 groups of a design: ``(axis, rows[2 positions, 2 biases])`` per iteration (row positions in ``df``).
+
+    Only iterations (``experiment``, ``iteration``, axis) with exactly two positions and two biases, one row
+    each, are used.  Positions are the own-axis set-points when the iteration has them, else the measured
+    positions, clustered within ``POSITION_TOLERANCE``.  Vectorised over every iteration of the table.
+    """
+    n = len(df)
+    if n == 0:
+        return []
+    exp = df["experiment"].astype(str) if "experiment" in df else pd.Series("", index=df.index)
+    it = df["iteration"] if "iteration" in df else pd.Series(1, index=df.index)
+    code = df.groupby([exp, it, df["axis"]], sort=False).ngroup().to_numpy()     # in order of first appearance
+    n_groups = int(code.max(initial=-1)) + 1
+    if n_groups == 0:
+        return []
+    code = np.where(code >= 0, code, n_groups)        # rows of no group (a missing key) in a dummy group
+    axis = df["axis"].to_numpy()
+    is_w = axis == "w"
+
+    def column(name):
+        return df[name].to_numpy(float) if name in df else np.full(n, np.nan)
+
+    own_set = np.where(is_w, column("w_set_um"), column("v_set_um"))
+    own = np.where(is_w, column("w_um"), column("v_um"))
+    set_complete = np.bincount(code, weights=np.isnan(own_set), minlength=n_groups + 1) == 0
+    pos = np.where(set_complete[code], own_set, own) * 1e-6
+    size = np.bincount(code, minlength=n_groups + 1)
+    order = np.lexsort((pos, code))
+    sc, sp = code[order], pos[order]
+    new = np.zeros(n, dtype=int)
+    new[1:] = (sc[1:] == sc[:-1]) & (sp[1:] - sp[:-1] > POSITION_TOLERANCE)    # a new cluster within the group
+    csum = np.cumsum(new)
+    start = np.zeros(n_groups + 1, dtype=int)
+    start[sc[::-1]] = np.arange(n - 1, -1, -1)        # first sorted index of each group
+    label = np.empty(n, dtype=int)
+    label[order] = csum - csum[start[sc]]
+    bias = df["bias_A"].to_numpy(float)
+    lo = np.full(n_groups + 1, np.inf)
+    hi = np.full(n_groups + 1, -np.inf)
+    np.minimum.at(lo, code, bias)
+    np.maximum.at(hi, code, bias)
+    two = (bias == lo[code]) | (bias == hi[code])
+    combo = label * 2 + (bias == hi[code])
+    seen = np.zeros((n_groups + 1, 4), dtype=int)
+    fine = two & (label <= 1)
+    np.add.at(seen, (code[fine], combo[fine]), 1)
+    bad = np.bincount(code, weights=~fine, minlength=n_groups + 1) > 0
+    valid = (size == 4) & (lo < hi) & ~bad & np.all(seen == 1, axis=1)
+    valid[n_groups] = False
+    rows = np.zeros((n_groups + 1, 2, 2), dtype=int)
+    idx = np.nonzero(valid[code])[0]
+    rows[code[idx], label[idx], (bias[idx] == hi[code[idx]]).astype(int)] = idx
+    first_axis = np.empty(n_groups + 1, dtype=object)
+    first_axis[code[::-1]] = axis[::-1]
+    return [(AXES.index(first_axis[g]), rows[g]) for g in np.nonzero(valid)[0]]
+
+
+def pair_estimates(it, ib, x, rows: np.ndarray, cos_alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 6-7 of every position/bias pair: gap and origin [m] and whether the solution is usable (finite, a
+    positive gap and no pole gap closed at either position, as :func:`ambfit.estimation.closed_form.solve` asks).
+
+    ``it``, ``ib``, ``x``: arrays[rows]; ``rows``: array[pairs, 2 positions, 2 biases] of row indices;
+    ``cos_alpha``: float or array[pairs].
+    """
+    rows = np.asarray(rows, dtype=int).reshape(-1, 2, 2)
+    p = eq6(it[rows[:, :, 0]], ib[rows[:, :, 0]], it[rows[:, :, 1]], ib[rows[:, :, 1]])   # [pairs, 2 positions]
+    pos = 0.5 * (x[rows[:, :, 0]] + x[rows[:, :, 1]])
+    c = np.broadcast_to(np.asarray(cos_alpha, dtype=float), (len(rows),))
+    g0, x0 = eq7(p, pos, c)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(g0) & np.isfinite(x0) & (g0 > 0)
+        ok &= np.all(np.abs((x0[:, None] + pos) * c[:, None]) < g0[:, None], axis=1)
+    return g0, x0, ok
+
+
+def grid_start(prob: Problem, axis: int, bearing: Bearing = PAPER_BEARING) -> tuple[float, float]:
+    """Best ``(gap, origin)`` of a coarse grid (gap 0.5-1.5 x nominal, origin ±0.3 x nominal) by the relative spread
+    of the profiled force: of each known load about ``k u``, of each load group about its mean."""
+    nominal = bearing.nominal_gap
+    gs = np.linspace(0.5, 1.5, 41) * nominal
+    xs = np.linspace(-0.3, 0.3, 61) * nominal
+    sel = (np.asarray(prob.ax) == axis) & (np.asarray(prob.mask) > 0)
+    it, ib, x = (np.asarray(v)[sel] for v in (prob.i_top, prob.i_bottom, prob.x))
+    known, load = np.asarray(prob.known)[sel], np.asarray(prob.load)[sel]
+    groups, inverse = np.unique(np.asarray(prob.gidx)[sel][~known], return_inverse=True)
+    gidx = np.full(len(x), -1)
+    gidx[~known] = inverse
+    best, arg = np.inf, (nominal, 0.0)
+    scale_known = max(float(np.sum(load[known] ** 2)), 1e-300)
+    no_k, everywhere = -np.ones(len(x), dtype=int), np.zeros(len(x), dtype=int)
+    for g in gs:
+        gt, gb = pole_gaps(g, xs[:, None], x[None, :], bearing.cos_alpha)
+        ok = np.all(np.minimum(gt, gb) > 0.05 * g, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            unit = ideal_force(g, xs[:, None], 1.0, it, ib, x[None, :], bearing.cos_alpha)    # [origin, row]
+            k = profile(unit, load, known, everywhere, 1, no_k, 0, 1.0)[0]           # [origin, 1]
+            cost = np.sum(np.where(known, k * unit - load, 0.0) ** 2, axis=1) / scale_known
+            if len(groups):
+                mean = profile(unit, load, np.zeros(len(x), bool), everywhere, 1, gidx, len(groups), 1.0)[2]
+                mean = mean[:, np.maximum(gidx, 0)]
+                cost = cost + np.sum(np.where(known, 0.0, (unit - mean) ** 2 / mean**2), axis=1)
+        cost = np.where(ok & np.isfinite(cost), cost, np.inf)
+        j = int(np.argmin(cost))
+        if cost[j] < best:
+            best, arg = cost[j], (float(g), float(xs[j]))
+    return arg
+
+
+def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bearing],
+                 k_held=K_REFERENCE) -> list[np.ndarray]:
+    """Each data set's scaled start from its ``(v, w)`` gaps and origins [m] (arrays[n_sets, 2]): ``k`` from its known
+    loads (``k_held``, float or array[n_sets, 2], on an axis without) and its nuisance loads profiled there, for all
+    data sets in one pass."""
+    gaps, origins = np.asarray(gaps, dtype=float), np.asarray(origins, dtype=float)
+    n = len(probs)
+    lengths = np.array([len(p.mask) for p in probs])
+    set_of_row = np.repeat(np.arange(n), lengths)
+
+    def cat(get):
+        return np.concatenate([np.asarray(get(p)) for p in probs]) if n else np.zeros(0)
+
+    ax = cat(lambda p: p.ax).astype(int)
+    it, ib, x = cat(lambda p: p.i_top), cat(lambda p: p.i_bottom), cat(lambda p: p.x)
+    used = cat(lambda p: p.mask) > 0
+    known, load = cat(lambda p: p.known).astype(bool), cat(lambda p: p.load)
+    n_loads = np.array([p.n_loads for p in probs], dtype=int)
+    first_load = np.concatenate([[0], np.cumsum(n_loads)])
+    gidx = cat(lambda p: p.gidx).astype(int)
+    load_seg = np.where(gidx >= 0, first_load[set_of_row] + gidx, -1)
+    cos = np.array([b.cos_alpha for b in bearings])[set_of_row]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        unit = ideal_force(gaps[set_of_row, ax], origins[set_of_row, ax], 1.0, it, ib, x, cos)
+    k_free = np.array([np.asarray(p.k_free) for p in probs], dtype=bool).reshape(n, 2)
+    held = np.broadcast_to(np.asarray(k_held, dtype=float), (n, 2)).reshape(-1)
+    k, _, _ = profile(unit, load, known & used, set_of_row * 2 + ax, 2 * n, -np.ones_like(gidx), 0, held)
+    k = k.reshape(n, 2)
+    k_used = np.where(k_free, k, K_REFERENCE)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        loads = (np.bincount(load_seg[load_seg >= 0], weights=(k_used[set_of_row, ax] * unit)[load_seg >= 0],
+                             minlength=first_load[-1])
+                 / np.bincount(load_seg[load_seg >= 0], minlength=first_load[-1]))
+    return [to_theta(gaps[s], origins[s], k[s], loads[first_load[s]:first_load[s + 1]]) for s in range(n)]
+
+
+def starts(table: pd.DataFrame, probs: Sequence[Problem], metas: Sequence[Meta], offsets: Sequence[int],
+           bearings: Sequence[Bearing]) -> tuple[list[np.ndarray], list[str]]:
+    """Each data set's scaled start and how it was found.
+
+    ``table`` holds the data sets' rows one after another (data set ``s`` at rows ``offsets[s]:offsets[s+1]``,
+    no labels shared between data sets); an axis's gap and origin are the mean of its valid Eq. 7 pairs, or a
+    :func:`grid_start` when it has none; then :func:`with_profile`.
+    """
+    n = len(probs)
+    offsets = np.asarray(offsets)
+    set_of_row = np.repeat(np.arange(n), np.diff(offsets))
+    it = np.concatenate([np.asarray(p.i_top) for p in probs])
+    ib = np.concatenate([np.asarray(p.i_bottom) for p in probs])
+    x = np.concatenate([np.asarray(p.x) for p in probs])
+    used = np.concatenate([np.asarray(p.mask) for p in probs]) > 0
+    sums, counts = np.zeros((n, 2, 2)), np.zeros((n, 2))
+    pairs = design_pairs(table)
+    if pairs:
+        axes = np.array([a for a, _ in pairs])
+        rows = np.stack([r for _, r in pairs])
+        sid = set_of_row[rows[:, 0, 0]]
+        g0, x0, ok = pair_estimates(it, ib, x, rows, np.array([b.cos_alpha for b in bearings])[sid])
+        ok &= np.all(used[rows.reshape(len(rows), 4)], axis=1)     # a pair with a held-out row is not used
+        np.add.at(sums, (sid[ok], axes[ok], 0), g0[ok])
+        np.add.at(sums, (sid[ok], axes[ok], 1), x0[ok])
+        np.add.at(counts, (sid[ok], axes[ok]), 1)
+    with np.errstate(invalid="ignore"):
+        mean = sums / counts[:, :, None]
+    gaps = np.array([[b.nominal_gap] * 2 for b in bearings]).reshape(n, 2)
+    origins = np.zeros((n, 2))
+    how = []
+    for s in range(n):
+        words = []
+        for a, ax in enumerate(AXES):
+            if not metas[s].axes_present[a]:
+                continue
+            if counts[s, a] > 0:
+                gaps[s, a], origins[s, a] = mean[s, a]
+                words.append(f"{ax}: closed form")
+            else:
+                gaps[s, a], origins[s, a] = grid_start(probs[s], a, bearings[s])
+                words.append(f"{ax}: grid")
+        how.append(", ".join(words))
+    return with_profile(gaps, origins, probs, bearings), how
+
+
+def seed_loads_and_k(theta, prob: Problem, bearing: Bearing = PAPER_BEARING) -> np.ndarray:
+    """``theta`` with ``k`` (from the known loads; kept on an axis without) and the nuisance loads set to their best
+    values at its gap and origin (:func:`with_profile` of one data set)."""
+    theta = np.asarray(theta, dtype=float)
+    si = theta[:6] * SCALE_HEAD
+    head = with_profile(si[None, 0:2], si[None, 2:4], [prob], [bearing], k_held=si[None, 4:6])[0]
+    return np.concatenate([head, theta[len(head):]])
