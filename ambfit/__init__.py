@@ -8,7 +8,7 @@ The public API (everything a notebook needs)::
     print(result)                                   # gap ± error, χ², health
     g, s = result.value("g_v0"), result.error("g_v0")   # SI units (m)
 
-``read_csv``, ``fit`` (and ``fit_by``, ``fit_batch``), ``closed_form``, ``sample``,
+``read_csv``, ``fit`` (and ``fit_by``, ``fit_many``), ``closed_form``, ``sample``,
 ``diagnose``, ``simulate``, ``force`` (force measurement from a fit), ``recommend`` (what to
 measure next), ``solution_space`` (the paper's Fig. 2), the effects (``Saturation``,
 ``Fringing``, ...) and the bearing description (``Bearing``, ``PAPER_BEARING``) are loaded on first use, so ``import ambfit`` (and ``ambfit --help``)
@@ -43,7 +43,7 @@ _API = {
     "Dataset": ("ambfit.data", "Dataset"),
     "fit": ("ambfit.estimation.fit", "fit"),
     "fit_by": ("ambfit.estimation.fit", "fit_by"),
-    "fit_batch": ("ambfit.estimation.batch", "fit_batch"),
+    "fit_many": ("ambfit.estimation.fit", "fit_many"),
     "force": ("ambfit.estimation.measure", "force"),
     "recommend": ("ambfit.estimation.design", "recommend"),
     "solution_space": ("ambfit.estimation.conditioning", "solution_space"),
@@ -97,13 +97,12 @@ def __dir__():
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from ambfit.data import DataError, Dataset, read_csv, write_csv  # noqa: F401
     from ambfit.diagnosis.attribution import Diagnosis, diagnose  # noqa: F401
-    from ambfit.estimation.batch import fit_batch  # noqa: F401
     from ambfit.estimation.bayes import Posterior, Prior, sample  # noqa: F401
     from ambfit.estimation.closed_form import identify as closed_form  # noqa: F401
     from ambfit.estimation.conditioning import solution_space  # noqa: F401
     from ambfit.estimation.core import FitError  # noqa: F401
     from ambfit.estimation.design import recommend  # noqa: F401
-    from ambfit.estimation.fit import fit, fit_by  # noqa: F401
+    from ambfit.estimation.fit import fit, fit_by, fit_many  # noqa: F401
     from ambfit.estimation.measure import force  # noqa: F401
     from ambfit.estimation.results import FitResult  # noqa: F401
     from ambfit.physics.bearing import AXES, MU_0, PAPER_BEARING, Bearing  # noqa: F401

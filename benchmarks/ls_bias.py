@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ambfit import rig
-from ambfit.estimation import batch, core, fit
+from ambfit.estimation import core, fit
+from ambfit.estimation.results import table
 from ambfit.rig import protocol
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,8 +46,8 @@ def main():
     for current in (0.6e-3, 1.8e-3):
         noise = rig.Noise(current, 0.1e-6)
         data = [rig.simulate(spec, proto, noise=noise, seed=200_000 + s).data for s in range(args.raw)]
-        b = batch.fit_batch(data)
-        out["raw"][f"{current * 1e3:.1f} mA"] = {p: _row(b.column(p), t) for p, t in truth.items()}
+        b = table(fit.fit_many(data, name_outliers=False))
+        out["raw"][f"{current * 1e3:.1f} mA"] = {p: _row(b[p].to_numpy(), t) for p, t in truth.items()}
     t0 = time.perf_counter()
     plain, corrected = [], []
     for s in range(args.debiased):

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ambfit import rig
-from ambfit.estimation import batch, closed_form, information
+from ambfit.estimation import closed_form, fit, information
+from ambfit.estimation.results import table
 from ambfit.rig import origin, protocol
 
 TARGETS = {"efficiency_min": 0.9, "pull_var": (0.85, 1.15), "bias_max_se": 1.0}
@@ -50,30 +51,30 @@ def study(name, datasets, design_protocol, spec, noise, per_iteration):
     truth = {"g_v0": spec.g0[0], "g_w0": spec.g0[1], "v0": spec.x0[0], "w0": spec.x0[1],
              "k_v": spec.force_constant, "k_w": spec.force_constant}
     t0 = time.perf_counter()
-    ls = batch.fit_batch(datasets)
-    ls_u = batch.fit_batch([_unknown_load(d) for d in datasets])
+    ls = table(fit.fit_many(datasets, name_outliers=False))
+    ls_u = table(fit.fit_many([_unknown_load(d) for d in datasets], name_outliers=False))
     t_fit = time.perf_counter() - t0
     info = information.design_information(spec, design_protocol, noise)
     sim0 = rig.simulate(spec, design_protocol, noise=rig.NOISE_FREE).data
     info_u = information.fisher(_unknown_load(sim0), spec.params(), sigma_i=noise.current, sigma_x=noise.position)
     rows = []
     for p, t in truth.items():
-        c = ls.column(p)
-        s = ls.error(p)
+        c = ls[p].to_numpy()
+        s = ls[f"{p}_std"].to_numpy()
         pulls = (c - t) / s
         row = {"param": p, "truth": t, "ls_std": float(np.std(c, ddof=1)), "ls_mean": float(np.mean(c)),
                "bias_in_se": float((np.mean(c) - t) / (np.std(c, ddof=1) / np.sqrt(len(c)))),
                "pull_var": float(np.var(pulls, ddof=1)), "crlb_std": info.std(p),
                "efficiency": float(info.std(p) ** 2 / np.var(c, ddof=1))}
-        if p in ls_u.names:
-            row["ls_unknown_load_std"] = float(np.std(ls_u.column(p), ddof=1))
+        if p in ls_u.columns:
+            row["ls_unknown_load_std"] = float(np.std(ls_u[p].to_numpy(), ddof=1))
             row["crlb_unknown_load_std"] = info_u.std(p)
         if per_iteration is not None and p in per_iteration:
             row["eq7_iteration_std"] = float(np.nanstd(per_iteration[p]["iter"], ddof=1))
             row["eq7_mean_std"] = float(np.nanstd(per_iteration[p]["mean"], ddof=1))
         rows.append(row)
-    return {"design": name, "datasets": len(datasets), "converged": float(ls.converged.mean()),
-            "converged_unknown_load": float(ls_u.converged.mean()), "fit_seconds": t_fit, "rows": rows}
+    return {"design": name, "datasets": len(datasets), "converged": float(ls["converged"].mean()),
+            "converged_unknown_load": float(ls_u["converged"].mean()), "fit_seconds": t_fit, "rows": rows}
 
 
 def main():

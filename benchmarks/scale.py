@@ -5,7 +5,7 @@ seed: bias pair (1.0-1.6 A), pair offset (±15-40 µm) around a set-point near t
 iterations (1-10), current noise (0.3-1.2 mA), position noise (0.05-0.2 µm), the known rotor load or
 an unknown static load, and the rig's true gaps (740-790 µm) and origins (±40 µm).  A task simulates
 its chunk of items on the virtual rig (:mod:`ambfit.rig`) and fits them as one mixed batch
-(:func:`ambfit.estimation.batch.fit_many`, plain least squares without the outlier test); only the estimates
+(:func:`ambfit.estimation.fit.fit_many`, plain least squares without the outlier test); only the estimates
 travel back.
 
 The same items and chunks run twice through :class:`ambfit.engine.Engine`: in this process, and on
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ambfit.engine import Engine
-from ambfit.estimation import batch
+from ambfit.estimation import fit, lm
 from ambfit.faces.cli.app import enable_compilation_cache
 from ambfit.rig import protocol as P
 from ambfit.rig import virtual as rig
@@ -74,7 +74,7 @@ def study_chunk(items, seeds) -> list:
     designs = [draw(s) for s in seeds]
     data = [simulate(d) for d in designs]
     t1 = time.process_time()
-    fits = batch.fit_many(data, name_outliers=False)     # a Monte Carlo study's plain least squares
+    fits = fit.fit_many(data, name_outliers=False)     # a Monte Carlo study's plain least squares
     t2 = time.process_time()
     out = []
     for j, (d, res) in enumerate(zip(data, fits)):
@@ -95,8 +95,8 @@ def peak_rss_mb() -> float:
 
 def warm(n: int, chunk: int, seed: int) -> int:
     """Compile in this process what the timed study needs: the batch solves of every bucket its designs fall in
-    (:func:`ambfit.estimation.batch.precompile`), the rig for every protocol length, then a small study."""
-    batch.precompile([8 * it for it in range(1, 11)], [0, 2])
+    (:func:`ambfit.estimation.lm.precompile`), the rig for every protocol length, then a small study."""
+    lm.precompile([8 * it for it in range(1, 11)], [0, 2])
     for it in range(1, 11):
         simulate({**draw(np.random.SeedSequence([seed, 2, it])), "iterations": it})
     kids = np.random.SeedSequence([seed, 1]).spawn(n)
@@ -221,7 +221,7 @@ def markdown(r: dict) -> str:
         "# Scale: a Monte Carlo study of mixed designs, in-process vs local worker processes", "",
         f"{r['n']} simulated data sets, each its own design (bias pair, offset, 1-10 iterations, noise, known or "
         f"unknown load, true gap and origin drawn from its seed; {a['rows_min_max'][0]}-{a['rows_min_max'][1]} "
-        f"rows), simulated on the virtual rig and fitted by `batch.fit_many` (plain least squares) in tasks of "
+        f"rows), simulated on the virtual rig and fitted by `fit.fit_many` (plain least squares) in tasks of "
         f"{r['chunk']} data sets; {r['warmup_items']} warm-up items on every process first (compilation). "
         f"Machine: {r['machine']['cpu_count']} cores, load average at start {la(r['machine']['load_average_at_start'])} "
         "(1/5/15 min; the machine is shared, so a load above 0 takes cores from this benchmark).", "",

@@ -10,11 +10,12 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pandas as pd
 import pytest
 
 from ambfit import rig
-from ambfit.estimation import core
+from ambfit.estimation import core, lm
 from ambfit.estimation.fit import FitError, fit
 from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
@@ -70,9 +71,9 @@ def test_misfit_of_the_ideal_model_is_eq4_with_effective_variance():
 
 
 def test_automatic_differentiation_through_the_effect_pipeline_matches_eq4():
-    # A model with an effect that changes nothing takes the general path (forward-mode AD through
-    # physics.model.evaluate); the ideal model takes Eq. 4's closed-form derivatives.  Both must agree,
-    # and both must agree with the hand computation above.
+    # A model with an effect that changes nothing runs the effect pipeline (physics.model.evaluate); the ideal
+    # model runs Eq. 4 itself (physics.model.ideal_force).  The one derivative route (forward-mode AD in
+    # core.measured) must give both the hand computation above.
     prob, _ = core.build_problem(TWO_ROWS)
     theta = jnp.asarray(core.to_theta(G0, X0, K))
     general = core.Model.of((E.Effect(),))
@@ -100,7 +101,7 @@ def test_masked_rows_give_zero_residual_but_keep_their_standardized_residual():
 
 def test_a_held_noise_replaces_the_propagated_one_row_by_row():
     # Nested models compared by their χ² rise hold the full model's noise (Problem.with_noise): the held std
-    # replaces s_eff where it is given (> 0), on both the closed-form and the automatic-differentiation path.
+    # replaces s_eff where it is given (> 0), for the ideal law and through the effect pipeline.
     prob, _ = core.build_problem(TWO_ROWS)
     theta = jnp.asarray(core.to_theta(G0, X0, K))
     hand = [eq4_by_hand(a) for a in range(2)]
@@ -292,16 +293,16 @@ def test_models_solved_together_fit_as_each_alone():
                core.Model.of([E.Hysteresis()])]
     for model in members[:2]:
         theta0 = jnp.asarray(np.concatenate([base.theta, np.zeros(model.n)]))
-        alone = core.solve_and_measure(theta0, prob, model, max_steps=60, every_row=True)
-        with core.compiled_together(members):
-            together = core.solve_and_measure(theta0, prob, model, max_steps=60, every_row=True)
-        assert together[0].shape == alone[0].shape and together[4].shape == alone[4].shape
-        assert float(together[3]) < core.EDM_MAX and float(alone[3]) < core.EDM_MAX
+        alone = lm.solve(theta0, prob, model, max_steps=60)
+        with lm.compiled_together(members):
+            together = lm.solve(theta0, prob, model, max_steps=60)
+        assert together.theta.shape == alone.theta.shape and together.jac.shape == alone.jac.shape
+        assert float(together.edm) < core.EDM_MAX and float(alone.edm) < core.EDM_MAX
         # both converged to the same optimum (EDM < 1e-6: within 1e-3 standard errors); 1e-7 relative is the
         # agreement of two Levenberg-Marquardt paths that stop at different round-off
-        np.testing.assert_allclose(np.asarray(together[0]), np.asarray(alone[0]), rtol=1e-7, atol=1e-9)
-        for k in (4, 5, 6):              # Jacobian, standardized residuals, every row's Jacobian
-            a, t = np.asarray(alone[k]), np.asarray(together[k])
+        np.testing.assert_allclose(np.asarray(together.theta), np.asarray(alone.theta), rtol=1e-7, atol=1e-9)
+        for k in ("jac", "z", "jac_all"):          # Jacobian, standardized residuals, every row's Jacobian
+            a, t = np.asarray(getattr(alone, k)), np.asarray(getattr(together, k))
             np.testing.assert_allclose(t, a, rtol=1e-6, atol=1e-9 * np.abs(a).max())
 
 
@@ -311,11 +312,11 @@ def test_a_step_budget_is_a_traced_number_and_is_kept():
     prob, _ = core.build_problem(sim)
     model = core.Model.of([E.Saturation()])
     theta0 = jnp.asarray(np.concatenate([fit(sim, throw=False).theta, np.zeros(model.n)]))
-    short = core.solve(theta0, prob, model, max_steps=1)
-    assert int(short[2]) <= core.REWEIGHTINGS
-    assert short[1] == core.optx.RESULTS.nonlinear_max_steps_reached
-    full = core.solve(theta0, prob, model, max_steps=60)
-    assert full[1] == core.optx.RESULTS.successful and int(full[2]) > core.REWEIGHTINGS
+    short = lm.solve(theta0, prob, model, max_steps=1)
+    assert int(short.steps) <= lm.REWEIGHTINGS
+    assert short.result == optx.RESULTS.nonlinear_max_steps_reached
+    full = lm.solve(theta0, prob, model, max_steps=60)
+    assert full.result == optx.RESULTS.successful and int(full.steps) > lm.REWEIGHTINGS
 
 
 def test_a_model_is_built_once_per_set_of_effect_instances_and_bearing():
@@ -365,24 +366,24 @@ def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch)
     theta0[:4] += np.array([150e-6, -150e-6, 60e-6, -60e-6]) / core.SCALE_HEAD[:4]
     theta0[-model.n:] = 2.0                    # the effect two prior widths off
     theta0 = jnp.asarray(theta0)
-    monkeypatch.setattr(core, "REWEIGHTINGS", 1)
-    monkeypatch.setattr(core, "EDM_ROUND", 0.0)
+    monkeypatch.setattr(lm, "REWEIGHTINGS", 1)
+    monkeypatch.setattr(lm, "EDM_ROUND", 0.0)
     # a new function object of the same code, compiled afresh: it reads the patched constants (the library's own
     # compiled solve may already hold a trace with them unpatched, from an earlier test)
-    code = core._solve_in.__wrapped__
+    code = lm._solve_in.__wrapped__
     solve = eqx.filter_jit(types.FunctionType(code.__code__, code.__globals__, "solve", code.__defaults__,
                                               code.__closure__))
     s0 = core.misfit(theta0, prob, model)[1]
 
     def residuals(theta, _):
-        return core._with_priors(theta, prob.mask * core.force_misfit(theta, prob, model) / s0, model.n)
+        return core.with_priors(theta, prob.mask * core.force_misfit(theta, prob, model) / s0, model.n)
 
-    lm = optx.LevenbergMarquardt(rtol=core.RTOL, atol=core.RTOL)
+    solver = optx.LevenbergMarquardt(rtol=lm.RTOL, atol=lm.RTOL)
     for budget in (2, 3, 5, 12):
         ours = solve(theta0, prob, (model,), jnp.asarray(0), jnp.asarray(budget))
-        ref = optx.least_squares(residuals, lm, theta0, max_steps=budget, throw=False)
-        assert ours[1] == ref.result, budget
-        assert int(ours[2]) == int(ref.stats["num_steps"]), budget
-        np.testing.assert_allclose(np.asarray(ours[0]), np.asarray(ref.value), rtol=1e-10, atol=1e-12)
+        ref = optx.least_squares(residuals, solver, theta0, max_steps=budget, throw=False)
+        assert ours.result == ref.result, budget
+        assert int(ours.steps) == int(ref.stats["num_steps"]), budget
+        np.testing.assert_allclose(np.asarray(ours.theta), np.asarray(ref.value), rtol=1e-10, atol=1e-12)
     # the path went through rejected steps too (the trust region's shrinking branch was compared)
     assert int(ref.state.num_accepted_steps) < int(ref.stats["num_steps"])

@@ -1,4 +1,4 @@
-"""The engine for repeated work (ambfit.engine) and the mixed-design batch (ambfit.estimation.batch.fit_many).
+"""The engine for repeated work (ambfit.engine) and the mixed-design batch (ambfit.estimation.fit.fit_many).
 
 In this process, on a real ``distributed.LocalCluster`` of two worker processes, and the same numbers from both: the
 seeds are per item, so neither the number of workers nor the chunk size may change a result.  The mixed batch must
@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 
 from ambfit import engine
-from ambfit.estimation import batch, core, fit
+from ambfit.estimation import core, fit, lm
 from ambfit.physics.bearing import PAPER_BEARING
 from ambfit.rig import protocol as P
 from ambfit.rig import virtual as rig
@@ -81,7 +81,7 @@ def _assert_same_fit(a, b, rtol=RTOL):
 def test_mixed_designs_in_one_batch_equal_their_single_fits(mixed):
     data, bearings = mixed
     assert len({len(d) for d in data}) == 2 and len(set(bearings)) == 2
-    many = batch.fit_many(data, bearing=bearings, loss="linear")
+    many = fit.fit_many(data, bearing=bearings, loss="linear")
     for d, b, res in zip(data, bearings, many):
         _assert_same_fit(res, fit.fit(d, bearing=b, loss="linear", throw=False))
     # the one-axis set estimates only its axis; three unknown loads on two axes are six nuisance parameters
@@ -94,7 +94,7 @@ def test_fit_many_with_the_outlier_test_equals_fit(mixed):
     data, bearings = mixed
     bad = data[0].copy()
     bad.loc[5, "i_top_A"] += 0.05              # one reading ~60 σ off: fit names it and leaves it out
-    many = batch.fit_many([bad, data[1]])
+    many = fit.fit_many([bad, data[1]])
     alone = fit.fit(bad, throw=False)
     assert [o.row for o in many[0].outliers] == [o.row for o in alone.outliers] == [6]
     _assert_same_fit(many[0], alone)
@@ -103,21 +103,24 @@ def test_fit_many_with_the_outlier_test_equals_fit(mixed):
 
 def test_fit_many_reports_what_fit_raises(mixed):
     data, _ = mixed
-    out = batch.fit_many(data[2:3], require_k=True)          # unknown loads only: k cannot be calibrated
+    out = fit.fit_many(data[2:3], require_k=True)          # unknown loads only: k cannot be calibrated
     with pytest.raises(core.FitError) as single:
         fit.fit(data[2], require_k=True)
     assert isinstance(out[0], core.FitError) and str(out[0]) == str(single.value)
-    with pytest.raises(ValueError, match="robust losses"):
-        batch.fit_many(data[:1], loss="huber")
+    with pytest.raises(ValueError, match="loss must be one of"):
+        fit.fit_many(data[:1], loss="l1")
+    # a robust loss reweights each data set in rounds of its own, after the joint solve
+    _assert_same_fit(fit.fit_many(data[:2], loss="huber")[1], fit.fit(data[1], loss="huber", throw=False))
 
 
 def test_padded_rows_and_loads_cannot_change_a_result(mixed, monkeypatch):
     data, bearings = mixed
-    reference = batch.fit_many(data[2:3], loss="linear")
-    # pad far more than the buckets do: three padded rows per real row, three more padded loads
-    monkeypatch.setattr(batch, "row_bucket", lambda n: 4 * n)
-    monkeypatch.setattr(batch, "load_bucket", lambda m: m + 3)
-    padded = batch.fit_many(data[2:3], loss="linear")
+    reference = fit.fit_many(data[2:3], loss="linear")                 # alone: its own shape, no padding
+    # two data sets are padded and vmapped: pad far more than the buckets do, three padded rows per real row,
+    # three more padded loads
+    monkeypatch.setattr(lm, "row_bucket", lambda n: 4 * n)
+    monkeypatch.setattr(lm, "load_bucket", lambda m: m + 3)
+    padded = fit.fit_many([data[2], data[2]], loss="linear")[:1]
     for a, b in zip(padded, reference):
         _assert_same_fit(a, b)
 
@@ -127,7 +130,7 @@ def test_padded_rows_have_zero_residual_and_zero_jacobian(mixed):
     prob, _ = core.build_problem(data[2])
     theta = fit.fit(data[2], loss="linear").theta
     n, p = len(data[2]), len(theta)
-    stacked = batch._pad([batch._numpy_problem(prob, 0, n, np.asarray(prob.k_free), np.asarray(prob.gidx))], n + 20)
+    stacked = lm.pad([prob], n + 20)
     one = jax.tree.map(lambda a: a[0], stacked)                    # the padded problem of a batch of one
     padded_theta = np.concatenate([theta, np.zeros(3)])            # three loads no row points at
     r = np.asarray(core.residuals(padded_theta, one))
@@ -138,9 +141,9 @@ def test_padded_rows_have_zero_residual_and_zero_jacobian(mixed):
 
 
 def test_row_buckets_bound_the_padding():
-    assert [batch.row_bucket(n) for n in (1, 16, 17, 24, 32, 33, 80, 480)] == [16, 16, 32, 32, 32, 64, 128, 512]
-    assert all(n <= batch.row_bucket(n) < 2 * n for n in range(17, 2000))
-    assert [batch.load_bucket(m) for m in (0, 1, 2, 3, 5)] == [0, 1, 2, 4, 8]
+    assert [lm.row_bucket(n) for n in (1, 16, 17, 24, 32, 33, 80, 480)] == [16, 16, 32, 32, 32, 64, 128, 512]
+    assert all(n <= lm.row_bucket(n) < 2 * n for n in range(17, 2000))
+    assert [lm.load_bucket(m) for m in (0, 1, 2, 3, 5)] == [0, 1, 2, 4, 8]
 
 
 # --- the engine in this process --------------------------------------------------------------------------------
@@ -229,7 +232,7 @@ def _simulate_and_fit(items, seeds):
     """A Monte Carlo chunk: simulate each item's design with its seed, fit the chunk as one mixed batch."""
     data = [rig.simulate(rig.PAPER_RIG, DESIGNS[i % len(DESIGNS)], seed=np.random.default_rng(s)).data
             for i, s in zip(items, seeds)]
-    return [np.concatenate([r.values[:4], r.std[:4]]) for r in batch.fit_many(data, loss="linear")]
+    return [np.concatenate([r.values[:4], r.std[:4]]) for r in fit.fit_many(data, loss="linear")]
 
 
 @needs_dask

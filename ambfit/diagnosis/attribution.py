@@ -512,7 +512,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     ceiling of what any effect expressible in flux density, gap, the other axis and approach direction could
     explain.  Its force check joins ``force_check`` as ``"discrepancy"``.
     """
-    from ambfit.estimation.core import Model, compiled_together
+    from ambfit.estimation.core import Model
+    from ambfit.estimation.lm import compiled_together
     from ambfit.estimation.problem import owned
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)   # its own copy (see owned)

@@ -29,7 +29,8 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
-from ambfit.estimation.core import K_REFERENCE, Model, build_problem, misfit, seed_loads_and_k, to_theta
+from ambfit.estimation.core import K_REFERENCE, Model, build_problem, misfit, to_theta
+from ambfit.estimation.seeds import seed_loads_and_k
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.model import ideal_force
 
@@ -118,7 +119,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
     loads = np.zeros(prob.n_loads)
     model = Model.of((), bearing)
     if prob.n_loads:
-        th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, model)
+        th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, bearing)
     else:
         th = to_theta(g_pair, x_pair, k_pair, loads)
     s = np.asarray(misfit(jnp.asarray(th), prob, model)[1])

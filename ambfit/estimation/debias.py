@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.estimation.core import IDEAL, Model, Problem, solve, target, unpack
+from ambfit.estimation.core import IDEAL, Model, Problem, target, unpack
+from ambfit.estimation.lm import solve
 from ambfit.physics.model import pole_gaps
 
 
@@ -67,8 +68,8 @@ def _bootstrap(theta, prob: Problem, bias, key, n: int, model: Model):
         synth = prob.with_readings(it0 + prob.s_top * jax.random.normal(k1, shape),
                                    ib0 + prob.s_bottom * jax.random.normal(k2, shape),
                                    prob.x + prob.s_x * jax.random.normal(k3, shape))
-        value, _, _, edm = solve(theta, synth, model)
-        return value, edm
+        sol = solve(theta, synth, model)
+        return sol.theta, sol.edm
 
     return jax.vmap(one)(jax.random.split(key, n))
 

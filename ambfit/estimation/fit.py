@@ -23,8 +23,16 @@ runs and re-evaluated at its estimate (``REWEIGHTINGS`` rounds: iteratively
 reweighted least squares), the usual choice that keeps the estimator consistent.
 
 The model is the ideal law (Eq. 4) extended by any tuple of
-:mod:`ambfit.physics.effects`; the ideal model is ``effects=()``.  Residuals, solve
-and convergence test are those of :mod:`ambfit.estimation.core`, for every model.
+:mod:`ambfit.physics.effects`; the ideal model is ``effects=()``.
+
+One pipeline
+------------
+:func:`fit_many` is the only fit; :func:`fit` is ``fit_many([data])[0]``, raising what it holds.  For every data
+set, in order: its arrays (:mod:`ambfit.estimation.problem`, many tables built as one), its start
+(:mod:`ambfit.estimation.seeds`: Eq. 7 or a grid, ``k`` and loads profiled; or another fit's estimate), the solve
+(:mod:`ambfit.estimation.lm`: alone at its own shape, or padded and vmapped with the others), the result
+(:mod:`ambfit.estimation.covariance`), the outlier test (:mod:`ambfit.estimation.outliers`) and the plausibility
+flags.  A study of thousands of data sets and one fit take the same steps.
 
 Loads and the force constant
 ----------------------------
@@ -44,90 +52,32 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
-import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import pandas as pd
 
-from ambfit.data import Dataset, file_rows, load_groups, zero_based
-from ambfit.estimation import closed_form, plausibility, robust
+from ambfit.data import DataError, Dataset, file_rows, zero_based
+from ambfit.estimation import plausibility, robust, seeds
 from ambfit.estimation.core import (
     EDM_MAX,
-    FIRST_STEPS,
     K_REFERENCE,
     FitError,
     Meta,
     Model,
     Problem,
-    build_problem,
     free_mask,
-    free_names,
-    jacobian,
-    row_jacobian,
-    seed_loads_and_k,
     si_scale,
-    solve_and_measure,
-    standardized,
     to_theta,
 )
-from ambfit.estimation.results import FitResult, Thresholds, describe_weakness
+from ambfit.estimation.covariance import result_at
+from ambfit.estimation.lm import solve_sets
+from ambfit.estimation.outliers import screen
+from ambfit.estimation.problem import build_problems
+from ambfit.estimation.results import FitResult, Thresholds
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
-from ambfit.physics.model import horseshoe_force, pole_gaps
 
-
-def start(prob: Problem, meta: Meta, data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> tuple[np.ndarray, str]:
-    """Starting point: the closed form (Eq. 7) where the design has two biases at two positions,
-    else a coarse grid over gap and origin; nuisance loads from the model there.  Never the truth."""
-    g, x, how = [bearing.nominal_gap] * 2, [0.0, 0.0], []
-    for a, ax in enumerate(AXES):
-        if not meta.axes_present[a]:
-            continue
-        try:
-            est = closed_form.identify(data[data["axis"] == ax], bearing=bearing).estimates[("all", ax)]
-            if np.isfinite(est.g0) and est.g0 > 0:
-                g[a], x[a] = est.g0, est.x0
-                how.append(f"{ax}: closed form")
-                continue
-        except closed_form.ClosedFormError:
-            pass
-        g[a], x[a] = _grid_start(prob, a, bearing)
-        how.append(f"{ax}: grid")
-    theta = to_theta(g, x, K_REFERENCE, np.zeros(prob.n_loads))
-    return seed_loads_and_k(theta, prob, Model.of((), bearing)), ", ".join(how)
-
-
-def _grid_start(prob: Problem, axis: int, bearing: Bearing) -> tuple[float, float]:
-    """Best (gap, origin) of a coarse grid (gap 0.5-1.5 x nominal, origin ±0.3 x nominal), loads profiled."""
-    nominal = bearing.nominal_gap
-    gs = np.linspace(0.5, 1.5, 41) * nominal
-    xs = np.linspace(-0.3, 0.3, 61) * nominal
-    sel = np.asarray(prob.ax) == axis
-    best, arg = np.inf, (nominal, 0.0)
-    it, ib, x = (np.asarray(v)[sel] for v in (prob.i_top, prob.i_bottom, prob.x))
-    gid = np.where(np.asarray(prob.known)[sel], -1, np.asarray(prob.gidx)[sel])
-    load = np.asarray(prob.load)[sel]
-    for g in gs:
-        gt, gb = pole_gaps(g, xs[:, None], x[None, :], bearing.cos_alpha)
-        ok = np.all(np.minimum(gt, gb) > 0.05 * g, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            unit = horseshoe_force(1.0, it, gt, 1.0, ib, gb)   # [origin, row], Eq. 4 with k = 1
-        # per load group, the best load (or k for known loads) is the mean: relative spread is the cost
-        cost = np.zeros(len(xs))
-        for grp in np.unique(gid):
-            m = gid == grp
-            if grp < 0:
-                kfit = (unit[:, m] @ load[m]) / np.maximum(np.sum(unit[:, m] ** 2, axis=1), 1e-300)
-                res = kfit[:, None] * unit[:, m] - load[m]
-                cost += np.sum(res**2, axis=1) / np.maximum(np.sum(load[m] ** 2), 1e-300)
-            else:
-                mu = unit[:, m].mean(axis=1, keepdims=True)
-                cost += np.sum((unit[:, m] - mu) ** 2, axis=1) / np.maximum(mu[:, 0] ** 2, 1e-300)
-        cost = np.where(ok, cost, np.inf)
-        j = int(np.argmin(cost))
-        if cost[j] < best:
-            best, arg = cost[j], (float(g), float(xs[j]))
-    return arg
+_FAILURES = (FitError, DataError, ValueError, KeyError)
+"""What a data set's own fit can raise; :func:`fit_many` returns it in that data set's place."""
 
 
 def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing: Bearing = PAPER_BEARING,
@@ -162,8 +112,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         The model is ``adequate`` when χ² has a p-value of at least this (only when the noise
         levels are known, not estimated from the residuals).
     max_steps : int
-        Levenberg-Marquardt step budget per reweighting round.  A first solve takes at
-        most ``FIRST_STEPS`` per round; if it has not converged, a second one gets ``max_steps``.
+        Levenberg-Marquardt step budget per reweighting round (:func:`ambfit.estimation.lm.solve_sets`).
     loss : {"auto", "linear", "huber", "cauchy"}
         ``auto`` (default): least squares with an outlier test on the studentized residuals; readings
         beyond the Bonferroni bound (false-alarm probability ``alpha`` per data set) are named in
@@ -200,173 +149,206 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     >>> abs(res.value("g_v0") - 775e-6) < 4 * res.error("g_v0")
     True
     """
-    df = data.frame if isinstance(data, Dataset) else data
+    out = fit_many([data], effects, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x,
+                   mask=None if mask is None else [mask], start_from=None if start_from is None else [start_from],
+                   held_noise=None if held_noise is None else [held_noise], require_k=require_k,
+                   max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
+                   max_steps=max_steps, loss=loss, alpha=alpha, debias=debias, seed=seed)[0]
+    if isinstance(out, BaseException):
+        raise out
+    if throw:
+        out.raise_for_health()
+    return out
+
+
+def _each(value, n: int, name: str) -> list:
+    """``value`` per data set: None for all, or a sequence of one entry per data set."""
+    if value is None:
+        return [None] * n
+    value = list(value)
+    if len(value) != n:
+        raise ValueError(f"{name}: one entry per data set ({n}), got {len(value)}")
+    return value
+
+
+def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effect] = (), *,
+             bearing: Bearing | Sequence[Bearing] = PAPER_BEARING, sigma_i: float | None = None,
+             sigma_x: float | None = None, mask: Sequence | None = None,
+             start_from: Sequence[FitResult | None] | None = None, held_noise: Sequence | None = None,
+             require_k: bool = False, max_condition: float = 1e8, max_relative_gap_std: float = 0.1,
+             p_min: float = 1e-3, max_steps: int = 200, loss: str = "auto", alpha: float = robust.ALPHA,
+             debias: int = 0, seed: int = 0, name_outliers: bool = True) -> list:
+    """:func:`fit` of every data set (health as data, as with ``throw=False``), solved together.
+
+    The data sets may differ in length, axes, biases, set-points, iterations, load groups and bearing; each
+    result is the one :func:`fit` gives for that data set alone (it is this function on one data set).  Their
+    solves are bucketed by padded length and number of loads and vmapped (:func:`ambfit.estimation.lm.solve_sets`),
+    so thousands of data sets cost a few compilations and little more than their solve.
+
+    Parameters
+    ----------
+    datasets : sequence of Dataset or DataFrame
+        Contract tables.
+    effects, sigma_i, sigma_x, require_k, max_condition, max_relative_gap_std, p_min, max_steps, loss, alpha, debias, seed
+        As in :func:`fit`, for every data set.
+    bearing : Bearing or sequence of Bearing
+        One bearing for all, or one per data set.
+    mask, start_from, held_noise : sequence, optional
+        As in :func:`fit`, one entry per data set (None in a place: that data set's default).
+    name_outliers : bool
+        Run the outlier test (default); False: plain least squares for every data set with no test (a Monte
+        Carlo study's estimates: what ``loss="linear"`` gives, without naming the readings beyond the bound).
+
+    Returns
+    -------
+    list of FitResult or Exception
+        One entry per data set, in order: its result, or the :class:`FitError` / :class:`ambfit.data.DataError` its
+        fit raised.
+    """
     if loss not in robust.LOSSES:
         raise ValueError(f"loss must be one of {robust.LOSSES}, got {loss!r}")
-    rows = file_rows(df)
-    df = zero_based(df)
-    model = Model.of(effects, bearing)
-    if debias and model.n:
+    frames = [d.frame if isinstance(d, Dataset) else d for d in datasets]
+    n = len(frames)
+    bearings = list(bearing) if isinstance(bearing, (list, tuple)) else [bearing] * n
+    if len(bearings) != n:
+        raise ValueError(f"bearing: one for all data sets or one per data set ({n}), got {len(bearings)}")
+    masks, froms, helds = _each(mask, n, "mask"), _each(start_from, n, "start_from"), _each(held_noise, n, "held_noise")
+    if debias and tuple(effects):
         raise ValueError("the bootstrap bias correction (debias) is implemented for the ideal law only")
-    prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask)
-    if held_noise is not None:
-        prob = prob.with_noise(held_noise)
-    if require_k:
-        _require_k(meta)
-    inherited = ()
-    if start_from is None and model.n:
-        start_from = fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, mask=mask, max_steps=max_steps,
-                         loss=loss, alpha=alpha, throw=False)
-        if start_from.outliers and loss == "auto":     # the extended model starts without the ideal fit's outliers
-            prob = prob.with_mask(np.asarray(prob.mask) * start_from.fitted_rows.astype(float))
-            # (that fit numbered rows of the re-indexed table: back to file rows)
-            inherited = tuple(dataclasses.replace(o, row=int(rows[o.row - 1])) for o in start_from.outliers)
     thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
                             max_steps=max_steps)
-    res = _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias, seed)
-    res = _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows)
+    opts = dict(sigma_i=sigma_i, sigma_x=sigma_x, require_k=require_k, max_condition=max_condition,
+                max_relative_gap_std=max_relative_gap_std, p_min=p_min, max_steps=max_steps, loss=loss, alpha=alpha)
+    if n == 0:
+        return []
+    rows = [file_rows(df) for df in frames]
+    dfs = [zero_based(df) for df in frames]
+    out: list = [None] * n
+    table, built, offsets = build_problems(dfs, sigma_i=sigma_i, sigma_x=sigma_x)
+    probs: list = [None] * n
+    for s in range(n):
+        if isinstance(built[s], BaseException):
+            out[s] = built[s]
+            continue
+        prob, meta = built[s]
+        try:
+            if masks[s] is not None:
+                prob = prob.with_mask(_checked(masks[s], len(dfs[s]), "mask"))
+            if helds[s] is not None:
+                prob = prob.with_noise(_checked(helds[s], len(dfs[s]), "held_noise"))
+            if require_k:
+                _require_k(meta)
+        except _FAILURES as exc:
+            out[s] = exc
+            continue
+        probs[s] = prob
+    models = {b: Model.of(effects, b) for b in dict.fromkeys(bearings)}
+    inherited: list = [()] * n
+    if tuple(effects):
+        # an extended model starts from the ideal law's fit, without that fit's outliers
+        todo = [s for s in range(n) if out[s] is None and froms[s] is None]
+        ideal = fit_many([dfs[s] for s in todo], (), bearing=[bearings[s] for s in todo],
+                         mask=[masks[s] for s in todo], **opts)
+        for s, res in zip(todo, ideal):
+            if isinstance(res, BaseException):
+                out[s] = res
+                continue
+            froms[s] = res
+            if res.outliers and loss == "auto":
+                probs[s] = probs[s].with_mask(np.asarray(probs[s].mask) * res.fitted_rows.astype(float))
+                # (that fit numbered the rows of the re-indexed table: back to file rows)
+                inherited[s] = tuple(dataclasses.replace(o, row=int(rows[s][o.row - 1])) for o in res.outliers)
+    live = [s for s in range(n) if out[s] is None]
+    starts: dict = {}
+    need = [s for s in live if froms[s] is None]
+    if need:
+        if len(need) < n:     # the needed data sets' rows of the table
+            table = table.iloc[np.concatenate([np.arange(offsets[s], offsets[s + 1]) for s in need])]
+            table = table.reset_index(drop=True)
+        thetas, how = seeds.starts(table, [probs[s] for s in need], [built[s][1] for s in need],
+                                   np.cumsum([0] + [len(dfs[s]) for s in need]), [bearings[s] for s in need])
+        starts.update({s: (np.concatenate([t, np.zeros(models[bearings[s]].n)]), h)
+                       for s, t, h in zip(need, thetas, how)})
+    for s in live:
+        if froms[s] is not None:
+            starts[s] = _initial(probs[s], built[s][1], models[bearings[s]], froms[s])
+    for b, model in models.items():
+        members = [s for s in live if bearings[s] == b]
+        if not members:
+            continue
+        sols = solve_sets([starts[s][0] for s in members], [probs[s] for s in members], model, max_steps)
+        for s, sol in zip(members, sols):
+            try:
+                out[s] = result_at(sol, probs[s], built[s][1], model, starts[s][1], thresholds)
+            except FitError as exc:
+                out[s] = exc
+    for s in live:
+        if isinstance(out[s], BaseException):
+            continue
+        try:
+            out[s] = _finish(out[s], probs[s], built[s][1], dfs[s], models[bearings[s]], thresholds, rows[s],
+                             loss=loss, alpha=alpha if name_outliers else 0.0, debias=debias, seed=seed,
+                             inherited=inherited[s], name_outliers=name_outliers)
+        except _FAILURES as exc:
+            out[s] = exc
+    return out
+
+
+def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias, seed, inherited, name_outliers):
+    """A data set's result after its solve: the bias correction, the outlier test (or the robust loss) and the
+    plausibility flags."""
+    if debias and res.edm < EDM_MAX:
+        res = _debiased(res, prob, meta, model, thresholds, debias, seed)
+
+    def refit(p, start):
+        return _fit_once(p, meta, model, _initial(p, meta, model, start), thresholds)
+
+    if name_outliers:
+        res = screen(res, prob, meta, df, model, refit, loss, alpha, rows)
+    else:
+        res = dataclasses.replace(res, loss="linear", rows=rows, weights=np.asarray(prob.mask, dtype=float))
     if inherited:       # left out before this model was fitted: still named (as the ideal fit judged them)
         res = dataclasses.replace(res, outliers=inherited + tuple(res.outliers))
-    res = dataclasses.replace(res, implausible=tuple(plausibility.check_result(dict(zip(res.names, res.values)),
-                                                                                bearing)))
-    if throw:
-        res.raise_for_health()
-    return res
+    flags = plausibility.check_result(dict(zip(res.names, res.values)), model.bearing)
+    return dataclasses.replace(res, implausible=tuple(flags))
 
 
-def _fit_once(prob, meta, df, model, start_from, max_steps, thresholds, debias=0, seed=0) -> FitResult:
-    """One weighted least-squares fit of ``prob`` (its mask as row weights)."""
-    theta0, how = _initial(prob, meta, df, model, start_from)
-    # The ideal law from a closed-form seed needs a few steps; a second solve (another compilation) only when
-    # that was not enough.  Extended fits start further away (effects at their prior centre): one solve.
-    first = max_steps if model.n else min(FIRST_STEPS, max_steps)
-    theta, result, steps, edm, jac, z, rows = solve_and_measure(jnp.asarray(theta0), prob, model, max_steps=first,
-                                                                every_row=True)
-    if not edm < EDM_MAX and max_steps > first:  # a far start: give Levenberg-Marquardt room
-        theta, result, more, edm, jac, z, rows = solve_and_measure(theta, prob, model, max_steps=max_steps,
-                                                                   every_row=True)
-        steps = steps + more
-    if not edm < EDM_MAX and model.n and steps < max_steps:
-        # the effective-variance weights moved after the last round (strongly nonlinear models): one more
-        # solve with the same compiled function settles them
-        theta, result, more, edm, jac, z, rows = solve_and_measure(theta, prob, model, max_steps=max_steps,
-                                                                   every_row=True)
-        steps = steps + more
-    lm = "successful" if result == optx.RESULTS.successful else str(result)
-    theta = np.asarray(theta)
-    correction = None
-    if debias and edm < EDM_MAX:
-        from ambfit.estimation.debias import bootstrap_bias
-
-        correction = bootstrap_bias(theta, prob, prob.bias, n=debias, seed=seed, model=model)
-        theta = theta - correction.bias
-        jac, z = jacobian(jnp.asarray(theta), prob, model), standardized(jnp.asarray(theta), prob, model)
-        rows = row_jacobian(theta, prob, meta, model)
-    else:
-        rows = np.asarray(rows)[: len(prob.mask)][:, free_mask(prob, meta, model)]
-    res = _finish(theta, np.asarray(jac), np.asarray(z), float(edm), lm, int(steps), prob, meta, model, how,
-                  thresholds)
-    res = dataclasses.replace(res, jacobian_rows=rows)
-    if correction is not None:
-        res = _with_correction(res, correction, prob, meta)
-    return res
+def _checked(values, n: int, name: str) -> np.ndarray:
+    values = np.asarray(values, dtype=float)
+    if values.shape != (n,):
+        raise ValueError(f"{name} needs one value per row ({n}), got shape {values.shape}")
+    return values
 
 
-def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.ndarray:
-    """Studentized residuals of every row at ``res`` (fit weights from ``prob.mask``)."""
-    # measured with the solve (same theta, same model)
-    jac = res.jacobian_rows if res.jacobian_rows is not None else row_jacobian(res.theta, prob, meta, model)
-    w = np.asarray(prob.mask) ** 2
-    return robust.studentized(jac, res.residuals, w > 0, w, known_noise=not meta.noise_estimated)
+def _fit_once(prob: Problem, meta: Meta, model: Model, start: tuple[np.ndarray, str],
+              thresholds: Thresholds) -> FitResult:
+    """One weighted least-squares fit of ``prob`` (its mask as row weights) from ``start = (theta, how)``."""
+    sol = solve_sets([start[0]], [prob], model, thresholds.max_steps)[0]
+    return result_at(sol, prob, meta, model, start[1], thresholds)
 
 
-def _reweighted(res, prob, meta, df, model, max_steps, thresholds, loss, base):
-    """Iteratively reweighted least squares with the robust ``loss`` from ``res``: ``(result, weights)``."""
-    w = base.copy()
-    for _ in range(robust.MAX_ROUNDS):
-        t = _studentized(res, prob.with_mask(np.sqrt(w)), meta, model)
-        new = base * robust.weights(t, loss)
-        if np.max(np.abs(new - w)) < 1e-3:
-            break
-        w = new
-        res = _fit_once(prob.with_mask(np.sqrt(w)), meta, df, model, res, max_steps, thresholds)
-    return res, w
+def _debiased(res: FitResult, prob: Problem, meta: Meta, model: Model, thresholds: Thresholds, n: int,
+              seed: int) -> FitResult:
+    """``res`` less its parametric-bootstrap bias (:mod:`ambfit.estimation.debias`), measured again there."""
+    import jax.numpy as jnp
 
+    from ambfit.estimation.core import jacobian, standardized
+    from ambfit.estimation.debias import bootstrap_bias
+    from ambfit.estimation.lm import Solution
 
-def _robust(res, prob, meta, df, model, max_steps, thresholds, loss, alpha, rows) -> FitResult:
-    """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``.
-
-    The test judges each reading against a fit the outliers cannot drag (Cauchy reweighting; one reading 17 σ
-    off pulls plain least squares so far that its neighbours look off too), then leaves the outliers out and
-    refits by plain least squares, repeating until no new reading is beyond the bound.
-    """
-    base = np.asarray(prob.mask, dtype=float)
-    if not np.all(np.isfinite(res.residuals[base > 0])):
-        return res
-    # (a plain fit dragged by gross outliers may not converge within its step budget; the robust rounds start
-    # from it and are judged by their own convergence)
-    plain = res
-    if loss in ("huber", "cauchy"):
-        res, w = _reweighted(res, prob, meta, df, model, max_steps, thresholds, loss, base)
-        return dataclasses.replace(res, loss=loss, weights=w, rows=rows, plain_shift=_shift(plain, res))
-    if alpha <= 0:                                     # no outlier test
-        return dataclasses.replace(res, loss=loss, rows=rows, weights=base)
-    fitted = base > 0
-    limit = robust.threshold(int(fitted.sum()), alpha)
-    if not np.any(np.abs(_studentized(res, prob, meta, model)[fitted]) > limit):
-        return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
-    anchor, _ = _reweighted(res, prob, meta, df, model, max_steps, thresholds, "cauchy", base)
-    out = (np.abs(_studentized(anchor, prob.with_mask(base), meta, model)) > limit) & fitted
-    cur = prob
-    for _ in range(robust.MAX_ROUNDS):
-        if out.sum() > robust.MAX_FRACTION * fitted.sum():
-            return dataclasses.replace(plain, loss=loss, rows=rows, weights=base, outlier_note=(
-                f"{int(out.sum())} readings lie beyond the outlier bound |t| > {limit:.2f}: more than "
-                f"{robust.MAX_FRACTION:.0%} of the data, so not a few bad readings but a model that does not fit "
-                "them (none was left out); run ambfit diagnose"))
-        if loss == "linear" or not out.any():
-            break
-        cur = prob.with_mask(base * ~out)
-        res = _fit_once(cur, meta, df, model, res, max_steps, thresholds)
-        # judged again against the fit without them (a left-out reading is tested as a prediction)
-        new = (np.abs(_studentized(res, cur, meta, model)) > limit) & fitted
-        if np.array_equal(new, out):
-            break
-        out = new
-    if loss == "linear":
-        res, cur = plain, prob
-    t = _studentized(res, cur, meta, model)
-    found = tuple(_outlier(j, t[j], df, res, prob, rows) for j in np.nonzero(out)[0])
-    return dataclasses.replace(res, loss=loss, rows=rows, weights=np.asarray(cur.mask) ** 2, outliers=found,
-                               plain_shift=_shift(plain, res) if found and loss == "auto" else None)
-
-
-def _shift(plain: FitResult, res: FitResult) -> dict:
-    """How far plain least squares sits from ``res``, per head parameter, in ``res``'s standard errors."""
-    return {n: (plain.value(n) - res.value(n)) / res.error(n) for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
-            if n in res.names and n in plain.names and res.error(n) > 0}
-
-
-def _outlier(j: int, t: float, df: pd.DataFrame, res: FitResult, prob: Problem, rows) -> robust.Outlier:
-    """The record of row ``j`` (0-based in ``df``): its reading and the values that would make it fit."""
-    r = df.iloc[j]
-    ax = str(r["axis"])
-    own = f"{ax}_um"
-    reading = {"i_top_A": float(r["i_top_A"]), "i_bottom_A": float(r["i_bottom_A"]), own: float(r[own])}
-    if "load_N" in df.columns and np.isfinite(r["load_N"]):
-        reading["load_N"] = float(r["load_N"])
-    vals = dict(zip(res.names, res.values))
-    g0, x0 = vals.get(f"g_{ax}0", np.nan), vals.get(f"{ax}0", 0.0)
-    k = vals.get(f"k_{ax}", K_REFERENCE)
-    load = float(np.asarray(prob.load)[j]) if bool(np.asarray(prob.known)[j]) else \
-        vals.get(f"load[{load_groups(df).iloc[j]}]", np.nan)
-    alt = {}
-    if np.isfinite(g0) and np.isfinite(load):
-        alt = robust.fits_with(reading["i_top_A"], reading["i_bottom_A"], reading[own] * 1e-6, load, g0, x0, k,
-                               res.bearing.cos_alpha)
-        if "x_um" in alt:
-            alt[own] = alt.pop("x_um")
-    return robust.Outlier(row=int(rows[j]), axis=ax, t=float(t), reading=reading, fits_with=alt)
+    correction = bootstrap_bias(res.theta, prob, prob.bias, n=n, seed=seed, model=model)
+    theta = res.theta - correction.bias
+    t = jnp.asarray(theta)
+    sol = Solution(theta=theta, result=res.optimistix, steps=res.num_steps, edm=res.edm,
+                   jac=np.asarray(jacobian(t, prob, model)), z=np.asarray(standardized(t, prob, model)),
+                   jac_all=np.asarray(jacobian(t, prob.with_mask(np.ones(len(prob.mask))), model)))
+    res = result_at(sol, prob, meta, model, res.start, thresholds)
+    free = free_mask(prob, meta)
+    scale = si_scale(prob)[0][free]
+    return dataclasses.replace(res, bias_correction={
+        "n": correction.n, "converged_fraction": correction.converged_fraction,
+        **{n: {"subtracted": float(b), "mc_error": float(e)}
+           for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
 
 
 def _require_k(meta: Meta):
@@ -377,22 +359,8 @@ def _require_k(meta: Meta):
                        "the gap and origin do not need it")
 
 
-def _with_correction(res: FitResult, correction, prob: Problem, meta: Meta) -> FitResult:
-    """The result with the bootstrap's subtracted bias recorded per parameter (SI units)."""
-    free = free_mask(prob, meta)
-    scale = si_scale(prob)[0][free]
-    return dataclasses.replace(res, bias_correction={
-        "n": correction.n, "converged_fraction": correction.converged_fraction,
-        **{n: {"subtracted": float(b), "mc_error": float(e)}
-           for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
-
-
-def _initial(prob, meta, df, model, start_from):
-    """The scaled start vector and how it was found: a given fit's estimate (effects at their prior centre)
-    or the closed form / grid."""
-    if start_from is None:
-        theta, how = start(prob, meta, df, model.bearing)
-        return np.concatenate([theta, np.zeros(model.n)]), how
+def _initial(prob: Problem, meta: Meta, model: Model, start_from: FitResult) -> tuple[np.ndarray, str]:
+    """The scaled start vector from another fit's estimate (effects at their prior centre) and how it was found."""
     if start_from.model == model.name and len(start_from.theta) == len(si_scale(prob, model)[0]):
         return np.asarray(start_from.theta), start_from.start      # a refit of the same model (robust rounds)
     vals = dict(zip(start_from.names, start_from.values))
@@ -401,72 +369,29 @@ def _initial(prob, meta, df, model, start_from):
                      [vals.get("k_v", K_REFERENCE), vals.get("k_w", K_REFERENCE)],
                      [vals.get(f"load[{g}]", 0.0) for g in meta.load_groups])
     if not meta.load_groups:
-        theta = seed_loads_and_k(theta, prob, Model.of((), model.bearing))
+        theta = seeds.seed_loads_and_k(theta, prob, model.bearing)
     return np.concatenate([theta, np.zeros(model.n)]), f"from the {start_from.model} fit"
 
 
-def _finish(theta, jac, z, edm, lm, steps, prob, meta, model, how, thresholds) -> FitResult:
-    """Covariance, conditioning and the result record from the Jacobian ``jac`` and standardized residuals ``z``
-    at the solution ``theta``."""
-    free = free_mask(prob, meta, model)
-    names = free_names(meta, free, model)
-    used = np.asarray(prob.mask) > 0
-    j = jac[:, free]
-    dof = int(used.sum()) - int(free.sum())
-    if dof < 1:
-        raise FitError(f"the design does not identify the parameters: {int(used.sum())} readings for "
-                       f"{int(free.sum())} parameters (no redundancy); add positions, biases or repetitions")
-    bad = (~np.isfinite(z[: len(used)]) | ~np.all(np.isfinite(jac[: len(used)]), axis=1)) & used
-    if bad.any() or not np.all(np.isfinite(theta)):
-        first = int(np.argmax(bad)) + 1 if bad.any() else None
-        raise FitError(f"the force law gives non-finite values{f' on {int(bad.sum())} row(s), the first row {first}' if first else ''}"
-                       " at the estimate (a pole gap closed, or currents and positions the law cannot use); check "
-                       "those rows' units and values (ambfit check)")
-    norms = np.linalg.norm(j, axis=0)
-    js = j / np.where(norms > 0, norms, 1.0)
-    try:
-        _, sv, vt = np.linalg.svd(js, full_matrices=False)
-    except np.linalg.LinAlgError:
-        raise FitError("the fit's Jacobian could not be decomposed (SVD did not converge): the readings span "
-                       "values the force law cannot handle; check units and extreme values (ambfit check)") from None
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
-    scale, offset = si_scale(prob, model)
-    weight = np.asarray(prob.mask, dtype=float) ** 2     # 1, a robust loss's weight, or 0 for a left-out row
-    chi2 = float(np.sum(weight[used] * z[used] ** 2))
-    if cond < 1e15:
-        cov_s = np.linalg.pinv(js.T @ js) / np.outer(norms, norms)
-    else:
-        cov_s = np.full((len(names), len(names)), np.inf)
-    if meta.noise_estimated:
-        cov_s = cov_s * chi2 / dof
-    cov = cov_s * np.outer(scale[free], scale[free])
-    std = np.sqrt(np.abs(np.diag(cov)))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(std, std)
-    noise = meta.noise_source
-    if meta.noise_estimated:
-        noise += f" (current noise estimate {np.sqrt(chi2 / dof):.3g} mA)"
-    fitted = model.build(jnp.asarray(theta[len(theta) - model.n:]))
-    return FitResult(
-        names=names, values=offset[free] + theta[free] * scale[free], std=std, cov=cov, corr=corr, chi2=chi2,
-        dof=dof, residuals=z, edm=edm, optimistix=lm, num_steps=steps, condition=cond,
-        weak_direction=describe_weakness(names, corr, vt[-1]), noise_source=noise, noise_estimated=meta.noise_estimated,
-        start=how, k_free=meta.k_free, n_rows=meta.n_rows, n_fit_rows=int(used.sum()), effects=fitted,
-        model=model.name, bearing=model.bearing, theta=theta, thresholds=thresholds)
-
-
-def fit_by(data: Dataset | pd.DataFrame, column: str = "experiment", **kw) -> dict:
-    """:func:`fit` on each value of ``column`` separately (a table like the paper's Tables 1-4).
+def fit_by(data: Dataset | pd.DataFrame, column: str = "experiment", *, throw: bool = True, **kw) -> dict:
+    """:func:`fit` on each value of ``column`` separately (a table like the paper's Tables 1-4), the groups solved
+    together (:func:`fit_many`).
 
     Returns ``{value: FitResult or FitError}`` so one failing group does not hide the others.
     """
     df = data.frame if isinstance(data, Dataset) else data
     if column not in df.columns:
         raise FitError(f"no column {column!r} to split the data by")
+    groups = [(key, grp.reset_index(drop=True)) for key, grp in df.groupby(df[column].astype(str), sort=False)]
     out = {}
-    for key, grp in df.groupby(df[column].astype(str), sort=False):
-        try:
-            out[key] = fit(grp.reset_index(drop=True), **kw)
-        except FitError as exc:
-            out[key] = exc
+    for (key, _), res in zip(groups, fit_many([g for _, g in groups], **kw)):
+        if not isinstance(res, BaseException) and throw:
+            try:
+                res.raise_for_health()
+            except FitError as exc:
+                res = exc
+        if isinstance(res, BaseException) and not isinstance(res, FitError):
+            raise res
+        out[key] = res
     return out
+

@@ -14,6 +14,7 @@ import dataclasses
 import hashlib
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
@@ -184,3 +185,137 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x) -> tuple[Problem, Meta]:
                    load=jnp.asarray(np.nan_to_num(load)), known=jnp.asarray(known), gidx=jnp.asarray(gidx),
                    k_free=jnp.asarray(k_free), mask=jnp.asarray(m), s_held=jnp.zeros(len(df)))
     return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
+
+
+# --- many data sets: one joined build ---------------------------------------------------------------------------
+
+_ROW_COLUMNS = ("axis", "bias_A", "i_top_A", "i_bottom_A", "v_um", "w_um", "load_N", "load_id", "experiment",
+                "iteration", "time_s", "temperature_C", "i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um",
+                "v_set_um", "w_set_um")
+_SEP = "\x1f"     # joins a data set's number to its labels in the joined table (a character no label contains)
+
+
+def _join_keys(joined: pd.DataFrame, frames: list[pd.DataFrame], set_id: np.ndarray, sigma_i, sigma_x) -> list:
+    """What :func:`build_problem` decides for each whole table: whether the current and the position noise come
+    from complete std columns (or a declared level), and which of the columns that name load groups, experiments,
+    times and temperatures it has.  Data sets that agree are built as one joined table."""
+    n = len(frames)
+    has = {c: np.array([c in f.columns for f in frames]) for c in (*_ROW_COLUMNS,)}
+
+    def complete(values, present):
+        return present & (np.bincount(set_id, weights=np.isnan(values), minlength=n) == 0)
+
+    def col(name):
+        return joined[name].to_numpy(float) if name in joined else np.full(len(joined), np.nan)
+
+    if sigma_i is not None:
+        cur = np.ones(n, bool)
+    else:
+        cur = complete(col("i_top_std_A"), has["i_top_std_A"]) & complete(col("i_bottom_std_A"), has["i_bottom_std_A"])
+    if sigma_x is not None:
+        pos = np.ones(n, bool)
+    else:
+        w = (joined["axis"] == "w").to_numpy()
+        pos = complete(np.where(w, col("w_std_um"), col("v_std_um")), np.ones(n, bool))
+    return list(zip(cur, pos, *(has[c] for c in ("load_id", "experiment", "time_s", "temperature_C"))))
+
+
+def _slicer(prob: Problem):
+    """A function ``(lo, hi, k_free, gidx) -> Problem`` of rows ``lo:hi`` of ``prob`` (NumPy leaves), built from
+    the flattened problem: thousands of data sets' problems without a module constructor each."""
+    paths, tree = jax.tree_util.tree_flatten_with_path(prob)
+    names = [jax.tree_util.keystr(path) for path, _ in paths]
+    leaves = [np.asarray(leaf) for _, leaf in paths]
+
+    def rows(lo, hi, k_free, gidx):
+        out = []
+        for name, leaf in zip(names, leaves):
+            out.append(np.asarray(k_free) if name.endswith(".k_free") else gidx if name.endswith(".gidx")
+                       else leaf[lo:hi])
+        return jax.tree_util.tree_unflatten(tree, out)
+
+    return rows
+
+
+def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
+    """:func:`build_problem` once for the rows of many data sets (``lengths`` rows each, one after another), each
+    data set's experiments and load groups prefixed with its number so that nothing is shared.  Returns
+    ``(Problem, Meta)`` per data set (NumPy leaves)."""
+    prefix = np.repeat(np.array([f"{s}{_SEP}" for s in range(len(lengths))], dtype=object), lengths)
+    joined = joined.copy()
+    joined["experiment"] = prefix + (joined["experiment"].astype(str).to_numpy(object) if "experiment" in joined
+                                     else "")
+    if "load_id" in joined:
+        joined["load_id"] = prefix + joined["load_id"].astype(str).to_numpy(object)
+    prob, meta = _build(joined, sigma_i, sigma_x)
+    rows = _slicer(prob)
+    offsets = np.cumsum([0] + list(lengths))
+    gidx_all, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
+    out = []
+    for s in range(len(lengths)):
+        lo, hi = offsets[s], offsets[s + 1]
+        g = gidx_all[lo:hi]
+        first = int(g[g >= 0].min()) if (g >= 0).any() else 0
+        local = np.where(g >= 0, g - first, -1)
+        m = int(local.max(initial=-1)) + 1
+        a, kn = ax[lo:hi], known[lo:hi]
+        k_free = tuple(bool(kn[a == i].any()) for i in range(2))
+        present = tuple(bool((a == i).any()) for i in range(2))
+        # the data set's own labels (ambfit.data.load_groups of it alone): the joined ones without the prefix
+        names = [lab.replace(f"{s}{_SEP}", "", 1) for lab in meta.load_groups[first:first + m]]
+        out.append((rows(lo, hi, k_free, local),
+                    Meta(load_groups=names, k_free=k_free, axes_present=present, noise_source=meta.noise_source,
+                         n_rows=int(hi - lo))))
+    return out
+
+
+def build_problems(frames: list[pd.DataFrame], *, sigma_i: float | None = None, sigma_x: float | None = None):
+    """:func:`build_problem` of many 0-based tables: ``(table, built, offsets)`` with ``built[s]`` the ``(Problem,
+    Meta)`` of ``frames[s]`` or the exception its build raised, and ``table`` the data sets' rows one after another
+    (data set ``s`` at ``offsets[s]:offsets[s+1]``, no experiment label shared between data sets).
+
+    One table is built as itself (and cached, see :func:`build_problem`); many are concatenated, and those whose
+    builds decide alike (:func:`_join_keys`) are built as one table, which is what makes a study of thousands of
+    small data sets cheap.  A joined build that fails is repeated per data set, so each error names its own table.
+    """
+    from ambfit.data import DataError
+
+    n = len(frames)
+    lengths = [len(f) for f in frames]
+    offsets = np.cumsum([0] + lengths)
+    built: list = [None] * n
+    if n == 1:
+        try:
+            built[0] = build_problem(frames[0], sigma_i=sigma_i, sigma_x=sigma_x)
+        except (DataError, ValueError, KeyError) as exc:
+            built[0] = exc
+        return frames[0], built, offsets
+    joined = pd.concat(frames, ignore_index=True, sort=False)     # every column of any table; NaN where it lacks it
+    set_id = np.repeat(np.arange(n), lengths)
+    keys = _join_keys(joined, frames, set_id, sigma_i, sigma_x)
+    for key in dict.fromkeys(keys):
+        members = [s for s in range(n) if keys[s] == key]
+        cols = [c for c in joined.columns if any(c in frames[s].columns for s in members)]
+        part = joined if len(members) == n else joined[np.isin(set_id, members)]
+        try:
+            for s, b in zip(members, _build_joined(part[cols].reset_index(drop=True), [lengths[s] for s in members],
+                                                   sigma_i, sigma_x)):
+                built[s] = b
+        except (DataError, ValueError, KeyError):
+            for s in members:                   # the single build names the data set and the problem
+                try:
+                    built[s] = _build(frames[s], sigma_i, sigma_x)
+                except (DataError, ValueError, KeyError) as exc:
+                    built[s] = exc
+    return _table(joined, lengths), built, offsets
+
+
+def _table(joined: pd.DataFrame, lengths: list[int]) -> pd.DataFrame:
+    """The columns that name iterations, biases and positions of the joined rows, each experiment label prefixed
+    with its data set's number."""
+    table = joined[[c for c in ("axis", "bias_A", "v_um", "w_um", "v_set_um", "w_set_um") if c in joined]].copy()
+    table["iteration"] = joined["iteration"].fillna(1).to_numpy() if "iteration" in joined else 1
+    prefix = np.repeat(np.array([f"{s}{_SEP}" for s in range(len(lengths))], dtype=object), lengths)
+    exp = joined["experiment"].astype(str).to_numpy(object) if "experiment" in joined else ""
+    table["experiment"] = prefix + exp
+    return table

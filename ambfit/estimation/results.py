@@ -391,3 +391,21 @@ def _held_fields(effect) -> dict:
     as plain lists: what a model file needs besides the estimates to give the same forces."""
     return {f: np.asarray(getattr(effect, f), dtype=float).tolist() for f in type(effect).RANGES
             if f not in effect.ranges()}
+
+
+def table(results: Sequence):
+    """Many fits as one table (a study's estimates): a row per fit of :func:`ambfit.estimation.fit.fit_many`, with
+    each parameter's value and ``<name>_std`` [SI], ``converged``, ``chi2``, ``dof`` and ``num_steps``; a data set
+    whose fit raised has NaN estimates and its message in ``error``."""
+    import pandas as pd
+
+    rows = []
+    for res in results:
+        if isinstance(res, BaseException):
+            rows.append({"error": str(res), "converged": False})
+            continue
+        row = dict(zip(res.names, res.values))
+        row.update({f"{n}_std": s for n, s in zip(res.names, res.std)})
+        row.update(converged=res.converged, chi2=res.chi2, dof=res.dof, num_steps=res.num_steps, error="")
+        rows.append(row)
+    return pd.DataFrame(rows)

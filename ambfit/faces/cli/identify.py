@@ -620,17 +620,15 @@ def _finish_group(prep: _Prepared, name: str, opts: _Options, say=say, res=None)
 
 
 def _batched(opts: _Options) -> bool:
-    """Whether the groups' fits can run as one vmapped batch (:func:`ambfit.estimation.batch.fit_many`): plain
-    least squares of the ideal law (with its outlier test), no bias correction."""
-    return opts.method is Method.least_squares and opts.loss in ("auto", "linear") and not opts.debias
+    """Whether the groups' fits run as one batch (:func:`ambfit.estimation.fit.fit_many`): every least-squares fit."""
+    return opts.method is Method.least_squares
 
 
 def _groups_task(chunk: list, opts: _Options) -> list:
     """One engine task: the entries of a chunk of ``(group label, Dataset)`` and each group's messages
-    (``[(kind, text)]``), as the in-process loop would show them.  Plain least squares runs as one vmapped batch
-    of the chunk's groups; everything else (and every group whose outlier test finds a reading) is fitted by
-    :func:`ambfit.estimation.fit.fit`, as in this process."""
-    from ambfit.estimation import batch
+    (``[(kind, text)]``), as the in-process loop would show them.  Least squares runs as one batch of the chunk's
+    groups (:func:`ambfit.estimation.fit.fit_many`)."""
+    from ambfit.estimation.fit import fit_many
 
     out, preps = [], []
     for name, ds in chunk:
@@ -639,7 +637,7 @@ def _groups_task(chunk: list, opts: _Options) -> list:
         out.append(messages)
     fits = [None] * len(chunk)
     if _batched(opts):
-        fits = batch.fit_many([p.ds for p in preps], **opts.fit_kw())
+        fits = fit_many([p.ds for p in preps], **opts.fit_kw())
     return [(_finish_group(p, name, opts, _collector(messages), res), messages)
             for (name, _), p, res, messages in zip(chunk, preps, fits, out)]
 

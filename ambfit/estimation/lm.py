@@ -1,0 +1,378 @@
+"""The least-squares solve: Levenberg-Marquardt over the effective-variance residuals, one data set or many.
+
+:func:`solve` runs ``REWEIGHTINGS`` rounds of Levenberg-Marquardt, each with the effective-variance weights held
+at its start, then measures the solution (every row's Jacobian and standardized residual) with the same
+evaluation of the model, and returns a :class:`Solution`.  It is jit- and vmap-safe.
+
+:func:`solve_sets` is the schedule every fit runs (:func:`ambfit.estimation.fit.fit_many`): a first budget of
+steps, then more for the data sets not yet converged.  A data set alone is solved at its own shape; several are
+padded to a few bucket shapes and solved by one vmapped program per bucket, so a study of thousands of data sets
+compiles a handful of programs.
+
+The iteration is optimistix's ``LevenbergMarquardt`` written out (damped Newton steps with step size
+``1/lambda`` by QR, its ``ClassicalTrustRegion``: accept when the loss falls by 1 % of the predicted reduction,
+step size x3.5 above 99 %, x0.25 on rejection; Cauchy termination at ``rtol = atol = RTOL``; its first step
+evaluates the start), plus a stop of ours when the round's EDM is below :data:`EDM_ROUND`.  Written out so that
+one place in the program evaluates the model (force, noise and Jacobian, :func:`ambfit.estimation.core.measured`):
+a round's start, each trial point and the solution; each further place is traced and compiled again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ambfit.estimation.core import EDM_MAX, IDEAL, Model, Problem, measured, weighted
+
+REWEIGHTINGS = 2
+"""Rounds of solving with the effective-variance weights held fixed, then re-evaluated at the estimate.
+
+Holding the weights fixed within a round gives Levenberg-Marquardt a consistent objective (its trust-region ratio
+test otherwise rejects steps when the weights move); a second round at the first round's estimate reproduces the
+fully reweighted solution to 9 digits on the rig designs (a third changes nothing)."""
+
+EDM_ROUND = 1e-2 * EDM_MAX
+"""A round also stops once its estimated distance to the minimum (with the round's weights) is below this: every
+parameter within 1e-4 standard errors of the round's optimum.  Near the optimum the Cauchy test waits for a step
+that changes neither theta nor the residuals by 1e-6 relative while the trust region rejects steps on round-off;
+the estimates it gives are the same to 1e-8 relative."""
+
+FIRST_STEPS = 3
+"""Steps per round of the ideal law's first solve from a closed-form or grid start: enough for every one of 60 rig
+data sets (three designs, random gaps and origins) to reach ``EDM_MAX``; 2 left 23 of them short.  A data set not
+there yet gets a second solve of ``max_steps``."""
+
+RTOL = 1e-6
+"""Levenberg-Marquardt's own stopping tolerance (relative and absolute, on the step and on the residuals).
+Convergence is judged by ``EDM_MAX``; a tighter tolerance only adds steps rejected on round-off near the optimum."""
+
+
+class Solution(NamedTuple):
+    """What a solve returns (a pytree: jit- and vmap-safe; leading batch axes under ``vmap``).
+
+    Attributes
+    ----------
+    theta : array[p]
+        The scaled parameter vector at the solution (:mod:`ambfit.estimation.core`).
+    result : optimistix.RESULTS or str
+        The last round's outcome: ``successful`` when the Cauchy test or :data:`EDM_ROUND` stopped it, else
+        ``nonlinear_max_steps_reached``; :func:`solve_sets` gives it as text.
+    steps : int
+        Levenberg-Marquardt steps of all rounds.
+    edm : float
+        Estimated distance to the minimum (:func:`distance`); convergence is ``edm < EDM_MAX``.
+    jac : array[rows + priors, p]
+        Jacobian of the weighted residuals (rows weighted by the problem's mask), noise held.
+    jac_all : array[rows + priors, p]
+        The same with every row at weight 1 (outlier tests and leverages of held-out rows need it).
+    z : array[rows]
+        ``(F - L) / s_eff`` of every row.
+    """
+
+    theta: jnp.ndarray
+    result: optx.RESULTS | str
+    steps: jnp.ndarray
+    edm: jnp.ndarray
+    jac: jnp.ndarray
+    jac_all: jnp.ndarray
+    z: jnp.ndarray
+
+    @property
+    def converged(self):
+        return self.edm < EDM_MAX
+
+
+class _State(NamedTuple):
+    """The solver's state between two evaluations of the model."""
+
+    y: jnp.ndarray              # the accepted point
+    r: jnp.ndarray              # its weighted residuals
+    jac: jnp.ndarray            # and Jacobian
+    s: jnp.ndarray              # the round's effective noise std (held within a round)
+    step_size: jnp.ndarray      # 1 / lambda
+    steps: jnp.ndarray          # steps of this round
+    y_eval: jnp.ndarray         # the next point to evaluate
+    start: jnp.ndarray          # y_eval starts a round
+    round: jnp.ndarray
+    total: jnp.ndarray          # steps of all rounds
+    result: optx.RESULTS
+    final: jnp.ndarray          # the last evaluation (the solution's) is done
+    at: tuple                   # the last evaluation: (F - L, s_eff, d(F - L)/d theta)
+
+
+# --- one compiled solve for a set of models ------------------------------------------------------------------
+#
+# A diagnosis fits a dozen models; traced and compiled one by one, the Levenberg-Marquardt machinery is built
+# again for each and dominates a cold start.  Within :func:`compiled_together` the models of a set share one
+# compiled solve: theta is padded to the widest model's effect parameters (the padding's prior residuals hold
+# it at 0), the model's evaluation is a ``lax.switch`` over the members, and only the member fitted runs.
+
+_TOGETHER: contextvars.ContextVar[tuple] = contextvars.ContextVar("ambfit_models_together", default=())
+
+
+@contextlib.contextmanager
+def compiled_together(models: Sequence[Model]):
+    """Within this block, a solve of any model shaped like one of ``models`` runs the one compiled solve of
+    the whole set (one compilation instead of one per model; the fit is the same)."""
+    models = tuple(models)
+    token = _TOGETHER.set((models, [_shape(m) for m in models]))      # the members' shapes, once per block
+    try:
+        yield
+    finally:
+        _TOGETHER.reset(token)
+
+
+def _shape(model: Model):
+    leaves, tree = jax.tree_util.tree_flatten(model)
+    return tree, tuple(np.shape(x) for x in leaves)
+
+
+def _members(model: Model) -> tuple[tuple, int]:
+    """The set ``model`` is solved in and its index there (itself alone outside :func:`compiled_together`)."""
+    if _TOGETHER.get():
+        group, shapes = _TOGETHER.get()
+        key = _shape(model)
+        if key in shapes:
+            i = shapes.index(key)
+            return group[:i] + (model,) + group[i + 1:], i
+    return (model,), 0
+
+
+def _damped_step(jac, r, step_size):
+    """The Levenberg-Marquardt step from ``(J, r)``: the least-squares solution of ``[J; sqrt(1/step_size) I] x =
+    [r; 0]`` by QR (optimistix's ``DampedNewtonDescent`` with lineax's QR; the step is ``-x``)."""
+    ok = step_size > jnp.finfo(step_size.dtype).eps
+    damping = jnp.where(ok, 1.0 / jnp.where(ok, step_size, 1.0), jnp.finfo(step_size.dtype).max)
+    p = jac.shape[1]
+    q, upper = jnp.linalg.qr(jnp.concatenate([jac, jnp.sqrt(damping) * jnp.eye(p)]), mode="reduced")
+    return jax.scipy.linalg.solve_triangular(upper, q.T @ jnp.concatenate([r, jnp.zeros(p)]), lower=False)
+
+
+def distance(jac, r):
+    """``g^T (J^T J)^-1 g`` with ``g = J^T r``: the χ² a full Gauss-Newton step would still gain.  Held parameters
+    (k without a known load, loads of held-out groups) have zero columns: unit diagonal, zero gradient; a singular
+    ``J^T J`` otherwise gives inf/nan, i.e. "not converged", and the identifiability checks then say why."""
+    g, h = jac.T @ r, jac.T @ jac
+    return g @ jnp.linalg.solve(h + jnp.diag(jnp.where(jnp.diag(h) == 0, 1.0, 0.0)), g)
+
+
+def _cauchy(y, y_diff, f, f_diff):
+    """Optimistix's Cauchy termination: both the step and the change of the residuals are small (max norm)."""
+    y_done = jnp.max(jnp.abs(y_diff) / (RTOL + RTOL * jnp.abs(y))) < 1
+    return y_done & (jnp.max(jnp.abs(f_diff) / (RTOL + RTOL * jnp.abs(f))) < 1)
+
+
+@eqx.filter_jit
+def _solve_in(theta0, prob, models, index, budget) -> Solution:
+    """``REWEIGHTINGS`` rounds of at most ``budget`` steps (a traced number: every budget runs the same program),
+    then the measurements at the solution; see the module docstring."""
+    n = max(m.n for m in models)
+    p = theta0.shape[0]
+    branches = [lambda th, m=m: measured(th, prob, m, p - n + m.n) for m in models]
+
+    def measure(theta):
+        return branches[0](theta) if len(models) == 1 else jax.lax.switch(index, branches, theta)
+
+    def body(c: _State) -> _State:
+        f, s_now, jf = measure(c.y_eval)
+        start, final = c.start, c.start & (c.round == REWEIGHTINGS)
+        s = jnp.where(start, s_now, c.s)                    # a round holds the weights of its start
+        r_e, j_e = weighted(c.y_eval, (f, s, jf), prob.mask, n)
+        # the trust region (a round's start is always accepted, its step size reset to 1)
+        r, y = jnp.where(start, 0.0, c.r), jnp.where(start, c.y_eval, c.y)
+        loss_diff = 0.5 * (r_e @ r_e - r @ r)
+        predicted = 0.5 * (jnp.sum((c.jac @ (c.y_eval - y) + r) ** 2) - r @ r)
+        accept = start | (loss_diff <= 0.01 * predicted)
+        good = ~start & (loss_diff < 0.99 * predicted) & (predicted < 0)
+        step_size = jnp.where(start, 1.0, jnp.where(accept, jnp.where(good, 3.5, 1.0), 0.25) * c.step_size)
+        done = accept & _cauchy(c.y_eval, c.y_eval - y, r_e, r_e - r)
+        y, r, jac = (jnp.where(accept, new, old) for new, old in ((c.y_eval, y), (r_e, r), (j_e, c.jac)))
+        done = done | (accept & (distance(jac, r) < EDM_ROUND))
+        steps = jnp.where(start, 1, c.steps + 1)
+        over = done | (steps >= budget)
+        outcome = optx.RESULTS.where(done, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached)
+        return _State(y=y, r=r, jac=jac, s=s, step_size=step_size, steps=steps,
+                      y_eval=jnp.where(over, y, y - _damped_step(jac, r, step_size)), start=over,
+                      round=c.round + over.astype(int), total=c.total + jnp.where(final, 0, 1),
+                      result=optx.RESULTS.where(over & ~final, outcome, c.result),
+                      # the loop ends after the measurement at the solution: the last one is the solution's
+                      final=final, at=(f, s_now, jf))
+
+    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(measure, theta0))
+    m = blank[0].shape[0] + n
+    init = _State(y=theta0, r=jnp.zeros(m), jac=jnp.zeros((m, p)), s=blank[1], step_size=jnp.asarray(1.0),
+                  steps=jnp.asarray(0), y_eval=theta0, start=jnp.asarray(True), round=jnp.asarray(0),
+                  total=jnp.asarray(0), result=optx.RESULTS.successful, final=jnp.asarray(False), at=blank)
+    c = jax.lax.while_loop(lambda c: ~c.final, body, init)
+    # the Jacobian with the noise held at the solution's: weighted as the fit weighs its rows, and every row at 1
+    r, j = weighted(c.y, c.at, prob.mask, n)
+    j_all = weighted(c.y, c.at, jnp.ones_like(prob.mask), n)[1]
+    f, s, _ = c.at
+    return Solution(theta=c.y, result=c.result, steps=c.total, edm=distance(j, r), jac=j, jac_all=j_all, z=f / s)
+
+
+def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS) -> Solution:
+    """Levenberg-Marquardt from ``theta0`` (scaled), at most ``max_steps`` steps per round (jit- and vmap-safe).
+
+    The solve of ``model`` runs in its set (see :func:`compiled_together`) and is cut back to the model's own
+    entries.  Called with concrete values, the padding and the cutting are done in NumPy (each eager JAX operation
+    is a dispatch, and a diagnosis solves a hundred times); under ``jit`` or ``vmap`` in JAX.
+    """
+    models, index = _members(model)
+    pad = max(m.n for m in models) - model.n
+    xp = jnp if isinstance(theta0, jax.core.Tracer) else np
+    if pad:
+        theta0 = xp.concatenate([xp.asarray(theta0), xp.zeros(pad)])
+    sol = _solve_in(theta0, prob, models, jnp.asarray(index), jnp.asarray(max_steps))
+    if xp is np:
+        sol = sol._replace(**{k: np.asarray(getattr(sol, k)) for k in ("theta", "steps", "edm", "jac", "jac_all", "z")})
+    if pad:
+        width, rows = sol.theta.shape[-1] - pad, sol.jac.shape[-2] - pad
+        sol = sol._replace(theta=sol.theta[..., :width], jac=sol.jac[..., :rows, :width],
+                           jac_all=sol.jac_all[..., :rows, :width])
+    return sol
+
+
+# --- many data sets: the schedule, buckets and padding ----------------------------------------------------------
+
+ROW_BUCKET_MIN = 16
+"""Shortest padded length; longer data sets are padded to the next power of two (16, 32, 64, 128, ... rows).
+Every bucket is a compilation while the padded solve itself is cheap, so few coarse buckets beat tight padding."""
+
+BATCH = 64
+"""Data sets per vmapped solve: a bucket's data sets are solved 64 at a time, the last batch padded with copies,
+so chunks of any size reuse one compiled shape per bucket."""
+
+BATCH_AGAIN = 8
+"""Data sets per vmapped later solve (the few that the first budget left short of convergence)."""
+
+
+def row_bucket(n: int) -> int:
+    """The padded length of a data set of ``n`` rows (see ``ROW_BUCKET_MIN``)."""
+    return max(ROW_BUCKET_MIN, 1 << (int(n) - 1).bit_length())
+
+
+def load_bucket(m: int) -> int:
+    """The padded number of nuisance loads: 0, 1, 2, 4, 8, ..."""
+    return 0 if m <= 0 else 1 << (int(m) - 1).bit_length()
+
+
+def pad(probs: Sequence[Problem], rows: int) -> Problem:
+    """Problems stacked into one batch of ``rows`` rows each: padded rows repeat a data set's first row with weight 0
+    and point at no load (zero residual, zero Jacobian row), so they cannot move an estimate."""
+
+    def stack(get, fill=None):
+        out = np.empty((len(probs), rows), dtype=np.asarray(get(probs[0])).dtype)
+        for b, p in enumerate(probs):
+            a = np.asarray(get(p))
+            out[b, :len(a)] = a
+            out[b, len(a):] = a[0] if fill is None else fill
+        return out
+
+    r = probs[0].readings
+    readings = type(r)(**{f: stack(lambda p, f=f: getattr(p.readings, f)) for f in r.__dataclass_fields__})
+    return Problem(readings=readings, s_top=stack(lambda p: p.s_top), s_bottom=stack(lambda p: p.s_bottom),
+                   s_x=stack(lambda p: p.s_x), load=stack(lambda p: p.load, 0.0), known=stack(lambda p: p.known, True),
+                   gidx=stack(lambda p: p.gidx, -1), k_free=np.stack([np.asarray(p.k_free) for p in probs]),
+                   mask=stack(lambda p: p.mask, 0.0), s_held=stack(lambda p: p.s_held, 0.0))
+
+
+@eqx.filter_jit
+def _vmapped(theta0, probs, model, max_steps) -> Solution:
+    return jax.vmap(lambda t, p: solve(t, p, model, max_steps=max_steps))(theta0, probs)
+
+
+def _text(ok: bool, result, b=None) -> str:
+    return "successful" if ok else str(result if b is None else jax.tree.map(lambda a: a[b], result))
+
+
+def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, max_steps: int,
+                 size: int) -> list[Solution]:
+    """:func:`solve` of each problem: alone at its own shape, or padded to its bucket and vmapped ``size`` at a
+    time (the last batch padded with copies of its first problem).  NumPy leaves, ``result`` as text."""
+    if len(probs) == 1:
+        sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps)
+        return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
+    out: list = [None] * len(probs)
+    keys = [(row_bucket(len(p.mask)), load_bucket(p.n_loads)) for p in probs]
+    for key in dict.fromkeys(keys):
+        rows, loads = key
+        members = [s for s, k in enumerate(keys) if k == key]
+        for lo in range(0, len(members), size):
+            part = members[lo:lo + size]
+            idx = part + [part[0]] * (size - len(part))
+            theta0 = np.zeros((size, 6 + loads + model.n))
+            for b, s in enumerate(idx):
+                t = np.asarray(thetas[s], dtype=float)
+                m = probs[s].n_loads
+                theta0[b, :6 + m], theta0[b, 6 + loads:] = t[:6 + m], t[6 + m:]
+            sol = _vmapped(theta0, pad([probs[s] for s in idx], rows), model, max_steps)
+            ok = np.asarray(sol.result == optx.RESULTS.successful)
+            theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
+                                                                            sol.jac_all, sol.z))
+            for b, s in enumerate(part):
+                m, nr = probs[s].n_loads, len(probs[s].mask)
+                cols = np.r_[0:6 + m, 6 + loads:6 + loads + model.n]
+                # rows: the data set's own, then the effect priors' (after the padded rows)
+                rws = np.r_[0:nr, rows:rows + model.n]
+                out[s] = Solution(theta=theta[b, cols], result=_text(ok[b], sol.result, b), steps=steps[b],
+                                  edm=edm[b], jac=jac[b][np.ix_(rws, cols)], jac_all=jac_all[b][np.ix_(rws, cols)],
+                                  z=z[b, :nr])
+    return out
+
+
+def solve_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model = IDEAL,
+               max_steps: int = 200) -> list[Solution]:
+    """Every problem's solve by the schedule of a fit: ``FIRST_STEPS`` per round for the ideal law from its
+    closed-form or grid start (``max_steps`` for a model with effects, which start further away), then
+    ``max_steps`` once more for the problems not converged (a model with effects: while its budget is not spent,
+    since its effective-variance weights can move after the last round).  Returns one :class:`Solution` per problem (NumPy leaves, ``steps``
+    summed over the solves)."""
+    first = max_steps if model.n else min(FIRST_STEPS, max_steps)
+    out = _solve_batch(list(thetas), list(probs), model, first, BATCH)
+    again = [s for s, sol in enumerate(out)
+             if not sol.converged and (max_steps > first or (model.n and sol.steps < max_steps))]
+    if again:
+        more = _solve_batch([out[s].theta for s in again], [probs[s] for s in again], model, max_steps, BATCH_AGAIN)
+        for s, sol in zip(again, more):
+            out[s] = sol._replace(steps=out[s].steps + sol.steps)
+    return out
+
+
+def precompile(rows: Sequence[int], loads: Sequence[int] = (0,), *, bearing=None, max_steps: int = 200) -> int:
+    """Compile the vmapped solves of :func:`solve_sets` for data sets of these row counts and numbers of nuisance
+    loads (both budgets' shapes of every bucket they fall in), so that a worker or a timed run does not pay it on
+    its first batch.  Compilation depends only on the shapes, so a synthetic table stands in for the data.
+    Returns the number of buckets compiled."""
+    import pandas as pd
+
+    from ambfit.estimation.core import K_REFERENCE, to_theta
+    from ambfit.estimation.problem import build_problem
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    bearing = PAPER_BEARING if bearing is None else bearing
+    model = Model.of((), bearing)
+    done = set()
+    for n in rows:
+        for m in loads:
+            r = max(int(n), int(m), 1)              # (rows of one axis: a load group is a load_id and an axis)
+            key = (row_bucket(r), load_bucket(m))
+            if key in done:
+                continue
+            done.add(key)
+            frame = pd.DataFrame({"axis": ["v"] * r, "bias_A": 1.5, "i_top_A": 1.6, "i_bottom_A": 1.4, "v_um": 0.0,
+                                  "w_um": 0.0, "load_N": np.nan if m else 5.0,
+                                  "load_id": [f"l{j % max(m, 1)}" for j in range(r)]})
+            prob, meta = build_problem(frame)
+            theta = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(len(meta.load_groups)))
+            for steps, size in ((min(FIRST_STEPS, max_steps), BATCH), (max_steps, BATCH_AGAIN)):
+                _solve_batch([theta, theta], [prob, prob], model, steps, size)
+    return len(done)

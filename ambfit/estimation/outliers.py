@@ -1,0 +1,119 @@
+"""Outliers: the test that names readings a fit cannot explain, and the robust losses' reweighting.
+
+:func:`screen` runs after every least-squares fit (:func:`ambfit.estimation.fit.fit_many`).  ``auto`` judges each
+reading's studentized residual against a Bonferroni bound (false-alarm probability ``alpha`` per data set) on a fit
+the outliers cannot drag (Cauchy reweighting), leaves the outliers out and refits until no new reading is beyond the
+bound; ``huber``/``cauchy`` reweight by their loss (:mod:`ambfit.estimation.robust`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+
+from ambfit.data import load_groups
+from ambfit.estimation import robust
+from ambfit.estimation.core import K_REFERENCE, Meta, Model, Problem, row_jacobian
+from ambfit.estimation.results import FitResult
+
+
+def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.ndarray:
+    """Studentized residuals of every row at ``res`` (fit weights from ``prob.mask``)."""
+    # measured with the solve (same theta, same model)
+    jac = res.jacobian_rows if res.jacobian_rows is not None else row_jacobian(res.theta, prob, meta, model)
+    w = np.asarray(prob.mask) ** 2
+    return robust.studentized(jac, res.residuals, w > 0, w, known_noise=not meta.noise_estimated)
+
+
+def _reweighted(res, prob, meta, model, refit, loss, base):
+    """Iteratively reweighted least squares with the robust ``loss`` from ``res``: ``(result, weights)``."""
+    w = base.copy()
+    for _ in range(robust.MAX_ROUNDS):
+        t = _studentized(res, prob.with_mask(np.sqrt(w)), meta, model)
+        new = base * robust.weights(t, loss)
+        if np.max(np.abs(new - w)) < 1e-3:
+            break
+        w = new
+        res = refit(prob.with_mask(np.sqrt(w)), res)
+    return res, w
+
+
+def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: Model, refit, loss: str,
+           alpha: float, rows: np.ndarray) -> FitResult:
+    """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``;
+    ``refit(prob, start)`` is the fit of ``prob`` (other row weights) from the result ``start``, ``rows`` the file
+    row of each row of ``df``.
+
+    The test judges each reading against a fit the outliers cannot drag (Cauchy reweighting; one reading 17 σ
+    off pulls plain least squares so far that its neighbours look off too), then leaves the outliers out and
+    refits by plain least squares, repeating until no new reading is beyond the bound.
+    """
+    base = np.asarray(prob.mask, dtype=float)
+    if not np.all(np.isfinite(res.residuals[base > 0])):
+        return res
+    # (a plain fit dragged by gross outliers may not converge within its step budget; the robust rounds start
+    # from it and are judged by their own convergence)
+    plain = res
+    if loss in ("huber", "cauchy"):
+        res, w = _reweighted(res, prob, meta, model, refit, loss, base)
+        return dataclasses.replace(res, loss=loss, weights=w, rows=rows, plain_shift=_shift(plain, res))
+    if alpha <= 0:                                     # no outlier test
+        return dataclasses.replace(res, loss=loss, rows=rows, weights=base)
+    fitted = base > 0
+    limit = robust.threshold(int(fitted.sum()), alpha)
+    if not np.any(np.abs(_studentized(res, prob, meta, model)[fitted]) > limit):
+        return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
+    anchor, _ = _reweighted(res, prob, meta, model, refit, "cauchy", base)
+    out = (np.abs(_studentized(anchor, prob.with_mask(base), meta, model)) > limit) & fitted
+    cur = prob
+    for _ in range(robust.MAX_ROUNDS):
+        if out.sum() > robust.MAX_FRACTION * fitted.sum():
+            return dataclasses.replace(plain, loss=loss, rows=rows, weights=base, outlier_note=(
+                f"{int(out.sum())} readings lie beyond the outlier bound |t| > {limit:.2f}: more than "
+                f"{robust.MAX_FRACTION:.0%} of the data, so not a few bad readings but a model that does not fit "
+                "them (none was left out); run ambfit diagnose"))
+        if loss == "linear" or not out.any():
+            break
+        cur = prob.with_mask(base * ~out)
+        res = refit(cur, res)
+        # judged again against the fit without them (a left-out reading is tested as a prediction)
+        new = (np.abs(_studentized(res, cur, meta, model)) > limit) & fitted
+        if np.array_equal(new, out):
+            break
+        out = new
+    if loss == "linear":
+        res, cur = plain, prob
+    t = _studentized(res, cur, meta, model)
+    found = tuple(_outlier(j, t[j], df, res, prob, rows) for j in np.nonzero(out)[0])
+    return dataclasses.replace(res, loss=loss, rows=rows, weights=np.asarray(cur.mask) ** 2, outliers=found,
+                               plain_shift=_shift(plain, res) if found and loss == "auto" else None)
+
+
+def _shift(plain: FitResult, res: FitResult) -> dict:
+    """How far plain least squares sits from ``res``, per head parameter, in ``res``'s standard errors."""
+    return {n: (plain.value(n) - res.value(n)) / res.error(n) for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+            if n in res.names and n in plain.names and res.error(n) > 0}
+
+
+def _outlier(j: int, t: float, df: pd.DataFrame, res: FitResult, prob: Problem, rows) -> robust.Outlier:
+    """The record of row ``j`` (0-based in ``df``): its reading and the values that would make it fit."""
+    r = df.iloc[j]
+    ax = str(r["axis"])
+    own = f"{ax}_um"
+    reading = {"i_top_A": float(r["i_top_A"]), "i_bottom_A": float(r["i_bottom_A"]), own: float(r[own])}
+    if "load_N" in df.columns and np.isfinite(r["load_N"]):
+        reading["load_N"] = float(r["load_N"])
+    vals = dict(zip(res.names, res.values))
+    g0, x0 = vals.get(f"g_{ax}0", np.nan), vals.get(f"{ax}0", 0.0)
+    k = vals.get(f"k_{ax}", K_REFERENCE)
+    load = float(np.asarray(prob.load)[j]) if bool(np.asarray(prob.known)[j]) else \
+        vals.get(f"load[{load_groups(df).iloc[j]}]", np.nan)
+    alt = {}
+    if np.isfinite(g0) and np.isfinite(load):
+        alt = robust.fits_with(reading["i_top_A"], reading["i_bottom_A"], reading[own] * 1e-6, load, g0, x0, k,
+                               res.bearing.cos_alpha)
+        if "x_um" in alt:
+            alt[own] = alt.pop("x_um")
+    return robust.Outlier(row=int(rows[j]), axis=ax, t=float(t), reading=reading, fits_with=alt)
