@@ -265,24 +265,29 @@ def load_bucket(m: int) -> int:
     return 0 if m <= 0 else 1 << (int(m) - 1).bit_length()
 
 
+_PAD_FILL = {".load": 0.0, ".known": True, ".gidx": -1, ".mask": 0.0, ".s_held": 0.0}
+"""What a padded row holds, by field: no load, weight 0, no propagated noise; other fields repeat the first row."""
+
+
 def pad(probs: Sequence[Problem], rows: int) -> Problem:
     """Problems stacked into one batch of ``rows`` rows each: padded rows repeat a data set's first row with weight 0
     and point at no load (zero residual, zero Jacobian row), so they cannot move an estimate."""
-
-    def stack(get, fill=None):
-        out = np.empty((len(probs), rows), dtype=np.asarray(get(probs[0])).dtype)
-        for b, p in enumerate(probs):
-            a = np.asarray(get(p))
-            out[b, :len(a)] = a
-            out[b, len(a):] = a[0] if fill is None else fill
-        return out
-
-    r = probs[0].readings
-    readings = type(r)(**{f: stack(lambda p, f=f: getattr(p.readings, f)) for f in r.__dataclass_fields__})
-    return Problem(readings=readings, s_top=stack(lambda p: p.s_top), s_bottom=stack(lambda p: p.s_bottom),
-                   s_x=stack(lambda p: p.s_x), load=stack(lambda p: p.load, 0.0), known=stack(lambda p: p.known, True),
-                   gidx=stack(lambda p: p.gidx, -1), k_free=np.stack([np.asarray(p.k_free) for p in probs]),
-                   mask=stack(lambda p: p.mask, 0.0), s_held=stack(lambda p: p.s_held, 0.0))
+    paths, tree = jax.tree_util.tree_flatten_with_path(probs[0])
+    names = [jax.tree_util.keystr(path) for path, _ in paths]
+    leaves = [jax.tree_util.tree_leaves(p) for p in probs]
+    out = []
+    for i, name in enumerate(names):
+        column = [np.asarray(ls[i]) for ls in leaves]
+        if name.endswith(".k_free"):
+            out.append(np.stack(column))
+            continue
+        fill = next((v for k, v in _PAD_FILL.items() if name.endswith(k)), None)
+        stacked = np.empty((len(probs), rows), dtype=column[0].dtype)
+        for b, a in enumerate(column):
+            stacked[b, :len(a)] = a
+            stacked[b, len(a):] = a[0] if fill is None else fill
+        out.append(stacked)
+    return jax.tree_util.tree_unflatten(tree, out)
 
 
 @eqx.filter_jit
@@ -302,7 +307,8 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
         sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps)
         return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
     out: list = [None] * len(probs)
-    keys = [(row_bucket(len(p.mask)), load_bucket(p.n_loads)) for p in probs]
+    sizes = [(len(np.asarray(p.mask)), p.n_loads) for p in probs]
+    keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
     for key in dict.fromkeys(keys):
         rows, loads = key
         members = [s for s, k in enumerate(keys) if k == key]
@@ -312,14 +318,14 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
             theta0 = np.zeros((size, 6 + loads + model.n))
             for b, s in enumerate(idx):
                 t = np.asarray(thetas[s], dtype=float)
-                m = probs[s].n_loads
+                m = sizes[s][1]
                 theta0[b, :6 + m], theta0[b, 6 + loads:] = t[:6 + m], t[6 + m:]
             sol = _vmapped(theta0, pad([probs[s] for s in idx], rows), model, max_steps)
             ok = np.asarray(sol.result == optx.RESULTS.successful)
             theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
                                                                             sol.jac_all, sol.z))
             for b, s in enumerate(part):
-                m, nr = probs[s].n_loads, len(probs[s].mask)
+                nr, m = sizes[s]
                 cols = np.r_[0:6 + m, 6 + loads:6 + loads + model.n]
                 # rows: the data set's own, then the effect priors' (after the padded rows)
                 rws = np.r_[0:nr, rows:rows + model.n]
