@@ -368,7 +368,7 @@ def prepare_worker(compilation_cache: bool = True) -> dict:
         # this makes sure, should anything have imported JAX without it first)
         jax.config.update("jax_enable_x64", True)
         if compilation_cache:
-            from ambfit.faces.cli.app import enable_compilation_cache
+            from ambfit._jaxcache import enable_compilation_cache
 
             enable_compilation_cache()
         _PREPARED[key] = True

@@ -10,6 +10,7 @@ from typing import Annotated
 
 import typer
 
+from ambfit._jaxcache import enable_compilation_cache
 from ambfit.faces.cli.app import (
     AcceptOption,
     BearingOption,
@@ -17,7 +18,6 @@ from ambfit.faces.cli.app import (
     bearing_of,
     check_output,
     console,
-    enable_compilation_cache,
     err,
     fail,
     judge,
