@@ -3,13 +3,9 @@
 Each effect is an immutable :class:`equinox.Module` whose fields are its physical
 parameters (SI units; a field of shape ``(2,)`` holds the ``(v, w)`` values, a
 scalar is shared by both axes).  It modifies one or more stages of the force
-evaluation in :func:`ambfit.physics.model.evaluate`:
-
-``physical``  sensor readings -> physical currents and positions (``unsense``)
-``geometry``  effective gap ``g0`` and origin ``x0``
-``gap``       magnetic gaps ``g_top``, ``g_bottom``
-``coil``      magnetising currents ``m_*`` and coil force constants ``k_*``
-``force``     the axis force
+evaluation in :func:`ambfit.physics.model.evaluate` (``physical``, ``geometry``,
+``gap``, ``coil``, ``force``; :mod:`ambfit.physics.stages` describes them and holds
+the :class:`~ambfit.physics.stages.Effect` base class).
 
 The virtual rig applies the same objects as truth (it also calls ``sense`` to turn
 physical quantities into sensor readings), and the fit can use them as model
@@ -31,78 +27,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ambfit.physics.bearing import PAPER_BEARING
-from ambfit.physics.model import Context, _set
+from ambfit.physics.stages import Effect, _ax, _set
 
 __all__ = [
     "Effect", "Saturation", "IronReluctance", "Fringing", "Leakage", "CurrentOffset",
     "CurrentGain", "PositionGain", "CrossCoupling", "Hysteresis", "ThermalDrift", "MagneticCircuit",
     "EFFECTS", "CIRCUITS", "effect_by_name",
 ]
-
-
-def _ax(p, axis):
-    """Per-row value of a parameter given as a scalar or a ``(v, w)`` pair."""
-    return jnp.broadcast_to(jnp.asarray(p, dtype=float), (2,))[axis]
-
-
-class Effect(eqx.Module):
-    """Base class: every stage is the identity.  Subclasses override what they change."""
-
-    name: ClassVar[str] = ""
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {}
-    SIGNED: ClassVar[tuple[str, ...]] = ()
-    UNITS: ClassVar[dict[str, str]] = {}
-    stateful: ClassVar[bool] = False
-
-    def ranges(self) -> dict[str, tuple[float, float]]:
-        """The free parameters of this instance and their ranges (``RANGES``; an instance may fix some)."""
-        return type(self).RANGES
-
-    def sense(self, axis, i_top, i_bottom, x, y):
-        """Physical currents [A] and positions [m] -> what the sensors report."""
-        return i_top, i_bottom, x, y
-
-    def unsense(self, axis, i_top, i_bottom, x, y):
-        """Inverse of :meth:`sense`: sensor readings -> physical quantities."""
-        return i_top, i_bottom, x, y
-
-    def physical(self, ctx: Context) -> Context:
-        it, ib, x, y = self.unsense(ctx.axis, ctx.i_top, ctx.i_bottom, ctx.x, ctx.y)
-        return _set(ctx, i_top=it, i_bottom=ib, x=x, y=y)
-
-    def geometry(self, ctx: Context) -> Context:
-        return ctx
-
-    def gap(self, ctx: Context) -> Context:
-        return ctx
-
-    def coil(self, ctx: Context) -> Context:
-        return ctx
-
-    def force(self, ctx: Context, force):
-        return force
-
-    def temperature(self, time_s, ambient_C):
-        """Bearing temperature [°C] this effect implies at ``time_s`` (rig side only)."""
-        return ambient_C + 0.0 * time_s
-
-    @classmethod
-    def random(cls, rng: np.random.Generator) -> Effect:
-        """An instance with every parameter drawn uniformly from ``RANGES`` (per axis).
-
-        Parameters in ``SIGNED`` get a random sign.
-        """
-        kw = {}
-        for name, (lo, hi) in cls.RANGES.items():
-            val = rng.uniform(lo, hi, size=2)
-            if name in cls.SIGNED:
-                val = val * rng.choice([-1.0, 1.0], size=2)
-            kw[name] = jnp.asarray(val)
-        return cls(**kw)
-
-    def describe(self) -> dict[str, list[float] | float]:
-        """Parameter values as plain lists, for JSON and reports (SI units)."""
-        return {f.name: np.asarray(getattr(self, f.name)).tolist() for f in dataclasses.fields(self)}
 
 
 class Saturation(Effect):
