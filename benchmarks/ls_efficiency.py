@@ -27,7 +27,8 @@ import numpy as np
 
 from ambfit import rig
 from ambfit.estimation import batch, closed_form, information
-from ambfit.rig import origin, protocol
+from ambfit.rig import protocol
+from ambfit.studies import origin
 
 TARGETS = {"efficiency_min": 0.9, "pull_var": (0.85, 1.15), "bias_max_se": 1.0}
 

@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 
 from ambfit.faces.cli import app
 from ambfit.faces.cli.progress import Bar, progress_bar
-from ambfit.rig import origin
 from ambfit.rig import virtual as rig
+from ambfit.studies import origin
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -214,7 +214,7 @@ def paper_table1(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
 
 PAPER_TABLE3_STARTS = ((0.0, 0.0), (30e-6, 30e-6), (-10e-6, -30e-6), (2.78e-6, -36.88e-6))
 """Table 3's initial rotor positions ``(v, w)`` [m]: each experiment is an origin search from one of them
-(:func:`ambfit.rig.origin.search` with ``start=``)."""
+(:func:`ambfit.studies.origin.search` with ``start=``)."""
 
 
 def paper_table4(iterations: int = 10, center=(0.0, 0.0), origin_shift=(-80.7e-6, 24.4e-6)) -> Protocol:

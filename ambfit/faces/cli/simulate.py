@@ -168,8 +168,8 @@ def origin_search(
     from ambfit import rig
     from ambfit.estimation import closed_form
     from ambfit.faces.cli.progress import progress_bar
-    from ambfit.rig import origin
     from ambfit.rig import protocol as proto_mod
+    from ambfit.studies import origin
 
     check_output(out, truth, json_out)
     try:
