@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
-from ambfit.physics.circuit import MECParams, _residual, _unpack, mec_axis_force, mec_forces, mec_solve, row_axis_force
+from ambfit.physics.circuit import MECParams, mec_axis_force, mec_forces, mec_solve, row_axis_force
+from ambfit.physics.circuit.network import _residual, _unpack
 from ambfit.physics.model import ideal_force
 
 BATCH = 8
@@ -241,14 +242,14 @@ def test_row_parameters_give_the_shared_parameters_forces_and_derivatives():
 
 
 def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_looks_right(monkeypatch):
-    from ambfit.physics import circuit
+    from ambfit.physics.circuit import solve
 
     b = PAPER_BEARING
     p = MECParams.ideal(b)
     with jax.disable_jit():                      # the step budget is read when the loop runs
-        monkeypatch.setattr(circuit, "MAX_NEWTON", 1)
+        monkeypatch.setattr(solve, "MAX_NEWTON", 1)
         stopped = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
-        monkeypatch.setattr(circuit, "MAX_NEWTON", 40)
+        monkeypatch.setattr(solve, "MAX_NEWTON", 40)
         solved = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
     assert np.isnan(float(stopped[0])) and np.isnan(float(stopped[1]))
     assert np.isfinite(float(solved[0])) and float(solved[0]) > 0
