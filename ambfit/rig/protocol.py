@@ -241,7 +241,7 @@ def rich(
     ``center`` [m, sensor coordinates]: where the set-points are centred.  On a real bearing that is the
     effective origin ``(-v0, -w0)`` the paper's origin search finds: centred on the sensor origin instead, the
     default ±40 µm reach 73 µm from the centre of the paper's rig, beyond its 60 µm back-up clearance
-    (:func:`ambfit.rig.virtual.limit_violations`).
+    (:func:`ambfit.rig.limits.limit_violations`).
     """
     lin = np.linspace(-span, span, n_positions)
     rng = np.random.default_rng(12345)  # fixed, so the design is a constant of the code
