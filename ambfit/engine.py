@@ -157,7 +157,7 @@ class Engine:
 
             try:
                 # Dask's statistical profiler samples every worker thread's stack every 10 ms: on this Python-heavy
-                # work (JAX dispatch) it cost a third of the workers' CPU (benchmarks/scale.py); the worker
+                # work (JAX dispatch) it takes about a third of the workers' CPU (benchmarks/scale.py); the worker
                 # processes receive this setting from the nanny
                 spawn_env = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
                              if k not in KEEP_MALLOC_DEFAULTS}

@@ -17,16 +17,15 @@ import os
 INSTALL_HINT = "install ambfit[dask] (pip install 'ambfit[dask]', i.e. dask[distributed])"
 
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
-"""Dask settings of local worker processes: no statistical profiler (2000 data sets of ``benchmarks/scale.py`` on 2
-workers: 28.5 s of task CPU with it, 19.0 s without).  Workers of a cluster you start yourself take it from their
-own configuration (``distributed.worker.profile.enabled: false``)."""
+"""Dask settings of local worker processes: no statistical profiler (it samples every worker thread's stack, which on
+this Python-heavy work takes about a third of the workers' CPU: ``benchmarks/scale.py``).  Workers of a cluster you
+start yourself take it from their own configuration (``distributed.worker.profile.enabled: false``)."""
 
 KEEP_MALLOC_DEFAULTS = ("MALLOC_TRIM_THRESHOLD_",)
 """Environment variables Dask sets for its worker processes that local workers go without.  Dask sets
 ``MALLOC_TRIM_THRESHOLD_=65536`` to hand freed memory back sooner; setting it also switches off glibc's dynamic
 mmap threshold, so every array above 128 kB is mapped and unmapped afresh: on the many mid-sized arrays of a
-vmapped batch fit that cost a tenth of the workers' CPU (4000 data sets of ``benchmarks/scale.py`` on 2 workers:
-37.2 s of task CPU with it, 33.6 s without; wall 20.8 -> 18.5 s)."""
+vmapped batch fit that costs about a tenth of the workers' CPU (``benchmarks/scale.py``)."""
 
 WORKER_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 """XLA flags of local worker processes: one compute thread each, so N workers use N cores and do not fight over

@@ -151,10 +151,10 @@ def test_bearing_without_a_bh_curve_uses_linear_iron():
     np.testing.assert_allclose(f / np.asarray(currents) ** 2, f[0] / 0.25, rtol=1e-9)   # no saturation
 
 
-# --- the loop-flux solver against the nodal form it replaced ---------------------------------------------
+# --- the loop-flux solver against the nodal form of the same circuit -----------------------------------------
 
-# Forces of the previous solver (Newton on the 64 nodal unknowns of ``_residual`` with a traced Jacobian)
-# at a saturating operating point (pole iron up to 1.74 T), with dF_v / d(fringe_depth, leakage,
+# Reference forces from Newton's method on the 64 nodal unknowns of ``_residual`` with a traced Jacobian
+# (the nodal form) at a saturating operating point (pole iron up to 1.74 T), with dF_v / d(fringe_depth, leakage,
 # iron_h_scale, pole_area_ratio): the solver must reproduce them to round-off.
 SAVED_PARAMS = dict(fringe_axial=0.0, fringe_depth=1e-2, leakage=0.53, iron_h_scale=0.68, pole_area_ratio=0.71,
                     leakage_height=0.7, link=0.6)

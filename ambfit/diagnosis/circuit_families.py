@@ -29,8 +29,8 @@ EDM_MARGIN = 100.0
 """Before it is settled, a refit's χ² is taken to fall by at most this many EDMs more; a piece is decided
 significant when its rise clears the threshold by that margin, and not significant as soon as its rise is below
 the threshold (χ² only falls as the refit goes on).  The margin is an estimate, not a bound: far from the
-minimum the Gauss-Newton EDM can understate what is left (on the FEM bearing an ideal-iron refit stopped at EDM
-34 with χ² 590, 17 EDMs, above what a run from a nearer start reached), hence 100.  A piece neither decided
+minimum the Gauss-Newton EDM can understate what is left (on the FEM bearing an ideal-iron refit that stops at EDM
+34 has a χ² 590, 17 EDMs, above what a run from a nearer start reaches), hence 100.  A piece neither decided
 significant nor not is ``undecided`` and left out of the verdict."""
 
 

@@ -102,5 +102,5 @@ class Candidate:
                 "params_std": {k: v[1] for k, v in head.items() if "." in k},
                 "shift": {k: head[k][0] - base[k] for k in HEAD if k in head and k in base},
                 # standard error of the extended estimate (the shift's reference, the ideal fit on the
-                # same data, is strongly correlated with it; sqrt(var_ext - var_base) was negative here)
+                # same data, is strongly correlated with it; sqrt(var_ext - var_base) can be negative)
                 "shift_std": {k: head[k][1] for k in HEAD if k in head and k in base}}

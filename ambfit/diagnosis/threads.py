@@ -9,10 +9,10 @@ class _Each:
     """``each(fn, items)``: ``[fn(x) for x in items]``, ``threads`` at a time, in order.  The compiled solves
     release the interpreter, so one thread's solve runs while another prepares its fit; every task runs in a copy
     of the caller's context (the compiled set and the owned table are context variables).  While the threads
-    run, BLAS is held to one thread each (threadpoolctl): its own workers, spinning between the small matrix
-    products of a fit, took the core the second fit needed (840 rig readings, warm: 1.47 s with one fit at a
-    time, 1.37 with two, 1.09 with two and BLAS held).  The limit is process-wide: set by the first of
-    overlapping diagnoses, restored by the last."""
+    run, BLAS is held to one thread each (threadpoolctl): its own worker threads, spinning between the small
+    matrix products of a fit, would take the core the second fit needs (``benchmarks/diagnose_speed.py`` compares
+    one fit at a time with two).  The limit is process-wide: set by the first of overlapping diagnoses, restored
+    by the last."""
 
     _lock = threading.Lock()
     _active = 0

@@ -210,7 +210,7 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     force = jnp.where(converged, force, jnp.nan)          # never a wrong number: the caller sees NaN rows
     if not full:
         return force
-    # The nodal unknowns, for the nodal residual of the solution (reported as before).
+    # The nodal unknowns, for the nodal residual of the solution (MECSolution.residual).
     u_ref, _, f_ref = _scales(bearing)
     bh = bh_curve(bearing)
     a_back = bearing.pole_area * p.lamination * p.iron_area_ratio

@@ -65,9 +65,9 @@ class IronReluctance(Effect):
     def ranges(self) -> dict[str, tuple[float, float]]:
         """``mu_r`` and ``b_knee``; ``l_fe`` is held at this instance's value (the paper bearing's iron path by
         default).  The extra gap is ``l_fe (1 + (B / b_knee)^4) / (2 mu_r)``: the two enter only as their ratio,
-        so fitting both left Levenberg-Marquardt crawling along that ratio's valley, held by the priors alone
-        (840 rig readings: 404 steps for five fits, one not converged).  The fitted ``mu_r`` is the permeability
-        at the held path length; a rig draws both (``RANGES``)."""
+        so fitting both leaves Levenberg-Marquardt crawling along that ratio's valley, held by the priors alone
+        (on 840 rig readings five such fits take 404 steps, and one does not converge).  The fitted ``mu_r`` is the
+        permeability at the held path length; a rig draws both (``RANGES``)."""
         return {k: v for k, v in type(self).RANGES.items() if k != "l_fe"}
 
     def extra_gap(self, i, g, ctx):

@@ -17,7 +17,7 @@ ALPHA = 0.01
 SCATTER_P = 0.01
 """The change-point test scales the error bars when the scatter about its model has a χ² p-value below this: the
 windows' errors are trusted unless they are clearly too small (scaled and judged by Student's t with a few degrees
-of freedom, a 7-sigma jump can drop below a Bonferroni bound; a pre-test at 5 % did so in 4 % of the benchmark's
+of freedom, a 7-sigma jump can drop below a Bonferroni bound; a pre-test at 5 % does so in 4 % of the benchmark's
 campaigns)."""
 
 
