@@ -54,7 +54,7 @@ _API = {
     "Posterior": ("ambfit.estimation.bayes", "Posterior"),
     "Prior": ("ambfit.estimation.bayes", "Prior"),
     "diagnose": ("ambfit.diagnosis.attribution", "diagnose"),
-    "Diagnosis": ("ambfit.diagnosis.attribution", "Diagnosis"),
+    "Diagnosis": ("ambfit.diagnosis.results", "Diagnosis"),
     "simulate": ("ambfit.rig.virtual", "simulate"),
     "RigSpec": ("ambfit.rig.virtual", "RigSpec"),
     "PAPER_RIG": ("ambfit.rig.virtual", "PAPER_RIG"),
@@ -96,7 +96,8 @@ def __dir__():
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from ambfit.data import DataError, Dataset, read_csv, write_csv  # noqa: F401
-    from ambfit.diagnosis.attribution import Diagnosis, diagnose  # noqa: F401
+    from ambfit.diagnosis.attribution import diagnose  # noqa: F401
+    from ambfit.diagnosis.results import Diagnosis  # noqa: F401
     from ambfit.estimation.bayes import Posterior, Prior, sample  # noqa: F401
     from ambfit.estimation.closed_form import identify as closed_form  # noqa: F401
     from ambfit.estimation.conditioning import solution_space  # noqa: F401

@@ -20,9 +20,10 @@ Progress goes through the ``progress(what, done, total)`` callback that every lo
 function of ambfit takes (the command line draws it).
 
 Worker processes switch JAX to float64 (importing ambfit does it; the setup makes sure) and,
-unless ``compilation_cache=False``, keep compiled code in the command line's persistent
-cache (``$AMBFIT_JAX_CACHE``, default ``~/.cache/ambfit/jax``), so that a worker does not
-spend its first seconds recompiling what another run already compiled.
+unless ``compilation_cache=False``, keep compiled code in the persistent compilation cache
+(:mod:`ambfit._jaxcache`: ``$AMBFIT_JAX_CACHE``, default ``~/.cache/ambfit/jax``), so that a
+worker does not spend its first seconds recompiling what another run already compiled; how a
+worker is set up and runs a task is :mod:`ambfit.workers`.
 
 Dask is an optional extra: ``pip install 'ambfit[dask]'``.
 
@@ -50,44 +51,24 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from ambfit.workers import (
+    KEEP_MALLOC_DEFAULTS,
+    WORKER_CONFIG,
+    WORKER_XLA_FLAGS,
+    EngineError,
+    _call_prepared,
+    _import_distributed,
+    _run_chunk,
+    _worker_plugin,
+)
+
 TASKS_PER_WORKER = 4
 """Default number of chunks per worker: enough to balance uneven chunks, few enough that each task is a big batch."""
 
 IN_PROCESS_CHUNKS = 10
 """Default number of chunks in this process (only for progress: the chunks run one after another)."""
 
-INSTALL_HINT = "install ambfit[dask] (pip install 'ambfit[dask]', i.e. dask[distributed])"
-
-WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
-"""Dask settings of local worker processes: no statistical profiler (2000 data sets of ``benchmarks/scale.py`` on 2
-workers: 28.5 s of task CPU with it, 19.0 s without).  Workers of a cluster you start yourself take it from their
-own configuration (``distributed.worker.profile.enabled: false``)."""
-
-KEEP_MALLOC_DEFAULTS = ("MALLOC_TRIM_THRESHOLD_",)
-"""Environment variables Dask sets for its worker processes that local workers go without.  Dask sets
-``MALLOC_TRIM_THRESHOLD_=65536`` to hand freed memory back sooner; setting it also switches off glibc's dynamic
-mmap threshold, so every array above 128 kB is mapped and unmapped afresh: on the many mid-sized arrays of a
-vmapped batch fit that cost a tenth of the workers' CPU (4000 data sets of ``benchmarks/scale.py`` on 2 workers:
-37.2 s of task CPU with it, 33.6 s without; wall 20.8 -> 18.5 s)."""
-
-WORKER_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-"""XLA flags of local worker processes: one compute thread each, so N workers use N cores and do not fight over
-them (XLA's default thread pool in every process would use every core)."""
-
-
-class EngineError(RuntimeError):
-    """The engine cannot run: Dask is not installed, or the scheduler cannot be reached; the message says what to do."""
-
-
 _CURRENT: contextvars.ContextVar[Engine | None] = contextvars.ContextVar("ambfit_engine", default=None)
-
-
-def _import_distributed():
-    try:
-        import distributed
-    except ImportError as exc:
-        raise EngineError(f"running on worker processes or a cluster needs Dask: {INSTALL_HINT} ({exc})") from None
-    return distributed
 
 
 class Engine:
@@ -176,7 +157,7 @@ class Engine:
 
             try:
                 # Dask's statistical profiler samples every worker thread's stack every 10 ms: on this Python-heavy
-                # work (JAX dispatch) it cost a third of the workers' CPU (benchmarks/scale.py); the worker
+                # work (JAX dispatch) it takes about a third of the workers' CPU (benchmarks/scale.py); the worker
                 # processes receive this setting from the nanny
                 spawn_env = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
                              if k not in KEEP_MALLOC_DEFAULTS}
@@ -334,62 +315,6 @@ def _each(fn, chunk, seeds=None) -> list:
     if seeds is None:
         return [fn(item) for item in chunk]
     return [fn(item, s) for item, s in zip(chunk, seeds)]
-
-
-def _run_chunk(fn, chunk, seeds, *, prepare: bool, compilation_cache: bool = True) -> list:
-    """One task: ``fn`` on one chunk, checked to give one result per item."""
-    if prepare:
-        prepare_worker(compilation_cache)
-    out = list(fn(chunk) if seeds is None else fn(chunk, seeds))
-    if len(out) != len(chunk):
-        raise EngineError(f"{getattr(fn, '__name__', fn)!r} returned {len(out)} results for a chunk of {len(chunk)} "
-                          "items; a chunk function must return one result per item")
-    return out
-
-
-def _call_prepared(fn, compilation_cache: bool):
-    prepare_worker(compilation_cache)
-    return fn()
-
-
-_PREPARED: dict = {}
-
-
-def prepare_worker(compilation_cache: bool = True) -> dict:
-    """Make this (worker) process ready for ambfit: JAX in float64 and, if asked, the persistent compilation cache.
-
-    Idempotent.  Returns what it found: ``{"x64": bool, "cache": path or None, "pid": int}``.
-    """
-    key = bool(compilation_cache)
-    if key not in _PREPARED:
-        import jax
-
-        # (importing this module ran ambfit/__init__.py, which switches JAX to float64 before it makes an array;
-        # this makes sure, should anything have imported JAX without it first)
-        jax.config.update("jax_enable_x64", True)
-        if compilation_cache:
-            from ambfit.faces.cli.app import enable_compilation_cache
-
-            enable_compilation_cache()
-        _PREPARED[key] = True
-    import jax
-
-    return {"x64": bool(jax.config.jax_enable_x64), "cache": jax.config.jax_compilation_cache_dir,
-            "pid": os.getpid()}
-
-
-def _worker_plugin(compilation_cache: bool):
-    """A ``distributed.WorkerPlugin`` that prepares every worker, also those that join later (adaptive clusters)."""
-    distributed = _import_distributed()
-
-    class AmbfitSetup(distributed.WorkerPlugin):
-        def __init__(self, cache):
-            self.cache = cache
-
-        def setup(self, worker):
-            prepare_worker(self.cache)
-
-    return AmbfitSetup(compilation_cache)
 
 
 @contextlib.contextmanager

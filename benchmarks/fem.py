@@ -29,7 +29,7 @@ import numpy as np
 
 import ambfit
 from ambfit.data import read_csv
-from ambfit.diagnosis import attribution
+from ambfit.diagnosis import circuit_families
 from ambfit.estimation.measure import force_check, force_noise
 from ambfit.physics.circuit import MECParams
 from ambfit.physics.effects import MagneticCircuit
@@ -182,9 +182,9 @@ def main():
                + f" | {'yes' if f['significant'] else 'no'} |" for f in dg.families]
         md += ["", "Each piece switched off, the circuit refitted with the full model's noise weights held (every χ² "
                "weighs the readings alike). A refit runs until its χ² is settled (EDM below "
-               f"{100 * attribution.SETTLED_EDM:g} % of the threshold, {attribution.SIGNIFICANT_DCHI2:g} sd of χ²) or "
+               f"{100 * circuit_families.SETTLED_EDM:g} % of the threshold, {circuit_families.SIGNIFICANT_DCHI2:g} sd of χ²) or "
                "its piece's significance is decided, taking its χ² to fall by at most "
-               f"{attribution.EDM_MARGIN:g} EDMs more; iron_reluctance is the ideal-iron refit (started from the "
+               f"{circuit_families.EDM_MARGIN:g} EDMs more; iron_reluctance is the ideal-iron refit (started from the "
                "constant-permeability one, the nearer model) less the constant-permeability one."]
         md.append("")
     md += ["| circuit parameter | identified | drawing implies | note |", "|---|---|---|---|"]

@@ -28,7 +28,8 @@ import numpy as np
 from ambfit import rig
 from ambfit.estimation import closed_form, fit, information
 from ambfit.estimation.results import table
-from ambfit.rig import origin, protocol
+from ambfit.rig import protocol
+from ambfit.studies import origin
 
 TARGETS = {"efficiency_min": 0.9, "pull_var": (0.85, 1.15), "bias_max_se": 1.0}
 

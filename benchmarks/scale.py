@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ambfit._jaxcache import enable_compilation_cache
 from ambfit.engine import Engine
 from ambfit.estimation import fit, lm
-from ambfit.faces.cli.app import enable_compilation_cache
 from ambfit.rig import protocol as P
 from ambfit.rig import virtual as rig
 

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
-from ambfit.physics.circuit import MECParams, _residual, _unpack, mec_axis_force, mec_forces, mec_solve, row_axis_force
+from ambfit.physics.circuit import MECParams, mec_axis_force, mec_forces, mec_solve, row_axis_force
+from ambfit.physics.circuit.network import _residual, _unpack
 from ambfit.physics.model import ideal_force
 
 BATCH = 8
@@ -150,10 +151,10 @@ def test_bearing_without_a_bh_curve_uses_linear_iron():
     np.testing.assert_allclose(f / np.asarray(currents) ** 2, f[0] / 0.25, rtol=1e-9)   # no saturation
 
 
-# --- the loop-flux solver against the nodal form it replaced ---------------------------------------------
+# --- the loop-flux solver against the nodal form of the same circuit -----------------------------------------
 
-# Forces of the previous solver (Newton on the 64 nodal unknowns of ``_residual`` with a traced Jacobian)
-# at a saturating operating point (pole iron up to 1.74 T), with dF_v / d(fringe_depth, leakage,
+# Reference forces from Newton's method on the 64 nodal unknowns of ``_residual`` with a traced Jacobian
+# (the nodal form) at a saturating operating point (pole iron up to 1.74 T), with dF_v / d(fringe_depth, leakage,
 # iron_h_scale, pole_area_ratio): the solver must reproduce them to round-off.
 SAVED_PARAMS = dict(fringe_axial=0.0, fringe_depth=1e-2, leakage=0.53, iron_h_scale=0.68, pole_area_ratio=0.71,
                     leakage_height=0.7, link=0.6)
@@ -241,14 +242,14 @@ def test_row_parameters_give_the_shared_parameters_forces_and_derivatives():
 
 
 def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_looks_right(monkeypatch):
-    from ambfit.physics import circuit
+    from ambfit.physics.circuit import solve
 
     b = PAPER_BEARING
     p = MECParams.ideal(b)
     with jax.disable_jit():                      # the step budget is read when the loop runs
-        monkeypatch.setattr(circuit, "MAX_NEWTON", 1)
+        monkeypatch.setattr(solve, "MAX_NEWTON", 1)
         stopped = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
-        monkeypatch.setattr(circuit, "MAX_NEWTON", 40)
+        monkeypatch.setattr(solve, "MAX_NEWTON", 40)
         solved = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
     assert np.isnan(float(stopped[0])) and np.isnan(float(stopped[1]))
     assert np.isfinite(float(solved[0])) and float(solved[0]) > 0

@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from ambfit import diagnosis as D
 from ambfit import rig
-from ambfit.diagnosis import attribution as A
 from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
 
@@ -23,30 +23,30 @@ REL = 1e-14
 
 def test_excess_by_hand():
     # mean(z^2) = 4 -> sqrt(3) = 1.7320508075688772
-    assert A.excess([2.0, -2.0, 2.0, -2.0]) == pytest.approx(1.7320508075688772, rel=REL)
+    assert D.excess([2.0, -2.0, 2.0, -2.0]) == pytest.approx(1.7320508075688772, rel=REL)
     # mean(z^2) = (9 + 0) / 2 = 4.5 -> sqrt(3.5) = 1.8708286933869707
-    assert A.excess(np.array([3.0, 0.0])) == pytest.approx(1.8708286933869707, rel=REL)
+    assert D.excess(np.array([3.0, 0.0])) == pytest.approx(1.8708286933869707, rel=REL)
     # exactly on the floor, and below it (mean(z^2) = (0.25 + 0.25 + 1) / 3 = 0.5): no excess, not NaN
-    assert A.excess([1.0, -1.0, 1.0]) == 0.0
-    assert A.excess([0.5, -0.5, 1.0]) == 0.0
+    assert D.excess([1.0, -1.0, 1.0]) == 0.0
+    assert D.excess([0.5, -0.5, 1.0]) == 0.0
 
 
 def test_shrink_by_hand():
-    before = A.excess([3.0, -3.0])          # sqrt(9 - 1) = sqrt(8)
-    after = A.excess([1.5, -1.5])           # sqrt(2.25 - 1) = sqrt(1.25)
+    before = D.excess([3.0, -3.0])          # sqrt(9 - 1) = sqrt(8)
+    after = D.excess([1.5, -1.5])           # sqrt(2.25 - 1) = sqrt(1.25)
     assert before == pytest.approx(math.sqrt(8.0), rel=REL) and after == pytest.approx(math.sqrt(1.25), rel=REL)
     # 1 - sqrt(1.25) / sqrt(8) = 1 - sqrt(0.15625) = 0.6047152924789526 (python math);
     # the squared ratio would give 1 - 1.25/8 = 0.84375
-    assert A.shrink(before, after) == pytest.approx(0.6047152924789526, rel=REL)
+    assert D.shrink(before, after) == pytest.approx(0.6047152924789526, rel=REL)
     # residuals pushed below the floor: all of the excess removed
-    assert A.shrink(before, A.excess([0.9, -0.9])) == 1.0
+    assert D.shrink(before, D.excess([0.9, -0.9])) == 1.0
     # nothing to remove, and a model that makes it worse (1 - sqrt(8)/sqrt(3) = -0.6329931618554521)
-    assert A.shrink(0.0, 1.0) == 0.0
-    assert A.shrink(math.sqrt(3.0), math.sqrt(8.0)) == pytest.approx(-0.6329931618554521, rel=REL)
+    assert D.shrink(0.0, 1.0) == 0.0
+    assert D.shrink(math.sqrt(3.0), math.sqrt(8.0)) == pytest.approx(-0.6329931618554521, rel=REL)
 
 
 def test_candidate_reports_the_contract_shrink():
-    c = A.Candidate("saturation", heldout_z=np.array([1.5, -1.5, 1.5, -1.5]), before=math.sqrt(8.0), fit=None)
+    c = D.Candidate("saturation", heldout_z=np.array([1.5, -1.5, 1.5, -1.5]), before=math.sqrt(8.0), fit=None)
     assert c.after == pytest.approx(math.sqrt(1.25), rel=REL)
     assert c.shrink == pytest.approx(0.6047152924789526, rel=REL)
     assert c.score == pytest.approx(2.25, rel=REL)       # mean z^2
@@ -60,26 +60,26 @@ def test_heldout_residuals_refit_only_loads_no_training_row_saw():
                        "load_N": [np.nan, np.nan, np.nan, np.nan, np.nan, 5.0, 5.0]})
     z = np.array([0.3, 1.0, -2.0, 4.0, 2.0, 3.0, 1.0])
     test = np.array([False, True, True, True, True, True, True])
-    out = A.heldout_residuals(types.SimpleNamespace(residuals=z, fitted_rows=~test), df, test)
+    out = D.heldout_residuals(types.SimpleNamespace(residuals=z, fitted_rows=~test), df, test)
     # b: 4 and 2 minus their mean 3 -> 1, -1
     np.testing.assert_array_equal(out, [1.0, -2.0, 1.0, -1.0, 3.0, 1.0])
     assert z[3] == 4.0                                    # the fit's residuals are not modified
     # a's one training row left out of the fit as an outlier: no row the fit used saw a's load, refitted too
     # (1 and -2 minus their mean -0.5 -> 1.5, -1.5)
-    out = A.heldout_residuals(types.SimpleNamespace(residuals=z, fitted_rows=np.zeros(7, bool)), df, test)
+    out = D.heldout_residuals(types.SimpleNamespace(residuals=z, fitted_rows=np.zeros(7, bool)), df, test)
     np.testing.assert_array_equal(out, [1.5, -1.5, 1.0, -1.0, 3.0, 1.0])
 
 
 def test_folds_follow_the_operating_regions():
     df = pd.DataFrame({"axis": ["v"] * 6, "bias_A": [1.0, 1.4, 1.8, 1.0, 1.4, 1.8],
                        "load_id": ["m0", "m0", "m1", "m1", "m2", "m2"], "iteration": [1, 1, 1, 2, 2, 2]})
-    name, tests = A.folds(df)
+    name, tests = D.folds(df)
     assert name == "leave-one-load-out" and [t.tolist() for t in tests] == [
         [True, True, False, False, False, False], [False, False, True, True, False, False],
         [False, False, False, False, True, True]]
-    name, tests = A.folds(df.drop(columns="load_id"))
+    name, tests = D.folds(df.drop(columns="load_id"))
     assert name == "leave-one-bias-out" and len(tests) == 3 and tests[0].tolist() == [True, False, False] * 2
-    name, tests = A.folds(df.drop(columns="load_id").assign(bias_A=[1.4, 1.6] * 3))
+    name, tests = D.folds(df.drop(columns="load_id").assign(bias_A=[1.4, 1.6] * 3))
     assert name == "alternate iterations" and tests[1].tolist() == [True, True, True, False, False, False]
 
 
@@ -90,11 +90,11 @@ def test_diagnosis_record_follows_the_formula_on_a_saturating_rig():
     # bias, saturation removes about a fifth of the excess here.)
     proto = P.perturbation((1.0, 1.4, 1.8), (20e-6, 40e-6), center=(-33.3e-6, 11.3e-6))
     data = rig.simulate(rig.PAPER_RIG, proto, (E.Saturation(b_sat=1.2, sharpness=5.0),), seed=5).data
-    d = A.diagnose(data, candidates=[E.Saturation()], pairs=False)
+    d = D.diagnose(data, candidates=[E.Saturation()], pairs=False)
     assert d.folds == "leave-one-bias-out"
     top = d.ranking[0]
-    assert d.heldout_excess_before == pytest.approx(A.excess(d.ideal.heldout_z), rel=REL)
-    assert top.after == pytest.approx(A.excess(top.heldout_z), rel=REL)
+    assert d.heldout_excess_before == pytest.approx(D.excess(d.ideal.heldout_z), rel=REL)
+    assert top.after == pytest.approx(D.excess(top.heldout_z), rel=REL)
     rec = d.to_json()
     r0 = rec["ranking"][0]
     assert r0["shrink"] == pytest.approx(1.0 - r0["heldout_excess_after"] / r0["heldout_excess_before"], rel=REL)
@@ -112,7 +112,7 @@ def test_two_threads_give_the_one_thread_diagnosis():
     proto = P.perturbation((1.0, 1.4, 1.8), (20e-6, 40e-6), center=(-33.3e-6, 11.3e-6))
     data = rig.simulate(rig.PAPER_RIG, proto, (E.Saturation(b_sat=1.2, sharpness=5.0),), seed=5).data
     cands = [E.Saturation(), E.Fringing(), E.CurrentOffset()]
-    one, two = (json.loads(json.dumps(A.diagnose(data, candidates=cands, threads=t).to_json(), default=float))
+    one, two = (json.loads(json.dumps(D.diagnose(data, candidates=cands, threads=t).to_json(), default=float))
                 for t in (1, 2))
 
     def same(a, b, path="record"):
@@ -133,7 +133,7 @@ def test_two_threads_give_the_one_thread_diagnosis():
     same(one, two)
     assert [r["effect"] for r in one["ranking"]] == [r["effect"] for r in two["ranking"]]
     with pytest.raises(ValueError, match="threads"):
-        A.diagnose(data, candidates=cands, threads=0)
+        D.diagnose(data, candidates=cands, threads=0)
 
 
 def test_recent_drops_the_least_recently_used():

@@ -5,7 +5,7 @@ import pytest
 
 from ambfit import rig
 from ambfit.data import readings
-from ambfit.diagnosis.attribution import LOG_BAYES_CLEAR
+from ambfit.diagnosis.discrepancy import LOG_BAYES_CLEAR
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.estimation.fit import fit
 from ambfit.estimation.measure import FittedModel, force_check, predict

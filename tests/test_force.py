@@ -197,7 +197,7 @@ def test_the_circuit_families_decide_each_piece_as_refits_run_to_the_end_do():
     # Each piece switched off, the circuit refitted with the full model's noise held (the same weights for every
     # χ²), stopping as soon as the piece's significance is decided.  Refits run far longer, to their settled χ²,
     # must land inside the reported bounds and give the same decisions.
-    from ambfit.diagnosis.attribution import SETTLED_EDM, circuit_families
+    from ambfit.diagnosis.circuit_families import SETTLED_EDM, circuit_families
     from ambfit.estimation.measure import force_noise
 
     ds = read_csv(FEM_SLICE)
@@ -229,7 +229,7 @@ def test_the_circuit_families_decide_each_piece_as_refits_run_to_the_end_do():
 def test_a_force_check_reuses_a_refit_whose_left_out_rows_are_a_fold():
     # A diagnosis has already refitted each model with each fold held out; where a fold is exactly one known
     # load's rows (the FEM's load ids are per axis), the force check takes that refit instead of repeating it.
-    from ambfit.diagnosis.attribution import folds
+    from ambfit.diagnosis.heldout import folds
 
     df = read_csv(FEM_SLICE).frame
     fem = ambfit.Bearing.from_toml(FEM_BEARING)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ambfit import rig
-from ambfit.rig import origin
+from ambfit.studies import origin
 
 
 def test_noise_free_search_converges_in_one_move():

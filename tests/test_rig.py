@@ -5,6 +5,7 @@ import pytest
 
 from ambfit import rig
 from ambfit.physics import effects as E
+from ambfit.rig import limits
 from ambfit.rig import protocol as P
 
 NF = rig.NOISE_FREE
@@ -213,39 +214,37 @@ def test_paper_table_protocols():
 
 def test_rotor_position_is_the_set_point_plus_the_true_origin():
     proto = P.grid([(20e-6, 20e-6), (-33.3e-6, 11.3e-6)], [1.4])
-    pos = rig.virtual.rotor_positions(rig.PAPER_RIG, proto)
+    pos = limits.rotor_positions(rig.PAPER_RIG, proto)
     np.testing.assert_allclose(pos, [[53.3e-6, 8.7e-6], [0.0, 0.0]], atol=1e-15)
     # a reassembly shifts the true origin, and with it the rotor
     moved = P.with_assembly(proto, 1, (-80.7e-6, 24.4e-6))
-    np.testing.assert_allclose(rig.virtual.rotor_positions(rig.PAPER_RIG, moved)[1], [-80.7e-6, 24.4e-6], atol=1e-15)
+    np.testing.assert_allclose(limits.rotor_positions(rig.PAPER_RIG, moved)[1], [-80.7e-6, 24.4e-6], atol=1e-15)
 
 
 def test_limit_violations_name_the_steps_beyond_the_clearance():
-    v = rig.virtual
     # Table 2 about the sensor origin: (20, 20) µm puts the rotor 54.0 µm from the centre, inside 60 µm
-    assert v.limit_violations(rig.PAPER_RIG, P.paper_table2(iterations=1)) == []
+    assert limits.limit_violations(rig.PAPER_RIG, P.paper_table2(iterations=1)) == []
     # the rich sweep about the sensor origin reaches (40 + 33.3, w - 11.3) µm; about the effective origin it stays
     # within 40 sqrt(2) = 56.6 µm
-    found = v.limit_violations(rig.PAPER_RIG, P.rich())
+    found = limits.limit_violations(rig.PAPER_RIG, P.rich())
     assert found and {f.kind for f in found} == {"clearance"}
     first = found[0]
     r = np.hypot(first.set_point[0] + 33.3e-6, first.set_point[1] - 11.3e-6)
     assert first.value == pytest.approx(r, rel=1e-12) and r > 60e-6 and first.limit == 60e-6
     assert f"step {first.step} " in str(first) and "back-up clearance of 60.0 µm" in str(first)
-    assert v.limit_violations(rig.PAPER_RIG, P.rich(center=(-33.3e-6, 11.3e-6))) == []
+    assert limits.limit_violations(rig.PAPER_RIG, P.rich(center=(-33.3e-6, 11.3e-6))) == []
 
 
 def test_limit_violations_name_biases_and_coil_currents_beyond_the_limit():
-    v = rig.virtual
     small = rig.PAPER_RIG.bearing.with_(max_current=1.5)
     spec = rig.RigSpec(bearing=small)
     proto = P.perturbation((1.4, 1.6), (20e-6,), center=(-33.3e-6, 11.3e-6))
-    found = v.limit_violations(spec, proto)
+    found = limits.limit_violations(spec, proto)
     assert [f.kind for f in found] == ["bias"] * 4 and all(f.value == 1.6 for f in found)
     # the coil currents of a 1.4 A bias carrying the rotor exceed 1.5 A on the top coil
     low = P.perturbation((1.4, 1.45), (20e-6,), center=(-33.3e-6, 11.3e-6))
     sim = _sim(low, spec=spec)
-    found = v.limit_violations(spec, low, currents=sim.physical_currents)
+    found = limits.limit_violations(spec, low, currents=sim.physical_currents)
     assert found and all(f.kind == "current" for f in found)
     worst = max(found, key=lambda f: f.value)
     assert worst.value == pytest.approx(sim.physical_currents.max(), rel=1e-12) and worst.value > 1.5

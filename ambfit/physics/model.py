@@ -14,8 +14,9 @@ them).  The bearing's facts (pole angle, turns, pole face) come from
 :class:`ambfit.physics.bearing.Bearing`.
 
 Unmodelled physics enters through :mod:`ambfit.physics.effects`: :func:`evaluate`
-threads a :class:`Context` through every effect's stages, so the same effect
-objects serve the virtual rig (as truth) and the fit (as model extensions).
+threads a :class:`~ambfit.physics.stages.Context` through every effect's stages
+(:mod:`ambfit.physics.stages`), so the same effect objects serve the virtual rig
+(as truth) and the fit (as model extensions).
 
 Reference: the seed paper, "Active Magnetic Bearing System Identification using
 Current-Position Perturbation", Eq. 3-4; Schweitzer & Maslen (eds.), *Magnetic
@@ -33,9 +34,10 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from collections.abc import Sequence
 
-    from ambfit.physics.effects import Effect
+    from ambfit.physics.stages import Effect
 
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
+from ambfit.physics.stages import Context, _set
 
 
 class BearingParams(eqx.Module):
@@ -144,56 +146,6 @@ class Readings(eqx.Module):
         return int(self.axis.shape[0])
 
 
-class Context(eqx.Module):
-    """Everything one evaluation of the force knows about each reading (SI units).
-
-    Effects receive a context and return a modified copy (``eqx.tree_at``).  The
-    stages, in order, are ``physical`` (sensor readings to physical quantities),
-    ``geometry`` (``g0``, ``x0``), ``gap`` (``g_top``, ``g_bottom``), ``coil``
-    (magnetising currents ``m_*`` and coil force constants ``k_*``) and ``force``.
-    """
-
-    axis: jnp.ndarray
-    i_top: jnp.ndarray
-    i_bottom: jnp.ndarray
-    x: jnp.ndarray
-    y: jnp.ndarray
-    bias: jnp.ndarray
-    time: jnp.ndarray
-    temperature: jnp.ndarray
-    dir_top: jnp.ndarray
-    dir_bottom: jnp.ndarray
-    g0: jnp.ndarray
-    x0: jnp.ndarray
-    y0: jnp.ndarray
-    k: jnp.ndarray
-    g0_other: jnp.ndarray
-    bearing: Bearing = eqx.field(static=True)
-    g_top: jnp.ndarray
-    g_bottom: jnp.ndarray
-    m_top: jnp.ndarray
-    m_bottom: jnp.ndarray
-    k_top: jnp.ndarray
-    k_bottom: jnp.ndarray
-    m_prev_top: jnp.ndarray
-    m_prev_bottom: jnp.ndarray
-    i_top_other: jnp.ndarray
-    i_bottom_other: jnp.ndarray
-
-    def b_top(self) -> jnp.ndarray:
-        """Ideal-circuit flux density in the top gaps [T] (:meth:`Bearing.flux_density`)."""
-        return self.bearing.flux_density(self.m_top, self.g_top)
-
-    def b_bottom(self) -> jnp.ndarray:
-        """Ideal-circuit flux density in the bottom gaps [T]."""
-        return self.bearing.flux_density(self.m_bottom, self.g_bottom)
-
-
-def _set(ctx: Context, **fields) -> Context:
-    names = tuple(fields)
-    return eqx.tree_at(lambda c: tuple(getattr(c, n) for n in names), ctx, tuple(fields.values()))
-
-
 def make_context(
     params: BearingParams, readings: Readings, *, bearing: Bearing = PAPER_BEARING, m_prev_top=None,
     m_prev_bottom=None,
@@ -219,7 +171,7 @@ def evaluate(
     params: BearingParams, readings: Readings, effects: Sequence[Effect] = (), *,
     bearing: Bearing = PAPER_BEARING, physical: bool = False, m_prev_top=None, m_prev_bottom=None,
 ) -> tuple[jnp.ndarray, Context]:
-    """Force on each reading's axis [N] and the final :class:`Context`.
+    """Force on each reading's axis [N] and the final :class:`~ambfit.physics.stages.Context`.
 
     Parameters
     ----------

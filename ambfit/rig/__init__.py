@@ -1,7 +1,9 @@
-"""The virtual test rig: equilibria under a controller, perturbation protocols, the effective-origin search.
+"""The virtual test rig: equilibria under a controller, perturbation protocols.
 
 ``ambfit.rig`` re-exports the simulator (:mod:`ambfit.rig.virtual`); protocols live in
-:mod:`ambfit.rig.protocol` and the paper's origin search in :mod:`ambfit.rig.origin`.
+:mod:`ambfit.rig.protocol`, the bearing's limits on them (back-up clearance, coil current) in
+:mod:`ambfit.rig.limits`.  The paper's effective-origin search, which identifies the origin
+with the closed form at every iteration, runs on the rig from :mod:`ambfit.studies.origin`.
 """
 
 from ambfit.rig.virtual import (

@@ -40,8 +40,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.physics.bearing import AXES
-from ambfit.physics.effects import Effect, _ax
-from ambfit.physics.model import _set
+from ambfit.physics.stages import Effect, _ax, _set
 from ambfit.rig.protocol import perturbation, with_assembly
 from ambfit.rig.virtual import PAPER_RIG, Noise, RigSpec, RigState, simulate
 

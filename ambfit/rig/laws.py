@@ -13,7 +13,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
-from ambfit.physics.effects import Effect, _ax, _set
+from ambfit.physics.stages import Effect, _ax, _set
 
 
 class RayleighHysteresis(Effect):

@@ -214,7 +214,7 @@ def paper_table1(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
 
 PAPER_TABLE3_STARTS = ((0.0, 0.0), (30e-6, 30e-6), (-10e-6, -30e-6), (2.78e-6, -36.88e-6))
 """Table 3's initial rotor positions ``(v, w)`` [m]: each experiment is an origin search from one of them
-(:func:`ambfit.rig.origin.search` with ``start=``)."""
+(:func:`ambfit.studies.origin.search` with ``start=``)."""
 
 
 def paper_table4(iterations: int = 10, center=(0.0, 0.0), origin_shift=(-80.7e-6, 24.4e-6)) -> Protocol:
@@ -241,7 +241,7 @@ def rich(
     ``center`` [m, sensor coordinates]: where the set-points are centred.  On a real bearing that is the
     effective origin ``(-v0, -w0)`` the paper's origin search finds: centred on the sensor origin instead, the
     default ±40 µm reach 73 µm from the centre of the paper's rig, beyond its 60 µm back-up clearance
-    (:func:`ambfit.rig.virtual.limit_violations`).
+    (:func:`ambfit.rig.limits.limit_violations`).
     """
     lin = np.linspace(-span, span, n_positions)
     rng = np.random.default_rng(12345)  # fixed, so the design is a constant of the code

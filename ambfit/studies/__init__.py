@@ -1,1 +1,2 @@
-"""Studies built on the core: the seed paper reproduced, simulation-based calibration."""
+"""Studies built on the core: the paper's effective-origin search, the seed paper reproduced, campaigns,
+simulation-based calibration."""

@@ -4,7 +4,7 @@ The paper's results live in ``data/paper/`` (one CSV per table, units in the col
 names, source table and row in columns; ``rig_settings.csv`` for the numbers stated in
 the text).  :func:`reproduce` runs each table row's protocol on
 :data:`ambfit.rig.PAPER_RIG` the way the paper did (the effective-origin search of
-:mod:`ambfit.rig.origin`, 10 iterations, Eq. 5-7 per iteration, the row is the mean over
+:mod:`ambfit.studies.origin`, 10 iterations, Eq. 5-7 per iteration, the row is the mean over
 the iterations) and repeats the whole set of experiments ``replicates`` times to
 *predict* each row's scatter and each table's between-row spread from the rig's
 noise, which is calibrated on Table 2's per-iteration scatter only.
@@ -101,8 +101,8 @@ def rows() -> list[Row]:
 
 
 def run_row(row: Row, *, spec: RigSpec = PAPER_RIG, noise: Noise = Noise(), seed=0, iterations: int = 10):
-    """The paper's experiment for one row: the effective-origin search (:func:`ambfit.rig.origin.search`)."""
-    from ambfit.rig import origin
+    """The paper's experiment for one row: the effective-origin search (:func:`ambfit.studies.origin.search`)."""
+    from ambfit.studies import origin
 
     s = spec if row.origin_shift == (0.0, 0.0) else spec.with_truth(x0=np.asarray(spec.x0) + row.origin_shift)
     return origin.search(s, biases=row.biases, offset=row.offset, start=row.start, iterations=iterations,

@@ -62,9 +62,9 @@ def gap_demonstration(*, seed: int = 0, separate: bool = True) -> dict:
     from ambfit.diagnosis import diagnose
     from ambfit.estimation.fit import fit
     from ambfit.physics import effects
-    from ambfit.rig import origin
     from ambfit.rig import protocol as P
     from ambfit.rig.virtual import simulate
+    from ambfit.studies import origin
 
     pg = {e["parameter"]: e for e in published_gap()}
     diffs = np.array([pg[f"g_{ax}0_um"]["difference"] for ax in AXES]) * 1e-6
@@ -111,7 +111,7 @@ def bias_pair_check(noise: Noise = Noise(current=1e-7, position=1e-10)) -> pd.Da
     top current channels and a 1 % gain mismatch between the channels: does any of them make the identified
     origin depend on the bias pair the way the paper's Table 1 does (35.08, 31.75, 28.77 µm)?"""
     from ambfit.physics import effects
-    from ambfit.rig import origin
+    from ambfit.studies import origin
 
     # effect parameters are scalars (both axes) or (v, w) pairs, as arrays so that jit traces them
     cases = {"none": [],

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from ambfit._jaxcache import enable_compilation_cache
 from ambfit.faces.cli.app import (
     AcceptOption,
     BearingOption,
@@ -14,7 +15,6 @@ from ambfit.faces.cli.app import (
     bearing_of,
     check_output,
     console,
-    enable_compilation_cache,
     fail,
     note,
     read_data,

@@ -1,24 +1,23 @@
-"""``ambfit identify`` and ``ambfit sample``: least squares, the paper's closed form, the posterior."""
+"""``ambfit check`` and ``ambfit identify``: a data file's problems; least squares or the paper's closed form.
+
+One data set is identified here; several files or ``--by`` groups by
+:mod:`~ambfit.faces.cli.groups`; what both do for every data set is :mod:`~ambfit.faces.cli.fitting`.
+"""
 
 from __future__ import annotations
 
-import dataclasses
-import sys
-from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from ambfit._jaxcache import enable_compilation_cache
 from ambfit.faces.cli.app import (
     AcceptOption,
     BearingOption,
     app,
     bearing_of,
     check_output,
-    console,
-    enable_compilation_cache,
-    err,
     fail,
     judge,
     note,
@@ -27,75 +26,19 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
-
-
-class Method(str, Enum):
-    least_squares = "least-squares"
-    closed_form = "closed-form"
-
-
-class Loss(str, Enum):
-    auto = "auto"
-    linear = "linear"
-    huber = "huber"
-    cauchy = "cauchy"
-
-
-def say(kind: str, text: str) -> None:
-    """Show one message now: ``kind`` is "warn", "note", "error" or "implausible".  Work that runs on an engine's
-    worker processes collects ``(kind, text)`` pairs instead (a list's ``append`` in its place) and the command
-    shows them, in order, when the results come back."""
-    if kind == "warn":
-        warn(text)
-    elif kind == "note":
-        note(text)
-    else:
-        err.print(f"[bold red]{kind}:[/] {text}", highlight=False, soft_wrap=True)
-
-
-def _collector(messages: list):
-    """A ``say`` that keeps the messages in ``messages`` (an engine task returns them with its results)."""
-    return lambda kind, text: messages.append((kind, text))
-
-
-def drop_duplicates(ds, name: str, keep: bool, say=say):
-    """Name exact duplicate readings; unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``.
-
-    Rows are named as in the file (counted from 1): a group cut out of a file keeps the file's row numbers.
-    """
-    from ambfit.data import Dataset, duplicate_rows, file_rows
-
-    dupes = duplicate_rows(ds.frame)
-    if not dupes:
-        return ds, []
-    rows = file_rows(ds.frame)
-
-    def row(r):                       # duplicate_rows counts positions from 1; messages name the file's rows
-        return int(rows[r - 1])
-
-    listed = ", ".join(f"{row(r)} repeats {row(f)}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
-    if keep:
-        say("warn", f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; "
-            "each counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
-        return ds, []
-    frame = ds.frame.drop(index=ds.frame.index[[r - 1 for r, _ in dupes]])
-    say("warn", f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading "
-        "is a copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
-    return Dataset(frame=frame, source=ds.source), [row(r) for r, _ in dupes]
-
-
-def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "", say=say) -> float | None:
-    """How much smaller the gap's error bar would be with the duplicates counted (a fit of the full file)."""
-    from ambfit.estimation import fit
-
-    try:
-        with_dupes = fit.fit(original, bearing=bearing, loss=loss, throw=False)
-    except fit.FitError:
-        return None
-    std, dup = record["params"]["g_v0_um"]["std"], with_dupes.error("g_v0") * 1e6
-    say("note", f"{prefix}counted as often as they appear, the duplicates would shrink the error bars "
-        f"{std / dup:.2f} x (g_v0 ± {dup:.3g} µm instead of ± {std:.3g} µm)")
-    return std / dup
+from ambfit.faces.cli.fitting import (
+    Loss,
+    Method,
+    _closed_form_record,
+    _duplicate_effect,
+    _Options,
+    _status,
+    _table_row,
+    _warn_health,
+    _write_table,
+    drop_duplicates,
+)
+from ambfit.faces.cli.groups import _expand, _identify_groups
 
 
 @app.command()
@@ -229,29 +172,6 @@ def identify(
                          scheduler)
 
 
-@dataclasses.dataclass(frozen=True)
-class _Options:
-    """The fit settings of one ``identify`` run, the same for every group."""
-
-    method: Method
-    current_noise_ma: float | None
-    position_noise_um: float | None
-    require_k: bool
-    debias: int
-    loss: str
-    keep_duplicates: bool
-    accept: bool
-    bearing: object
-    force_check: bool = True
-    effects: tuple = ()
-    discrepancy: bool = False
-
-    def fit_kw(self) -> dict:
-        return dict(sigma_i=None if self.current_noise_ma is None else self.current_noise_ma * 1e-3,
-                    sigma_x=None if self.position_noise_um is None else self.position_noise_um * 1e-6,
-                    require_k=self.require_k, debias=self.debias, bearing=self.bearing, loss=self.loss)
-
-
 def _identify_file(data: Path, opts: _Options, max_position_um, json_out, table):
     """One file, one estimate: the contract's section-2 JSON."""
     from ambfit.estimation import plausibility
@@ -292,28 +212,6 @@ def _identify_closed_form(ds, name, bearing, *, show: bool = True) -> dict:
     if not result.trusted:
         warn("the closed-form result cannot be trusted (see above); ambfit identify exits 3")
     return record
-
-
-def _closed_form_record(result, bearing, name: str, say=say) -> dict:
-    """The closed form's contract record with its plausibility flags; its rejections and health as warnings."""
-    from ambfit.estimation import plausibility
-
-    for line in result.rejections():
-        say("warn", name + line)
-    for line in result.health():
-        say("warn", name + line)
-    record = result.to_json()
-    keys = {e for e, _ in result.estimates}
-    record["implausible"] = [f.to_json() for key in sorted(keys) for f in plausibility.check_result(
-        _si_values(result.params(key)), bearing)]
-    return record
-
-
-def _si_values(params: dict) -> dict:
-    """Contract parameter block -> internal names in SI."""
-    from ambfit.estimation.results import CONTRACT_PARAMS
-
-    return {name: params[key]["value"] / f for name, key, f in CONTRACT_PARAMS if key in params}
 
 
 def _effects(names: list[str], bearing) -> tuple:
@@ -384,411 +282,3 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
         elif fc is not None:
             record["force_check"] = fc
     return record
-
-
-def _warn_health(res, prefix: str = "", say=say):
-    for check, ok, text in res.checks():
-        if ok is False and check not in ("k_identified", "plausible"):   # plausibility: judge() says it
-            say("warn", prefix + text)
-
-
-# --- several files, or one file split by a column ---------------------------------------------------------------
-
-GLOB_CHARACTERS = "*?["
-
-
-def _expand(args: list[Path]) -> tuple[list[Path], list[str]]:
-    """The files named, quoted globs expanded (sorted); a file named twice counted once.
-
-    Returns ``(paths, patterns that matched no file)``.  A path that exists is taken as it is, even when its name
-    contains glob characters.
-    """
-    import glob
-
-    found, unmatched = [], []
-    for arg in args:
-        text = str(arg)
-        if arg.exists() or not any(c in text for c in GLOB_CHARACTERS):
-            found.append(arg)
-            continue
-        hits = sorted(h for h in glob.glob(text, recursive=True) if Path(h).is_file())
-        if not hits:
-            unmatched.append(text)
-        found += [Path(h) for h in hits]
-    paths, seen = [], set()
-    for p in found:
-        key = p.resolve()
-        if key in seen:
-            warn(f"{p}: named more than once; identified once")
-            continue
-        seen.add(key)
-        paths.append(p)
-    return paths, unmatched
-
-
-def _split(frame, column: str | None):
-    """``(value, rows)`` for each value of ``column`` in order of first appearance; ``(None, frame)`` without one.
-
-    Values are compared as text (as :func:`ambfit.estimation.fit.fit_by` does); rows with an empty cell form the
-    group ``"(empty)"``.  Each group keeps the file's row index, so messages name the file's rows.
-    """
-    if column is None:
-        return [(None, frame)]
-    keys = frame[column].astype("string").fillna("(empty)").astype(str)
-    return [(str(value), frame[keys == value]) for value in dict.fromkeys(keys)]
-
-
-STATUS_TEXT = {"ok": "ok", "failed": "fit failed", "implausible": "implausible", "untrusted": "not trusted",
-               "unreadable": "unreadable"}
-
-
-def _status(record: dict, flags, accept: bool) -> str:
-    """ok, failed (no estimate or not converged), implausible (ruled out by the bearing), untrusted (closed form)."""
-    if record.get("error") or not record.get("converged"):
-        return "failed"
-    if flags and not accept:
-        return "implausible"
-    if record.get("trusted") is False:
-        return "untrusted"
-    return "ok"
-
-
-def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, pooled, json_out, table,
-                     workers: int | None = None, scheduler: str | None = None):
-    """One estimate per file (and per value of ``column``), each judged on its own; exit 2 if a file is unreadable,
-    3 if a group is not fine, else 0.  With ``workers`` or ``scheduler`` the groups run on :mod:`ambfit.engine`
-    (chunks of groups per task, plain least squares as one vmapped batch per chunk); the entries are the same."""
-    from ambfit.data import DataError, Dataset, read_csv
-    from ambfit.faces.cli.progress import progress_bar
-
-    several = len(paths) + len(unmatched) > 1
-    limit = max_position_um or opts.bearing.nominal_gap * 1e6
-    jobs, readable = [], []       # jobs: (file, value, Dataset or the reason it cannot be read)
-    for pattern in unmatched:
-        jobs.append((pattern, None, f"{pattern}: no file matches this pattern"))
-    for path in paths:
-        try:
-            ds = read_csv(path, max_position_um=limit)
-        except (DataError, OSError) as exc:
-            jobs.append((str(path), None, str(exc)))
-            continue
-        if column is not None and column not in ds.frame.columns:
-            cols = ", ".join(map(str, ds.frame.columns))
-            jobs.append((str(path), None, f"{path}: no column {column!r} to split by (--by); columns: {cols}"))
-            continue
-        readable.append((path, ds))
-        jobs += [(str(path), value, Dataset(frame=rows, source=ds.source)) for value, rows in _split(ds.frame, column)]
-
-    def label(file, value):
-        name = file if several else Path(file).name
-        return name if value is None else (f"{name}:{value}" if several else value)
-
-    entries = []
-    with progress_bar() as bar:
-        heads = [{"group": label(file, value), "file": file, **({} if column is None else {"by": column,
-                                                                                         "value": value})}
-                 for file, value, _ in jobs]
-        if workers is None and scheduler is None:
-            for head, (_, _, ds) in zip(heads, bar.iterate(jobs, "groups")):
-                if isinstance(ds, str):
-                    say("error", ds)
-                    entries.append({**head, "status": "unreadable", "error": ds})
-                else:
-                    entries.append({**head, **_identify_group(ds, head["group"], opts)})
-        else:
-            entries = _groups_on_engine(jobs, heads, opts, workers, scheduler, bar)
-        pooled_entry = None
-        if pooled and readable:
-            bar("pooled fit", 0, 1)
-            pooled_entry = {"group": "(pooled)", "file": "; ".join(str(p) for p, _ in readable),
-                            **_identify_group(_pooled(readable), "pooled", opts)}
-            bar("pooled fit", 1, 1)
-
-    shown = entries + ([pooled_entry] if pooled_entry else [])
-    what = "closed form (Eq. 5-7)" if opts.method is Method.closed_form else "least squares"
-    files = len(paths) + len(unmatched)
-    show_table([_display_row(e) for e in shown],
-               f"{what}, {len(entries)} group(s) from {files} file(s)" + (f" by {column}" if column else ""),
-               left=("group", "status"))
-    if json_out is not None:
-        record = {"method": "closed_form" if opts.method is Method.closed_form else "least_squares",
-                  "by": column, "files": [str(p) for p in paths] + unmatched, "n_groups": len(entries),
-                  "n_ok": sum(e["status"] == "ok" for e in entries), "groups": entries}
-        if pooled_entry is not None:
-            record["pooled"] = pooled_entry
-        write_json(record, json_out)
-    if table is not None:
-        _write_table([_table_row(e) for e in shown], column, table)
-    bad = [e for e in shown if e["status"] != "ok"]
-    if not bad:
-        note(f"all {len(shown)} group(s) fine")
-        return
-    listed = "; ".join(f"{e['group']} ({STATUS_TEXT[e['status']]})" for e in bad[:10]) + (" ..." if len(bad) > 10
-                                                                                          else "")
-    unreadable = any(e["status"] == "unreadable" for e in bad)
-    written = " and ".join(str(p) for p in (json_out, table) if p is not None)
-    rest = "" if len(bad) == len(shown) else "; the other groups' results stand" + (f" (in {written})" if written
-                                                                                     else "")
-    fail(f"{len(bad)} of {len(shown)} group(s) not fine: {listed}{rest}", 2 if unreadable else 3)
-
-
-def _groups_on_engine(jobs, heads, opts: _Options, workers, scheduler, bar) -> list[dict]:
-    """The groups' entries computed on the engine; their messages shown afterwards in the order of the groups."""
-    import functools
-
-    from ambfit import engine
-
-    items = [(head["group"], ds) for head, (_, _, ds) in zip(heads, jobs) if not isinstance(ds, str)]
-    try:
-        with engine.using(workers, scheduler) as eng:
-            done = eng.map_batches(functools.partial(_groups_task, opts=opts), items, progress=bar, what="groups")
-    except engine.EngineError as exc:
-        from rich.markup import escape
-
-        fail(escape(str(exc)), 2)           # (escaped: "ambfit[dask]" is not markup)
-    results = iter(done)
-    entries = []
-    for head, (_, _, ds) in zip(heads, jobs):
-        if isinstance(ds, str):
-            say("error", ds)
-            entries.append({**head, "status": "unreadable", "error": ds})
-            continue
-        entry, messages = next(results)
-        for kind, text in messages:
-            say(kind, text)
-        entries.append({**head, **entry})
-    return entries
-
-
-def _identify_group(ds, name: str, opts: _Options, say=say) -> dict:
-    """Plausibility of the data, duplicates, the fit and the plausibility of its result for one group, as the
-    single-file path does them, but reported instead of ending the run."""
-    return _finish_group(_prepare_group(ds, name, opts, say), name, opts, say)
-
-
-@dataclasses.dataclass(frozen=True)
-class _Prepared:
-    """A group before its fit: the data's plausibility flags, the table as read, and without duplicates."""
-
-    data_flags: list
-    original: object
-    ds: object
-    dropped: list
-
-
-def _prepare_group(ds, name: str, opts: _Options, say=say) -> _Prepared:
-    from ambfit.estimation import plausibility
-
-    data_flags = plausibility.check_data(ds.frame, opts.bearing)
-    deduplicated, dropped = drop_duplicates(ds, name, opts.keep_duplicates, say)
-    return _Prepared(data_flags=data_flags, original=ds, ds=deduplicated, dropped=dropped)
-
-
-def _finish_group(prep: _Prepared, name: str, opts: _Options, say=say, res=None) -> dict:
-    """The group's entry from its fit: ``res`` (a :class:`FitResult`, or the exception its fit raised) when the
-    fit ran in a batch, else the fit runs here."""
-    from ambfit.data import DataError
-    from ambfit.estimation import closed_form, fit, plausibility
-
-    prefix = f"{name}: "
-    ds = prep.ds
-    try:
-        if opts.method is Method.closed_form:
-            record = _closed_form_record(closed_form.identify(ds, bearing=opts.bearing), opts.bearing, prefix, say)
-        else:
-            if res is None:
-                res = fit.fit(ds, **opts.fit_kw())
-            elif isinstance(res, Exception):
-                raise res
-            else:
-                res.raise_for_health()          # what fit(throw=True) raises
-            _warn_health(res, prefix, say)
-            record = res.to_json()
-            if prep.dropped and "g_v0_um" in record["params"]:
-                record["duplicates_error_bar_factor"] = _duplicate_effect(prep.original, record, opts.bearing,
-                                                                          opts.loss, prefix, say)
-    except (fit.FitError, closed_form.ClosedFormError, DataError, ValueError) as exc:
-        say("error", f"{prefix}{exc}")
-        record = {"method": "closed_form" if opts.method is Method.closed_form else "least_squares", "params": {},
-                  "converged": False, "n_rows": len(ds), "error": str(exc)}
-    flags = [*prep.data_flags, *(plausibility.Flag(**f) for f in record.get("implausible", []))]
-    record["implausible"] = [f.to_json() for f in flags]
-    record["duplicates_dropped"] = prep.dropped
-    for f in flags:
-        say("warn" if opts.accept else "implausible", f"{prefix}{f}")
-    return {"status": _status(record, flags, opts.accept), **record}
-
-
-def _batched(opts: _Options) -> bool:
-    """Whether the groups' fits run as one batch (:func:`ambfit.estimation.fit.fit_many`): every least-squares fit."""
-    return opts.method is Method.least_squares
-
-
-def _groups_task(chunk: list, opts: _Options) -> list:
-    """One engine task: the entries of a chunk of ``(group label, Dataset)`` and each group's messages
-    (``[(kind, text)]``), as the in-process loop would show them.  Least squares runs as one batch of the chunk's
-    groups (:func:`ambfit.estimation.fit.fit_many`)."""
-    from ambfit.estimation.fit import fit_many
-
-    out, preps = [], []
-    for name, ds in chunk:
-        messages = []
-        preps.append(_prepare_group(ds, name, opts, _collector(messages)))
-        out.append(messages)
-    fits = [None] * len(chunk)
-    if _batched(opts):
-        fits = fit_many([p.ds for p in preps], **opts.fit_kw())
-    return [(_finish_group(p, name, opts, _collector(messages), res), messages)
-            for (name, _), p, res, messages in zip(chunk, preps, fits, out)]
-
-
-def _pooled(readable):
-    """All rows of all files as one data set; a file's loads stay its own (``load_id`` and ``experiment`` are
-    prefixed with the file when there are several)."""
-    import pandas as pd
-
-    from ambfit.data import Dataset
-
-    if len(readable) == 1:
-        return readable[0][1]
-    parts = []
-    for path, ds in readable:
-        f = ds.frame.copy()
-        exp = f["experiment"].astype(str) if "experiment" in f else None
-        base = (f["load_id"].astype(str) if "load_id" in f else
-                ("experiment:" + exp) if exp is not None else pd.Series("all", index=f.index))
-        f["load_id"] = f"{path}|" + base
-        f["experiment"] = f"{path}|" + (exp if exp is not None else "all")
-        parts.append(f)
-    return Dataset(frame=pd.concat(parts, ignore_index=True), source="pooled")
-
-
-def _display_row(entry: dict) -> dict:
-    """One console-table row: the group, its rows, each parameter ± its error in display units, χ²/dof, status."""
-    from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, pm
-
-    params = entry.get("params", {})
-    row = {"group": entry["group"], "rows": str(entry.get("n_rows", "–"))}
-    for name, key, _ in CONTRACT_PARAMS:
-        p = params.get(key)
-        std = p.get("std") if p else None
-        row[f"{name} [{DISPLAY[name][0]}]"] = "–" if p is None else pm(p["value"], float("nan") if std is None
-                                                                          else std)
-    chi2 = entry.get("reduced_chi2")
-    row["χ²/dof"] = "–" if chi2 is None else f"{chi2:.2f}"
-    row["status"] = STATUS_TEXT[entry["status"]]
-    return row
-
-
-TABLE_PARAMS = (("g_v0", "um"), ("v0", "um"), ("g_w0", "um"), ("w0", "um"), ("k_v", "Nm2_per_A2"),
-                ("k_w", "Nm2_per_A2"))
-
-
-def _table_row(entry: dict) -> dict:
-    """One ``--table`` row (file units in the column names, blank where a value does not apply)."""
-    params = entry.get("params", {})
-    row = {"group": entry["group"], "file": entry.get("file", ""), "_value": entry.get("value"),
-           "n_rows": entry.get("n_rows")}
-    for name, unit in TABLE_PARAMS:
-        p = params.get(f"{name}_{unit}", {})
-        row[f"{name}_{unit}"] = p.get("value")
-        row[f"{name}_std_{unit}"] = p.get("std")
-    gof = entry.get("goodness_of_fit", {})
-    flags = entry.get("implausible", [])
-    row |= {"reduced_chi2": entry.get("reduced_chi2"), "dof": entry.get("dof"), "p_value": gof.get("p_value"),
-            "converged": entry.get("converged"), "well_conditioned": entry.get("well_conditioned"),
-            "adequate": gof.get("adequate"), "trusted": entry.get("trusted"),
-            "outliers": len(entry.get("outliers", [])), "duplicates_dropped": len(entry.get("duplicates_dropped", [])),
-            "implausible": bool(flags), "implausible_why": "; ".join(f"{f['quantity']}: {f['cause']}" for f in flags),
-            "status": entry["status"], "error": entry.get("error", "")}
-    return row
-
-
-def _write_table(rows: list[dict], column: str | None, path: Path):
-    """Write the groups table as CSV (atomically: a temporary file in the same folder, then a rename)."""
-    import os
-    import tempfile
-
-    import pandas as pd
-
-    frame = pd.DataFrame(rows)
-    value_name = column if column and column not in frame.columns else "by_value"
-    if column is None:
-        frame = frame.drop(columns="_value")
-    else:
-        frame = frame.rename(columns={"_value": value_name})
-    for c in ("n_rows", "dof", "outliers", "duplicates_dropped"):
-        frame[c] = frame[c].astype("Int64")
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            frame.to_csv(f, index=False)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    console.print(f"wrote {path} ({len(frame)} row(s))")
-
-
-@app.command()
-def sample(
-    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
-    out: Annotated[Path | None, typer.Option(help="Write the ArviZ DataTree (posterior, log_likelihood, "
-                                             "sample_stats, observed_data) as NetCDF here.")] = None,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
-                                                  "94 % HDI, R-hat, ESS) here.")] = None,
-    pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
-    steps: Annotated[int, typer.Option(help="Steps per ensemble to start with; each ensemble is extended until "
-                                       "the run is 50 autocorrelation times long and tau has settled.")] = 3000,
-    max_steps: Annotated[int, typer.Option(help="Cap on the steps per ensemble (exit 3 with the length "
-                                           "needed when it is reached).")] = 30000,
-    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat compares them).")] = 4,
-    walkers: Annotated[int | None, typer.Option(help="Walkers per ensemble (default max(32, 4 x parameters)).")] = None,
-    nominal_gap_um: Annotated[float | None, typer.Option(help="Centre the gap prior on this nominal gap [µm] "
-                                                          "(log-sd --gap-prior-log-sd).")] = None,
-    gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
-    seed: Annotated[int, typer.Option(help="Seed.")] = 0,
-    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
-    accept_implausible: AcceptOption = False,
-    bearing: BearingOption = None,
-):
-    """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
-
-    Runs until the chains are 50 autocorrelation times long (up to --max-steps); exits 3 when
-    the cap is reached (and says how long the run should be) or R-hat across the ensembles
-    exceeds 1.01.
-    """
-    from ambfit.data import DataError
-    from ambfit.estimation import bayes, fit
-
-    check_output(out, json_out, pair_png)
-    enable_compilation_cache()
-    desc = bearing_of(bearing)
-    ds = read_data(data, desc, accept_implausible)
-    try:
-        prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
-                                         gap_log_sd=gap_prior_log_sd)
-        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
-                           max_steps=max_steps, seed=seed, progress=progress and sys.stderr.isatty(), bearing=desc)
-    except DataError as exc:
-        fail(str(exc))
-    except fit.FitError as exc:
-        fail(str(exc), 3)
-    note(res.summary())
-    record = res.to_json()
-    if out is not None:
-        res.datatree.to_netcdf(out, engine="h5netcdf")
-        console.print(f"wrote {out}")
-    if json_out is not None:
-        write_json(record, json_out)
-    if pair_png is not None:
-        from ambfit.faces import plots
-
-        plots.save(plots.plot_pair(res, result=res.ls), pair_png, close=True)
-        console.print(f"wrote {pair_png}")
-    if not record["converged"]:
-        raise typer.Exit(3)

@@ -115,7 +115,7 @@ def simulate(
 def within_limits(spec, proto, effects, allow: bool, currents=None):
     """Refuse (exit 2) a protocol beyond the bearing's back-up clearance or coil current limit, naming the first
     step, its set-point and how far it goes; with ``allow``, warn instead."""
-    from ambfit.rig.virtual import limit_violations
+    from ambfit.rig.limits import limit_violations
 
     found = limit_violations(spec, proto, effects, currents)
     if currents is not None:       # the set-points and biases were judged before the run
@@ -168,8 +168,8 @@ def origin_search(
     from ambfit import rig
     from ambfit.estimation import closed_form
     from ambfit.faces.cli.progress import progress_bar
-    from ambfit.rig import origin
     from ambfit.rig import protocol as proto_mod
+    from ambfit.studies import origin
 
     check_output(out, truth, json_out)
     try:

@@ -1,0 +1,83 @@
+"""``ambfit sample``: the posterior of gap, origin and k with emcee, summarised with ArviZ."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ambfit._jaxcache import enable_compilation_cache
+from ambfit.faces.cli.app import (
+    AcceptOption,
+    BearingOption,
+    app,
+    bearing_of,
+    check_output,
+    console,
+    fail,
+    note,
+    read_data,
+    write_json,
+)
+
+
+@app.command()
+def sample(
+    data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
+    out: Annotated[Path | None, typer.Option(help="Write the ArviZ DataTree (posterior, log_likelihood, "
+                                             "sample_stats, observed_data) as NetCDF here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
+                                                  "94 % HDI, R-hat, ESS) here.")] = None,
+    pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
+    steps: Annotated[int, typer.Option(help="Steps per ensemble to start with; each ensemble is extended until "
+                                       "the run is 50 autocorrelation times long and tau has settled.")] = 3000,
+    max_steps: Annotated[int, typer.Option(help="Cap on the steps per ensemble (exit 3 with the length "
+                                           "needed when it is reached).")] = 30000,
+    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat compares them).")] = 4,
+    walkers: Annotated[int | None, typer.Option(help="Walkers per ensemble (default max(32, 4 x parameters)).")] = None,
+    nominal_gap_um: Annotated[float | None, typer.Option(help="Centre the gap prior on this nominal gap [µm] "
+                                                          "(log-sd --gap-prior-log-sd).")] = None,
+    gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
+    seed: Annotated[int, typer.Option(help="Seed.")] = 0,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    accept_implausible: AcceptOption = False,
+    bearing: BearingOption = None,
+):
+    """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
+
+    Runs until the chains are 50 autocorrelation times long (up to --max-steps); exits 3 when
+    the cap is reached (and says how long the run should be) or R-hat across the ensembles
+    exceeds 1.01.
+    """
+    from ambfit.data import DataError
+    from ambfit.estimation import bayes, fit
+
+    check_output(out, json_out, pair_png)
+    enable_compilation_cache()
+    desc = bearing_of(bearing)
+    ds = read_data(data, desc, accept_implausible)
+    try:
+        prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
+                                         gap_log_sd=gap_prior_log_sd)
+        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
+                           max_steps=max_steps, seed=seed, progress=progress and sys.stderr.isatty(), bearing=desc)
+    except DataError as exc:
+        fail(str(exc))
+    except fit.FitError as exc:
+        fail(str(exc), 3)
+    note(res.summary())
+    record = res.to_json()
+    if out is not None:
+        res.datatree.to_netcdf(out, engine="h5netcdf")
+        console.print(f"wrote {out}")
+    if json_out is not None:
+        write_json(record, json_out)
+    if pair_png is not None:
+        from ambfit.faces import plots
+
+        plots.save(plots.plot_pair(res, result=res.ls), pair_png, close=True)
+        console.print(f"wrote {pair_png}")
+    if not record["converged"]:
+        raise typer.Exit(3)

@@ -1,0 +1,323 @@
+"""Solving the magnetic equivalent circuit per reading: Newton's method on the loop fluxes, and the forces.
+
+The circuit is solved by Newton's method (at most :data:`MAX_NEWTON` steps, stopping at a
+relative step of 1e-13; a reading whose solve is still moving by more than :data:`NEWTON_FAILED` after
+:data:`MAX_NEWTON` steps gets a NaN force, so that a fit names its rows instead of using a wrong number); derivatives with respect to the parameters and inputs come from one
+extra Newton step whose Jacobian is held constant (the implicit-function theorem), so
+:func:`mec_forces` is jit-able, vmap-able and differentiable in float64.  Newton runs on 17 loop
+fluxes (the flux law solved in advance, see ``_loop_system``) with a hand-written Jacobian; it takes
+the same steps as on the 64 nodal unknowns of :mod:`~ambfit.physics.circuit.network`, whose residual it reports.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ambfit.physics.bearing import MU_0, Bearing
+from ambfit.physics.circuit.iron import MU_R_MAX, _iron_h, bh_curve
+from ambfit.physics.circuit.network import (
+    _COIL,
+    _INTRA,
+    _N_POLES,
+    POLE_SPLIT,
+    ROTOR_SPLIT,
+    YOKE_SPLIT,
+    MECParams,
+    _gap_permeance,
+    _geometry,
+    _residual,
+    _scales,
+)
+
+MAX_NEWTON = 40
+"""Upper bound on the Newton steps of one circuit solve (typically 5-8 are used)."""
+
+NEWTON_FAILED = 1e-8
+"""A solve whose last Newton step still moved the fluxes by more than this (relative) after :data:`MAX_NEWTON`
+steps did not converge: its force is NaN.  (Round-off can keep a converged solve from the 1e-13 stopping
+step; it does not leave it moving by 1e-8.)"""
+
+
+class MECSolution(eqx.Module):
+    """One solved reading (arrays over the eight poles, pole ``k`` at ``α + k·45°`` from +v).
+
+    ``force`` is ``(F_v, F_w)`` [N] on the rotor; ``pole_force`` the pull towards each pole [N];
+    ``gaps`` [m]; ``gap_flux`` [Wb] (face plus fringe); ``b_gap`` the face flux density
+    ``MU_0 U / g`` [T]; ``b_pole`` the flux density in each pole's iron between the yoke and the
+    leakage point (the most loaded part), ``b_tip`` between the leakage point and the tip [T]; ``b_yoke``,
+    ``b_rotor`` in the segments joining pole k and k+1 [T]; ``mmf_gap`` the drop across each gap [A];
+    ``residual`` the largest scaled circuit residual after the solve, ``iterations`` the Newton steps.
+    """
+
+    force: jnp.ndarray
+    pole_force: jnp.ndarray
+    gaps: jnp.ndarray
+    gap_flux: jnp.ndarray
+    b_gap: jnp.ndarray
+    b_pole: jnp.ndarray
+    b_tip: jnp.ndarray
+    b_yoke: jnp.ndarray
+    b_rotor: jnp.ndarray
+    mmf_gap: jnp.ndarray
+    residual: jnp.ndarray
+    iterations: jnp.ndarray
+
+
+# --- the solver: Newton on the loop fluxes ---------------------------------------------------------------
+#
+# Kirchhoff's flux law is linear, so it is solved once and for all: every branch flux of the MNA
+# unknowns above is a fixed linear map of 17 "loop" fluxes x = (a, c, d),
+#
+#   Φ_yoke = a,  Φ_root,k = a_k-1 - a_k,  Φ_leak,k = c_k,  Φ_tip,k = Φ_gap,k = Φ_root,k - c_k + c_k-1,
+#   Φ_rotor,k = d + Σ_j≤k Φ_gap,j,
+#
+# and only the magnetic-potential law around 17 independent loops remains (8 slot-leakage loops,
+# 8 yoke loops, the rotor ring), each drop ``l H(Φ/A)`` or ``Φ/P`` explicit in the fluxes.  The
+# slot-leakage loop is written as ``Φ_leak - P_leak · (drop along the pole tips and rotor)`` and the
+# yoke loop multiplied by the link ``κ``, so that no leakage (``λ = 0``) and isolated horseshoes
+# (``κ = 0``) stay regular exactly as in the nodal form.  The potentials follow from the fluxes
+# by summing drops (R_0 = 0).  Newton's method on this system takes the same steps as on the nodal
+# form (the eliminated unknowns enter linearly) with a 17x17 instead of a 64x64 matrix, and its
+# Jacobian is written out (the iron's ``l H'(B) / A`` on the flux maps) instead of traced.
+
+_NX = 2 * _N_POLES + 1
+
+
+def _flux_maps():
+    """Constant matrices ``(8, 17)``: loop fluxes -> Φ_root, Φ_gap (= Φ_tip), Φ_rotor, Φ_yoke, Φ_leak."""
+    n = _N_POLES
+    eye, zero = np.eye(n), np.zeros((n, n))
+    prev = np.roll(eye, 1, axis=0)                      # (prev @ v)_k = v_k-1
+    col0 = np.zeros((n, 1))
+    root = np.hstack([prev - eye, zero, col0])
+    gap = np.hstack([prev - eye, prev - eye, col0])
+    rotor = np.tril(np.ones((n, n))) @ gap + np.hstack([zero, zero, np.ones((n, 1))])
+    yoke = np.hstack([eye, zero, col0])
+    leak = np.hstack([zero, eye, col0])
+    return root, gap, rotor, yoke, leak
+
+
+_S_ROOT, _S_GAP, _S_ROTOR, _S_YOKE, _S_LEAK = _flux_maps()
+
+
+def _loop_system(x, p: MECParams, bearing: Bearing, currents, gaps, with_jacobian: bool):
+    """Scaled loop equations ``r(x)`` (17) of the scaled loop fluxes ``x`` (and ``dr/dx``, 17x17).
+
+    Also returns the branch fluxes [Wb] ``(Φ_root, Φ_gap, Φ_rotor, Φ_yoke)`` and the pole
+    potentials relative to the rotor node, ``(U_M - U_R, U_Y - U_R)`` [A].
+    """
+    _, _, sign = _geometry(bearing)
+    u_ref, p_ref, f_ref = _scales(bearing)
+    bh = bh_curve(bearing)
+    area = bearing.pole_area * p.lamination
+    a_pole, a_back = area * p.pole_area_ratio, area * p.iron_area_ratio
+    a_h = p.leakage_height
+    l_pole, l_yoke, l_rotor = POLE_SPLIT * p.iron_path, YOKE_SPLIT * p.iron_path, ROTOR_SPLIT * p.iron_path
+    mu_max = 1.0 / (MU_0 * MU_R_MAX)
+
+    f_root = jnp.asarray(_S_ROOT) @ x * f_ref
+    fg = jnp.asarray(_S_GAP) @ x * f_ref
+    fr = jnp.asarray(_S_ROTOR) @ x * f_ref
+    fy = x[:_N_POLES] * f_ref
+    fl = x[_N_POLES:2 * _N_POLES] * f_ref
+
+    def drop(length, a, flux):                          # l H(Φ/A) [A] and its slope d/dΦ [A/Wb]
+        b = flux / a
+        if with_jacobian:
+            h, dh = jax.jvp(lambda bb: _iron_h(p, bh, bb), (b,), (jnp.ones_like(b),))
+            return length * (p.iron_h_scale * h + b * mu_max), length * (p.iron_h_scale * dh + mu_max) / a
+        return length * (p.iron_h_scale * _iron_h(p, bh, b) + b * mu_max), None
+
+    perm, _ = _gap_permeance(p, bearing, gaps)
+    mmf = jnp.asarray(sign) * bearing.turns_per_pole * currents[jnp.asarray(_COIL)]
+    d_root, s_root = drop(a_h * l_pole, a_pole, f_root)
+    d_tip, s_tip = drop((1.0 - a_h) * l_pole, a_pole, fg)
+    d_rot, s_rot = drop(l_rotor, a_back, fr)
+    d_yoke, s_yoke = drop(l_yoke, a_back, fy)
+    u_mr = d_tip - (1.0 - a_h) * mmf + fg / perm        # U_M - U_R of each pole
+    u_yr = u_mr + d_root - a_h * mmf                    # U_Y - U_R
+    v = u_mr - jnp.roll(u_mr, -1) + d_rot               # U_M,k - U_M,k+1 along tips, gaps and rotor
+    w = u_yr - jnp.roll(u_yr, -1) + d_rot               # U_Y,k - U_Y,k+1 along the poles
+    p_leak = MU_0 * bearing.pole_length * p.leakage
+    kappa = jnp.where(jnp.asarray(_INTRA), 1.0, p.link)
+    # The rotor-ring row is scaled by the rotor iron's slope at zero flux (ideal iron: ~1e-11 of the others).
+    slope0 = jax.jvp(bh, (jnp.zeros(()),), (jnp.ones(()),))[1]
+    ring_scale = jax.lax.stop_gradient(a_back / (l_rotor * (p.iron_h_scale * slope0 + mu_max) * f_ref))
+    r = jnp.concatenate([(fl - p_leak * v) / f_ref,
+                         (kappa * (w - d_yoke) - (1.0 - kappa) * fy / p_ref) / u_ref,
+                         (jnp.sum(d_rot) * ring_scale)[None]])
+    out = (f_root, fg, fr, fy), (u_mr, u_yr)
+    if not with_jacobian:
+        return r, None, out
+    s_gap = jnp.asarray(_S_GAP) * f_ref
+    s_r = (s_rot * f_ref)[:, None] * jnp.asarray(_S_ROTOR)
+    du_mr = (s_tip + 1.0 / perm)[:, None] * s_gap
+    du_yr = du_mr + (s_root * f_ref)[:, None] * jnp.asarray(_S_ROOT)
+    dv = du_mr - jnp.roll(du_mr, -1, axis=0) + s_r
+    dw = du_yr - jnp.roll(du_yr, -1, axis=0) + s_r
+    jac = jnp.concatenate([jnp.asarray(_S_LEAK) - p_leak / f_ref * dv,
+                           (kappa[:, None] * dw - ((kappa * s_yoke + (1.0 - kappa) / p_ref) * f_ref)[:, None]
+                            * jnp.asarray(_S_YOKE)) / u_ref,
+                           (jnp.sum(s_r, axis=0) * ring_scale)[None]])
+    return r, jac, out
+
+
+def _newton(p, bearing, currents, gaps):
+    """Newton's method on the loop fluxes from zero flux; returns ``x``, the steps, the last LU factors and
+    whether it converged (see :data:`NEWTON_FAILED`)."""
+
+    def cond(state):
+        _, step, res, it, _ = state
+        return (step > 1e-13) & (res > 1e-14) & (it < MAX_NEWTON)
+
+    def body(state):
+        x, _, _, it, _ = state
+        r, jac, _ = _loop_system(x, p, bearing, currents, gaps, with_jacobian=True)
+        lu = jax.scipy.linalg.lu_factor(jac)
+        dx = jax.scipy.linalg.lu_solve(lu, r)
+        scale = jnp.maximum(jnp.max(jnp.abs(x)), 1.0)
+        return x - dx, jnp.max(jnp.abs(dx)) / scale, jnp.max(jnp.abs(r)), it + 1, lu
+
+    x0 = jnp.zeros(_NX)
+    inf = jnp.asarray(jnp.inf)
+    lu0 = (jnp.zeros((_NX, _NX)), jnp.zeros(_NX, dtype=jnp.int32))
+    x, step, res, it, lu = jax.lax.while_loop(cond, body, (x0, inf, inf, jnp.asarray(0), lu0))
+    return x, it, lu, (step <= NEWTON_FAILED) | (res <= 1e-14)
+
+
+def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, full: bool = True):
+    cos_t, sin_t, _ = _geometry(bearing)
+    currents = jnp.stack([jnp.asarray(c, dtype=float) for c in (i_vt, i_vb, i_wt, i_wb)])
+    gaps = p.gap - dv * jnp.asarray(cos_t) - dw * jnp.asarray(sin_t)
+    x_star, iterations, lu, converged = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
+                                     jax.lax.stop_gradient(gaps))
+    x_star, lu = jax.lax.stop_gradient((x_star, lu))
+    # One more Newton step with the Jacobian held constant (the last step's factors: the iterate moved by
+    # < 1e-13 since): same value, implicit-function derivatives.
+    res, _, _ = _loop_system(x_star, p, bearing, currents, gaps, with_jacobian=False)
+    x = x_star - jax.scipy.linalg.lu_solve(lu, res)
+    _, _, ((f_root, fg, fr, fy), (u_mr, u_yr)) = _loop_system(x, p, bearing, currents, gaps, with_jacobian=False)
+
+    perm, pull = _gap_permeance(p, bearing, gaps)
+    drop = fg / perm
+    pole_force = 0.5 * drop**2 * pull
+    force = jnp.stack([jnp.sum(pole_force * jnp.asarray(cos_t)), jnp.sum(pole_force * jnp.asarray(sin_t))])
+    force = jnp.where(converged, force, jnp.nan)          # never a wrong number: the caller sees NaN rows
+    if not full:
+        return force
+    # The nodal unknowns, for the nodal residual of the solution (MECSolution.residual).
+    u_ref, _, f_ref = _scales(bearing)
+    bh = bh_curve(bearing)
+    a_back = bearing.pole_area * p.lamination * p.iron_area_ratio
+    d_rot = ROTOR_SPLIT * p.iron_path * (p.iron_h_scale * _iron_h(p, bh, fr / a_back)
+                                          + fr / a_back / (MU_0 * MU_R_MAX))
+    ur = jnp.concatenate([jnp.zeros(1), -jnp.cumsum(d_rot[:-1])])
+    z = jnp.concatenate([(u_yr + ur) / u_ref, (u_mr + ur) / u_ref, (drop + ur) / u_ref, ur / u_ref,
+                         f_root / f_ref, fg / f_ref, fr / f_ref, fy / f_ref])
+    res_mna = _residual(jax.lax.stop_gradient(z), jax.lax.stop_gradient(p), bearing,
+                        jax.lax.stop_gradient(currents), jax.lax.stop_gradient(gaps))
+    area = bearing.pole_area * p.lamination
+    return MECSolution(
+        force=force, pole_force=pole_force, gaps=gaps, gap_flux=fg, b_gap=MU_0 * drop / gaps,
+        b_pole=f_root / (area * p.pole_area_ratio), b_tip=fg / (area * p.pole_area_ratio),
+        b_yoke=fy / (area * p.iron_area_ratio), b_rotor=fr / (area * p.iron_area_ratio),
+        mmf_gap=drop, residual=jnp.max(jnp.abs(res_mna)), iterations=iterations,
+    )
+
+
+def mec_solve(params: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw) -> MECSolution:
+    """Solve the circuit for every reading (inputs broadcast together; SI units).
+
+    Parameters
+    ----------
+    params : MECParams
+    bearing : Bearing
+        Turns, pole face (width and length), pole angle, polarity, B-H curve.
+    i_vt, i_vb, i_wt, i_wb : array-like [A]
+        Coil currents of the v top, v bottom, w top and w bottom horseshoes (non-negative in normal
+        use; a horseshoe's two coils carry one current).
+    dv, dw : array-like [m]
+        Physical rotor displacement from the geometric centre (sensor reading plus effective
+        origin, ``x + x0``, in the contract's convention).
+
+    Returns
+    -------
+    MECSolution
+        Fields with the broadcast shape of the inputs in front (``force[..., 0]`` is ``F_v``).
+    """
+    args = jnp.broadcast_arrays(*(jnp.asarray(a, dtype=float) for a in (i_vt, i_vb, i_wt, i_wb, dv, dw)))
+    shape = args[0].shape
+    flat = [a.reshape(-1) for a in args]
+    sol = _solve_vmapped(params, bearing, *flat)
+    return jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), sol)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _solve_vmapped(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw):
+    return jax.vmap(_solve_one, in_axes=(None, None, 0, 0, 0, 0, 0, 0))(params, bearing, i_vt, i_vb, i_wt,
+                                                                       i_wb, dv, dw)
+
+
+def mec_forces(params: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw):
+    """``(F_v, F_w)`` [N]: the force the bearing applies to the rotor along +v and +w.
+
+    See :func:`mec_solve` for the arguments.  Jit-able, vmap-able and differentiable in every
+    argument but ``bearing`` (static).
+
+    Examples
+    --------
+    >>> from ambfit.physics.bearing import PAPER_BEARING
+    >>> b = PAPER_BEARING
+    >>> fv, fw = mec_forces(MECParams.ideal(b), b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
+    >>> k = b.force_constant(lamination=1.0)
+    >>> round(float(fv) / (k * (2.0**2 - 1.0**2) / b.nominal_gap**2), 9), abs(round(float(fw), 9))
+    (1.0, 0.0)
+    """
+    f = mec_solve(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw).force
+    return f[..., 0], f[..., 1]
+
+
+def _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0):
+    """Per-row terms (own axis, other axis) -> the bearing's frame: ``(is_v, (i_vt, i_vb, i_wt, i_wb, dv, dw))``
+    with ``dv``, ``dw`` the physical displacement ``x + x0`` from the geometric centre."""
+    is_v = jnp.asarray(axis) == 0
+    return is_v, (jnp.where(is_v, i_top, i_top_other), jnp.where(is_v, i_bottom, i_bottom_other),
+                  jnp.where(is_v, i_top_other, i_top), jnp.where(is_v, i_bottom_other, i_bottom),
+                  jnp.where(is_v, x + x0, y + y0), jnp.where(is_v, y + y0, x + x0))
+
+
+def mec_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i_top_other, i_bottom_other,
+                   x, y, x0, y0):
+    """Force [N] along each row's own axis, in the contract's per-row terms.
+
+    ``axis`` 0 (v) or 1 (w); ``i_top``, ``i_bottom`` this axis' coil currents, ``i_*_other`` the
+    other axis' (from the row read at the same ``time_s``); ``x``, ``y`` the sensor positions on
+    this and the other axis and ``x0``, ``y0`` their effective origins [m], so the physical
+    displacement is ``x + x0`` on the row's axis.
+    """
+    is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
+    f = mec_solve(params, bearing, *inputs).force
+    return jnp.where(is_v, f[..., 0], f[..., 1])
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _solve_rows(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw):
+    """:func:`_solve_one`'s force over rows whose parameters differ row by row (every field shaped ``(n,)``)."""
+    one = functools.partial(_solve_one, full=False)
+    return jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0))(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw)
+
+
+def row_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i_top_other, i_bottom_other,
+                   x, y, x0, y0):
+    """:func:`mec_axis_force` with parameters given per row (each field broadcast to the rows)."""
+    axis = jnp.asarray(axis)
+    n = axis.shape[0]
+    rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
+    is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
+    f = _solve_rows(rows, bearing, *inputs)
+    return jnp.where(is_v, f[:, 0], f[:, 1])
