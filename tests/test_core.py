@@ -384,6 +384,9 @@ def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch)
         ref = optx.least_squares(residuals, solver, theta0, max_steps=budget, throw=False)
         assert ours.result == ref.result, budget
         assert int(ours.steps) == int(ref.stats["num_steps"]), budget
-        np.testing.assert_allclose(np.asarray(ours.theta), np.asarray(ref.value), rtol=1e-10, atol=1e-12)
+        # ours solves each damped step by Cholesky of the column-scaled normal equations, optimistix by QR: the
+        # round-off differs (measured 2.5e-10 relative after 12 steps from this far start), so 1e-8, not 1e-10;
+        # a changed trust-region factor moves the iterates by far more (and changes the step counts above)
+        np.testing.assert_allclose(np.asarray(ours.theta), np.asarray(ref.value), rtol=1e-8, atol=1e-12)
     # the path went through rejected steps too (the trust region's shrinking branch was compared)
     assert int(ref.state.num_accepted_steps) < int(ref.stats["num_steps"])
