@@ -1,25 +1,6 @@
-"""The paper's closed form (Eq. 5-7): gap and origin from current-position perturbations.
-
-At one rotor position ``x`` the same (unknown) load is carried at two bias
-settings 1 and 2, so the gaps cancel out of Eq. 4's difference (Eq. 5) and::
-
-    P = (g0 - (x0 + x) c) / (g0 + (x0 + x) c) = sqrt((i_t1^2 - i_t2^2) / (i_b1^2 - i_b2^2))   (Eq. 6)
-
-with ``c = cos(alpha)``.  Each position gives one equation linear in
-``X = (g0, x0 c)``::
-
-    (1 - P) g0 - (1 + P) x0 c = (1 + P) x c                                                  (Eq. 7)
-
-Two positions (the paper's symmetric pair ``±x1``) give the 2x2 system ``A X = C``
-(the paper prints ``C`` with ``cos(theta)`` where ``x cos(alpha)`` is meant); more
-positions are solved in the least-squares sense.  Neither the load nor ``k`` is
-needed; with known loads ``k`` follows from Eq. 4 at the solution (the paper's
-lamination-coefficient calibration).
-
-:func:`solve` is the single-iteration solver; :func:`identify` groups a data set by
-experiment, iteration and axis, solves each iteration and reports the mean and its
-standard error as the paper's tables do.
-"""
+"""Eq. 5-7 for one iteration of one axis: the ratio ``P`` at each position (Eq. 6) and the linear system in gap
+and origin (Eq. 7), on arrays of any shape (:func:`eq6`, :func:`eq7`) and for one iteration with its checks
+(:func:`solve`).  See :mod:`ambfit.estimation.closed_form` for the equations."""
 
 from __future__ import annotations
 
@@ -27,10 +8,9 @@ import dataclasses
 import math
 
 import numpy as np
-import pandas as pd
 
-from ambfit.data import Dataset
-from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
+from ambfit.estimation.profile import profile
+from ambfit.physics.bearing import PAPER_BEARING, Bearing
 from ambfit.physics.model import ideal_force
 
 POSITION_TOLERANCE = 2e-6
@@ -43,15 +23,6 @@ MAX_CONDITION = 1e10
 MIN_STEP_SNR = 3.0
 """Eq. 6's numerator and denominator (the change of i^2 between the two biases) must exceed this many of their
 noise standard deviations; closer to zero the ratio, and the gap with it, is noise."""
-
-MAX_RELATIVE_SEM = 0.05
-"""The mean gap of an axis is trusted when its standard error is below this fraction of it."""
-
-MAX_REJECTED_FRACTION = 0.5
-"""More rejected iterations than this fraction: the protocol does not suit the noise, the mean is not trusted."""
-
-MAX_SCATTER_RATIO = 2.0
-"""Iteration-to-iteration scatter of the gap above this multiple of the scatter the noise predicts is flagged."""
 
 
 class ClosedFormError(ValueError):
@@ -229,287 +200,10 @@ def solve(positions, i_top, i_bottom, *, biases=(np.nan, np.nan), loads=None,
     if loads is not None:
         f = np.asarray(loads, dtype=float).reshape(len(x), 2)
         unit = ideal_force(g0, x0, 1.0, it, ib, x[:, None], c)
-        ok = np.isfinite(f) & (np.abs(unit) > 0)
-        if ok.any():
-            # Least squares through the origin: F = k * unit.
-            k = float(np.sum(f[ok] * unit[ok]) / np.sum(unit[ok] ** 2))
+        ok = (np.isfinite(f) & (np.abs(unit) > 0)).ravel()
+        # least squares through the origin, F = k * unit (one k: every reading in segment 0)
+        k = float(profile(unit.ravel(), np.nan_to_num(f.ravel()), ok, np.zeros(ok.size, dtype=int), 1,
+                          -np.ones(ok.size, dtype=int), 0, math.nan)[0][0])
     pred = _predicted_std(x, it, ib, sigma_i, n_avg, bearing) if _propagate else math.nan
     return Solution(g0=g0, x0=x0, k=k, positions=x, biases=tuple(float(b) for b in biases), ratios=p, condition=cond,
                     g0_std_predicted=pred)
-
-
-@dataclasses.dataclass(frozen=True)
-class AxisEstimate:
-    """Mean over iterations of one axis' closed-form solutions (SI units).
-
-    ``*_sem`` is the standard error of the mean (std / sqrt(n), NaN for n < 2);
-    ``*_std`` the iteration-to-iteration scatter.  ``iterations`` holds the
-    per-iteration :class:`Solution` records (for plots), ``rejected`` the
-    iterations that could not be solved and why.
-    """
-
-    axis: str
-    experiment: str
-    g0: float
-    g0_sem: float
-    g0_std: float
-    x0: float
-    x0_sem: float
-    x0_std: float
-    k: float
-    k_sem: float
-    iterations: dict
-    rejected: dict
-
-    @property
-    def n(self) -> int:
-        return len(self.iterations)
-
-    @property
-    def g0_std_predicted(self) -> float:
-        """Iteration-to-iteration std of the gap that the current noise alone predicts (NaN when unknown)."""
-        pred = [s.g0_std_predicted for s in self.iterations.values() if np.isfinite(s.g0_std_predicted)]
-        return float(np.sqrt(np.mean(np.square(pred)))) if pred else math.nan
-
-    def checks(self) -> list[tuple[str, bool | None, str]]:
-        """Health of this axis' mean as ``(name, passed, cause and fix)`` (``passed`` None: cannot be judged)."""
-        where = f"closed form, axis {self.axis}" + (f", experiment {self.experiment}" if self.experiment != "all" else "")
-        total = self.n + len(self.rejected)
-        rel = self.g0_sem / self.g0 if self.n > 1 and self.g0 > 0 else math.nan
-        ratio = self.g0_std / self.g0_std_predicted if np.isfinite(self.g0_std_predicted) and self.n > 2 else math.nan
-        return [
-            ("enough_iterations", self.n >= 2,
-             f"{where}: {self.n} usable iteration(s) of {total}; a mean needs at least two to have an error bar"),
-            ("few_rejected", len(self.rejected) <= MAX_REJECTED_FRACTION * total,
-             f"{where}: {len(self.rejected)} of {total} iterations rejected (ill-conditioned or non-physical); the "
-             "rest are the lucky draws of a protocol whose bias step is too small for this noise, so their mean is "
-             "biased; use least squares, a larger bias step or more readings per set-point"),
-            ("precise", None if not np.isfinite(rel) else bool(rel <= MAX_RELATIVE_SEM),
-             f"{where}: the gap's standard error is {100 * rel:.0f} % of the gap (trusted below "
-             f"{100 * MAX_RELATIVE_SEM:.0f} %); Eq. 6 is too noisy at this protocol; use least squares (all readings) "
-             "or more iterations"),
-            ("scatter_as_predicted", None if not np.isfinite(ratio) else bool(ratio <= MAX_SCATTER_RATIO),
-             f"{where}: the iterations' gaps scatter {ratio:.1f} times more than the current noise predicts "
-             f"({self.g0_std * 1e6:.3g} µm against {self.g0_std_predicted * 1e6:.3g} µm): the load or the origin "
-             "changed between iterations, or the noise is larger than the std columns say"),
-        ]
-
-
-def _mean_sem(values):
-    v = np.asarray([a for a in values if np.isfinite(a)], dtype=float)
-    if v.size == 0:
-        return math.nan, math.nan, math.nan
-    std = float(np.std(v, ddof=1)) if v.size > 1 else math.nan
-    return float(np.mean(v)), std / math.sqrt(v.size) if v.size > 1 else math.nan, std
-
-
-def _cluster_positions(x: np.ndarray, tol: float) -> np.ndarray:
-    order = np.argsort(x)
-    labels = np.empty(len(x), dtype=int)
-    lab, last = 0, None
-    for j in order:
-        if last is not None and x[j] - last > tol:
-            lab += 1
-        labels[j] = lab
-        last = x[j]
-    return labels
-
-
-def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solution:
-    """Solve one iteration of one axis from its contract rows (see :func:`solve`).
-
-    Positions are grouped by the own-axis set-point column when present, else by
-    clustering the measured positions within ``POSITION_TOLERANCE``; replicated
-    readings at one position and bias are averaged.
-    """
-    axis = df["axis"].iloc[0]
-    own = f"{axis}_um"
-    set_col = f"{axis}_set_um"
-    if set_col in df.columns and df[set_col].notna().all():
-        labels = _cluster_positions(df[set_col].to_numpy(float) * 1e-6, 1e-9)
-    else:
-        labels = _cluster_positions(df[own].to_numpy(float) * 1e-6, POSITION_TOLERANCE)
-    biases = np.unique(df["bias_A"].to_numpy(float))
-    if len(biases) != 2:
-        raise ClosedFormError(f"Eq. 6 needs exactly two bias settings per iteration, found {biases.tolist()} A")
-    xs, it, ib, loads = [], [], [], []
-    for lab in np.unique(labels):
-        sub = df[labels == lab]
-        row_t, row_b, row_l = [], [], []
-        for b in biases:
-            s = sub[sub["bias_A"] == b]
-            if s.empty:
-                raise ClosedFormError(
-                    f"position {sub[own].mean():.4g} µm has no reading at bias {b:g} A: each position needs both biases")
-            row_t.append(s["i_top_A"].mean())
-            row_b.append(s["i_bottom_A"].mean())
-            row_l.append(s["load_N"].mean() if "load_N" in s.columns else math.nan)
-        if "load_id" in sub.columns and sub["load_id"].nunique() > 1:
-            raise ClosedFormError(f"position {sub[own].mean():.4g} µm: the two biases carry different loads "
-                                  f"{sorted(sub['load_id'].unique().tolist())}; Eq. 5 needs the same load")
-        xs.append(sub[own].mean() * 1e-6)
-        it.append(row_t)
-        ib.append(row_b)
-        loads.append(row_l)
-    sigma = None
-    if all(c in df.columns for c in ("i_top_std_A", "i_bottom_std_A")):
-        std = df[["i_top_std_A", "i_bottom_std_A"]].to_numpy(float)
-        sigma = float(np.mean(std)) if np.isfinite(std).all() else None
-    n_avg = max(1, len(df) // (2 * len(xs)))
-    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), bearing=bearing,
-                 sigma_i=sigma, n_avg=n_avg)
-
-
-@dataclasses.dataclass(frozen=True)
-class ClosedFormResult:
-    """Closed-form identification of a data set: one :class:`AxisEstimate` per (experiment, axis)."""
-
-    estimates: dict  # {(experiment, axis): AxisEstimate}
-    n_rows: int
-    by_experiment: bool
-
-    def params(self, experiment: str = "all") -> dict:
-        """Contract parameter block (µm, N m^2/A^2) for one experiment key."""
-        out = {}
-        names = {"v": ("g_v0_um", "v0_um", "k_v_Nm2_per_A2"), "w": ("g_w0_um", "w0_um", "k_w_Nm2_per_A2")}
-        for ax in AXES:
-            est = self.estimates.get((experiment, ax))
-            if est is None or est.n == 0:
-                continue
-            gn, xn, kn = names[ax]
-            out[gn] = {"value": est.g0 * 1e6, "std": _none(est.g0_sem * 1e6)}
-            out[xn] = {"value": est.x0 * 1e6, "std": _none(est.x0_sem * 1e6)}
-            if np.isfinite(est.k):
-                out[kn] = {"value": est.k, "std": _none(est.k_sem)}
-        return out
-
-    def display_rows(self) -> list[dict]:
-        """One ``{column: text}`` row per (experiment, axis): mean ± standard error over iterations."""
-        from ambfit.estimation.results import pm
-
-        return [{"experiment": exp, "axis": ax, "iterations": str(e.n), "gap [µm]": pm(e.g0 * 1e6, e.g0_sem * 1e6),
-                 "origin [µm]": pm(e.x0 * 1e6, e.x0_sem * 1e6),
-                 "k [N·m²/A²]": pm(e.k, e.k_sem) if np.isfinite(e.k) else "–", "rejected": str(len(e.rejected))}
-                for (exp, ax), e in self.estimates.items()]
-
-    def checks(self) -> list[tuple[str, bool | None, str]]:
-        """Every axis' health checks (:meth:`AxisEstimate.checks`)."""
-        return [c for e in self.estimates.values() for c in e.checks()]
-
-    def health(self) -> list[str]:
-        """Every failed check as a sentence with its cause and fix (empty when the result can be trusted)."""
-        return [text for _, ok, text in self.checks() if ok is False]
-
-    @property
-    def trusted(self) -> bool:
-        """Every axis has at least two iterations, few rejections, a precise mean and scatter its noise explains."""
-        return not self.health()
-
-    def rejections(self) -> list[str]:
-        """Each rejected iteration and why."""
-        return [f"rejected {exp}/{ax} iteration {it}: {why}" for (exp, ax), e in self.estimates.items()
-                for it, why in e.rejected.items()]
-
-    def to_dataframe(self) -> pd.DataFrame:
-        """One row per (experiment, axis) in SI units: n, g0, x0, k and their standard errors."""
-        return pd.DataFrame([{"experiment": exp, "axis": ax, "n": e.n, "g0": e.g0, "g0_sem": e.g0_sem, "x0": e.x0,
-                              "x0_sem": e.x0_sem, "k": e.k, "k_sem": e.k_sem, "rejected": len(e.rejected)}
-                             for (exp, ax), e in self.estimates.items()])
-
-    def summary(self) -> str:
-        lines = [f"closed form (Eq. 5-7), {self.n_rows} rows"]
-        lines += ["  " + ", ".join(f"{k} {v}" for k, v in r.items()) for r in self.display_rows()]
-        return "\n".join(lines + ["  " + r for r in self.rejections()])
-
-    __str__ = summary
-
-    def _repr_html_(self) -> str:
-        return self.to_dataframe().to_html(index=False)
-
-    def to_json(self) -> dict:
-        """The contract section 2 record (plus per-axis detail)."""
-        keys = sorted({e for e, _ in self.estimates})
-        main = "all" if "all" in keys else keys[0]
-        detail = {}
-        for (exp, ax), est in self.estimates.items():
-            detail.setdefault(exp, {})[ax] = {
-                "n_iterations": est.n,
-                "g0_scatter_um": _none(est.g0_std * 1e6),
-                "g0_scatter_predicted_um": _none(est.g0_std_predicted * 1e6),
-                "x0_scatter_um": _none(est.x0_std * 1e6),
-                "iterations": {str(i): {"g0_um": s.g0 * 1e6, "x0_um": s.x0 * 1e6, "condition": s.condition,
-                                         "ratios": s.ratios.tolist()} for i, s in est.iterations.items()},
-                "rejected": {str(i): r for i, r in est.rejected.items()},
-            }
-        out = {
-            "method": "closed_form",
-            "params": self.params(main),
-            "converged": all(e.n > 0 for e in self.estimates.values()),
-            "trusted": self.trusted, "health": self.health(),
-            "n_rows": self.n_rows,
-            "std_meaning": "standard error of the mean over iterations (null with one iteration)",
-            "detail": detail,
-        }
-        if self.by_experiment:
-            out["experiments"] = {k: self.params(k) for k in keys}
-        return out
-
-
-def _none(x):
-    return None if not np.isfinite(x) else float(x)
-
-
-def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
-             bearing: Bearing = PAPER_BEARING) -> ClosedFormResult:
-    """Closed-form identification of every iteration, averaged as in the paper's tables.
-
-    Iterations are the (``experiment``, ``iteration``) groups of each axis (a file
-    without these columns is one iteration).  With ``by_experiment`` each experiment
-    gets its own estimate; otherwise all iterations are pooled under ``"all"``.
-    An iteration that cannot be solved is listed in ``rejected`` with the reason.
-
-    Raises
-    ------
-    ClosedFormError
-        When no iteration of an axis can be solved (the reasons are listed).
-
-    Examples
-    --------
-    >>> from ambfit.rig import protocol, virtual as rig
-    >>> sim = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(iterations=1), noise=rig.NOISE_FREE)
-    >>> est = identify(sim.data).estimates[("all", "v")]
-    >>> round(est.g0 * 1e6, 6), round(est.x0 * 1e6, 6)
-    (775.0, 33.3)
-    """
-    df = (data.frame if isinstance(data, Dataset) else data).copy()
-    if "experiment" not in df.columns:
-        df["experiment"] = "all"
-    if "iteration" not in df.columns:
-        df["iteration"] = 1
-    df["experiment"] = df["experiment"].astype(str)
-    df["_it"] = pd.to_numeric(df["iteration"], errors="coerce").fillna(1).astype(int)
-    estimates = {}
-    exp_keys = list(dict.fromkeys(df["experiment"])) if by_experiment else ["all"]
-    for exp in exp_keys:
-        sub_e = df if exp == "all" and not by_experiment else df[df["experiment"] == exp]
-        for ax in AXES:
-            sub = sub_e[sub_e["axis"] == ax]
-            if sub.empty:
-                continue
-            sols, rejected = {}, {}
-            for (e, i), grp in sub.groupby(["experiment", "_it"], sort=False):
-                key = f"{e}:{i}" if not by_experiment else i
-                try:
-                    sols[key] = solve_rows(grp, bearing=bearing)
-                except ClosedFormError as exc:
-                    rejected[key] = str(exc)
-            if not sols:
-                reasons = "; ".join(f"iteration {k}: {r}" for k, r in list(rejected.items())[:3])
-                raise ClosedFormError(f"axis {ax}, experiment {exp}: no iteration could be solved ({reasons})")
-            g = _mean_sem([s.g0 for s in sols.values()])
-            x = _mean_sem([s.x0 for s in sols.values()])
-            k = _mean_sem([s.k for s in sols.values()])
-            estimates[(exp, ax)] = AxisEstimate(
-                axis=ax, experiment=exp, g0=g[0], g0_sem=g[1], g0_std=g[2], x0=x[0], x0_sem=x[1], x0_std=x[2],
-                k=k[0], k_sem=k[1], iterations=sols, rejected=rejected)
-    return ClosedFormResult(estimates=estimates, n_rows=len(df), by_experiment=by_experiment)
