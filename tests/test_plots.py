@@ -292,7 +292,7 @@ def test_pair_plot_diagonal_has_no_density_ticks_and_states_mean_and_sd():
         assert list(panel(fig, 3, j, j).get_yticks()) == []
     title = panel(fig, 3, 0, 0).get_title()
     assert title.startswith("g_v0 = ") and title.endswith(" µm")
-    from ambfit.estimation.results import pm
+    from ambfit.estimation.units import pm
 
     assert title == f"g_v0 = {pm(np.mean(g), np.std(g))} µm"
 

@@ -85,7 +85,7 @@ def test_posterior_section_reports_the_run(data, ls):
     assert f"max autocorrelation time {np.max(post.tau):.0f} steps" in text
     assert f"{rec['hdi_prob'] * 100:g} % HDI" in html
     # mean ± sd to the precision the sd justifies, the same numbers as the contract record
-    from ambfit.estimation.results import pm
+    from ambfit.estimation.units import pm
     g = rec["params"]["g_v0_um"]
     assert f"<td>{pm(g['value'], g['std'])}</td>" in html
     assert f"<td>{g['ess_bulk']:.0f}</td>" in html

@@ -43,7 +43,7 @@ from ambfit.estimation.core import (
     unpack,
 )
 from ambfit.estimation.fit import FitResult, fit
-from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, display, pm
+from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, pm
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 

@@ -109,7 +109,7 @@ def campaign(
 
 
 def _pm(v, s, digits=2):
-    from ambfit.estimation.results import pm
+    from ambfit.estimation.units import pm
 
     return pm(float(v), float(s), digits)
 

@@ -119,7 +119,7 @@ def _closed_form_record(result, bearing, name: str, say=say) -> dict:
 
 def _si_values(params: dict) -> dict:
     """Contract parameter block -> internal names in SI."""
-    from ambfit.estimation.results import CONTRACT_PARAMS
+    from ambfit.estimation.units import CONTRACT_PARAMS
 
     return {name: params[key]["value"] / f for name, key, f in CONTRACT_PARAMS if key in params}
 

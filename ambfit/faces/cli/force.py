@@ -124,7 +124,7 @@ def _reading_noise(frame, current_noise_ma: float, position_noise_um: float):
 
 
 def _pm(v, s):
-    from ambfit.estimation.results import pm
+    from ambfit.estimation.units import pm
 
     return pm(float(v), float(s), 2)
 

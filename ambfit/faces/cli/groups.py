@@ -278,7 +278,7 @@ def _pooled(readable):
 
 def _display_row(entry: dict) -> dict:
     """One console-table row: the group, its rows, each parameter ± its error in display units, χ²/dof, status."""
-    from ambfit.estimation.results import CONTRACT_PARAMS, DISPLAY, pm
+    from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, pm
 
     params = entry.get("params", {})
     row = {"group": entry["group"], "rows": str(entry.get("n_rows", "–"))}

@@ -77,7 +77,7 @@ def plot_pair(sampling, var_names=None, *, result=None, fig=None, max_points: in
     import matplotlib.pyplot as plt
     from matplotlib.colors import to_rgba
 
-    from ambfit.estimation.results import DISPLAY, pm
+    from ambfit.estimation.units import DISPLAY, pm
 
     post = sampling.datatree.posterior
     names = list(var_names or [n for n in ("g_v0", "v0", "k_v", "g_w0", "w0", "k_w") if n in post])

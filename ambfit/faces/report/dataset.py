@@ -111,7 +111,7 @@ def design(recommendation, *, max_radius_um: float | None = None, candidates: pd
     :func:`~ambfit.estimation.design.recommend` centres on the estimated effective origin).
     """
     from ambfit.estimation import design as design_mod
-    from ambfit.estimation.results import display
+    from ambfit.estimation.units import display
 
     rec = recommendation
     factor, unit = display(rec.target, 1.0)

@@ -68,7 +68,7 @@ class Campaign:
     def table(self) -> pd.DataFrame:
         """One row per window: span, centre [s], rows, experiments, estimates and errors [µm, N·m²/A²], χ²/dof,
         whether the tests use it, and why a window is not identified."""
-        from ambfit.estimation.results import CONTRACT_PARAMS
+        from ambfit.estimation.units import CONTRACT_PARAMS
 
         rows = []
         for j, w in enumerate(self.windows):
