@@ -23,7 +23,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check ambfit tests benchmarks notebooks
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 # The seed paper's Tables 1-4 and Figs. 2, 3, 5 rerun on the rig, side by side with the paper (about 6 min).
 paper: $(STAMP)
