@@ -3,16 +3,19 @@
 The covariance is the inverse of the information ``J^T J`` of the standardized residuals (the Cramér-Rao bound of
 :mod:`ambfit.estimation.information` at the estimate), scaled by the reduced χ² when the noise levels were
 estimated from the residuals.  Conditioning is judged on the column-scaled Jacobian (its SVD), since
-Levenberg-Marquardt reports success on problems that do not identify their parameters.
+Levenberg-Marquardt reports success on problems that do not identify their parameters.  :func:`results_at` works
+on a whole batch at once: the data sets of a study that share a design share one stacked SVD.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 
 from ambfit.estimation.core import FitError, Meta, Model, Problem, free_mask, free_names, si_scale
 from ambfit.estimation.lm import Solution
-from ambfit.estimation.results import FitResult, Thresholds, describe_weakness
+from ambfit.estimation.results import FitResult, Thresholds, describe_weaknesses
 
 
 def result_at(sol: Solution, prob: Problem, meta: Meta, model: Model, how: str, thresholds: Thresholds) -> FitResult:
@@ -23,53 +26,104 @@ def result_at(sol: Solution, prob: Problem, meta: Meta, model: Model, how: str, 
     FitError
         Fewer readings than parameters, or a force law that is not finite at the estimate.
     """
-    theta, jac, z = np.asarray(sol.theta), np.asarray(sol.jac), np.asarray(sol.z)
-    free = free_mask(prob, meta, model)
-    names = free_names(meta, free, model)
-    mask = np.asarray(prob.mask, dtype=float)
-    used = mask > 0
-    j = jac[:, free]
-    dof = int(used.sum()) - int(free.sum())
+    out = results_at([sol], [prob], [meta], model, [how], thresholds)[0]
+    if isinstance(out, FitError):
+        raise out
+    return out
+
+
+def _problem(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, theta: np.ndarray) -> FitError | None:
+    """Why a solution has no result: fewer readings than parameters, or values that are not finite."""
+    dof = int(used.sum()) - n_free
     if dof < 1:
-        raise FitError(f"the design does not identify the parameters: {int(used.sum())} readings for "
-                       f"{int(free.sum())} parameters (no redundancy); add positions, biases or repetitions")
+        return FitError(f"the design does not identify the parameters: {int(used.sum())} readings for {n_free} "
+                        "parameters (no redundancy); add positions, biases or repetitions")
     bad = (~np.isfinite(z[: len(used)]) | ~np.all(np.isfinite(jac[: len(used)]), axis=1)) & used
     if bad.any() or not np.all(np.isfinite(theta)):
         first = f", the first row {int(np.argmax(bad)) + 1}" if bad.any() else ""
-        raise FitError(f"the force law gives non-finite values{f' on {int(bad.sum())} row(s)' if bad.any() else ''}"
-                       f"{first} at the estimate (a pole gap closed, or currents and positions the law cannot use); "
-                       "check those rows' units and values (ambfit check)")
-    norms = np.linalg.norm(j, axis=0)
-    js = j / np.where(norms > 0, norms, 1.0)
+        return FitError(f"the force law gives non-finite values{f' on {int(bad.sum())} row(s)' if bad.any() else ''}"
+                        f"{first} at the estimate (a pole gap closed, or currents and positions the law cannot use); "
+                        "check those rows' units and values (ambfit check)")
+    return None
+
+
+def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequence[Meta], model: Model,
+               hows: Sequence[str], thresholds: Thresholds) -> list:
+    """:func:`result_at` of every solution: a :class:`FitResult`, or the :class:`FitError` saying why there is none.
+
+    Solutions whose problems have the same rows, free parameters and load groups are measured together: one
+    stacked SVD of their column-scaled Jacobians gives conditioning and covariance.
+    """
+    out: list = [None] * len(sols)
+    groups: dict = {}
+    for s, (sol, prob, meta) in enumerate(zip(sols, probs, metas)):
+        free = free_mask(prob, meta, model)
+        mask = np.asarray(prob.mask, dtype=float)
+        used = mask > 0
+        problem = _problem(used, int(free.sum()), np.asarray(sol.z), np.asarray(sol.jac), np.asarray(sol.theta))
+        if problem is not None:
+            out[s] = problem
+            continue
+        key = (free.tobytes(), np.shape(sol.jac), tuple(meta.load_groups), meta.noise_source, meta.k_free)
+        groups.setdefault(key, []).append((s, free, mask))
+    for members in groups.values():
+        _measure(members, sols, probs, metas, model, hows, thresholds, out)
+    return out
+
+
+def _measure(members, sols, probs, metas, model, hows, thresholds, out):
+    """Covariance, conditioning and χ² of a group of alike solutions (see :func:`results_at`), into ``out``."""
+    idx = [s for s, _, _ in members]
+    free = members[0][1]
+    meta = metas[idx[0]]
+    names = free_names(meta, free, model)
+    masks = np.stack([m for _, _, m in members])
+    used = masks > 0
+    theta = np.stack([np.asarray(sols[s].theta) for s in idx])
+    z = np.stack([np.asarray(sols[s].z) for s in idx])
+    j = np.stack([np.asarray(sols[s].jac)[:, free] for s in idx])             # [sets, rows + priors, free]
+    norms = np.linalg.norm(j, axis=1)
+    js = j / np.where(norms > 0, norms, 1.0)[:, None, :]
     try:
         _, sv, vt = np.linalg.svd(js, full_matrices=False)
     except np.linalg.LinAlgError:
-        raise FitError("the fit's Jacobian could not be decomposed (SVD did not converge): the readings span "
-                       "values the force law cannot handle; check units and extreme values (ambfit check)") from None
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
-    scale, offset = si_scale(prob, model)
-    weight = mask**2                     # 1, a robust loss's weight, or 0 for a left-out row
-    chi2 = float(np.sum(weight[used] * z[used] ** 2))
-    if cond < 1e15:
+        if len(idx) > 1:                           # one data set's SVD failed: measure the others without it
+            for member in members:
+                _measure([member], sols, probs, metas, model, hows, thresholds, out)
+            return
+        out[idx[0]] = FitError("the fit's Jacobian could not be decomposed (SVD did not converge): the readings "
+                               "span values the force law cannot handle; check units and extreme values (ambfit check)")
+        return
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.where(sv[:, -1] > 0, sv[:, 0] / sv[:, -1], np.inf)
         # (J^T J)^-1 from the SVD of the column-scaled Jacobian: V diag(1/s^2) V^T, unscaled
-        cov_s = (vt.T / sv**2) @ vt / np.outer(norms, norms)
-    else:
-        cov_s = np.full((len(names), len(names)), np.inf)
+        cov_s = np.einsum("bki,bk,bkj->bij", vt, 1.0 / sv**2, vt) / (norms[:, :, None] * norms[:, None, :])
+    cov_s = np.where((cond < 1e15)[:, None, None], cov_s, np.inf)
+    weight = masks**2                              # 1, a robust loss's weight, or 0 for a left-out row
+    chi2 = np.sum(np.where(used, weight * z**2, 0.0), axis=1)
+    dof = used.sum(axis=1) - int(free.sum())
     if meta.noise_estimated:
-        cov_s = cov_s * chi2 / dof
+        cov_s = cov_s * (chi2 / dof)[:, None, None]
+    scale, offset = si_scale(probs[idx[0]], model)
     cov = cov_s * np.outer(scale[free], scale[free])
-    std = np.sqrt(np.abs(np.diag(cov)))
+    std = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
     with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(std, std)
-    noise = meta.noise_source
-    if meta.noise_estimated:
-        noise += f" (current noise estimate {np.sqrt(chi2 / dof):.3g} mA)"
-    n_rows = len(mask)
-    return FitResult(
-        names=names, values=offset[free] + theta[free] * scale[free], std=std, cov=cov, corr=corr, chi2=chi2,
-        dof=dof, residuals=z, edm=float(sol.edm), optimistix=str(sol.result), num_steps=int(sol.steps),
-        condition=cond, weak_direction=describe_weakness(names, corr, vt[-1]), noise_source=noise,
-        noise_estimated=meta.noise_estimated, start=how, k_free=meta.k_free, n_rows=meta.n_rows,
-        n_fit_rows=int(used.sum()), effects=model.build(theta[len(theta) - model.n:]) if model.n else model.effects,
-        model=model.name, bearing=model.bearing, theta=theta, thresholds=thresholds,
-        jacobian_rows=np.asarray(sol.jac_all)[:n_rows][:, free])
+        corr = cov / (std[:, :, None] * std[:, None, :])
+    values = offset[free] + theta[:, free] * scale[free]
+    weak = describe_weaknesses(names, corr, vt[:, -1])
+    n_rows = masks.shape[1]
+    rows_all = np.stack([np.asarray(sols[s].jac_all)[:n_rows] for s in idx])[:, :, free]
+    for b, s in enumerate(idx):
+        sol = sols[s]
+        noise = meta.noise_source
+        if meta.noise_estimated:
+            noise += f" (current noise estimate {np.sqrt(chi2[b] / dof[b]):.3g} mA)"
+        out[s] = FitResult(
+            names=list(names), values=values[b], std=std[b], cov=cov[b], corr=corr[b], chi2=float(chi2[b]),
+            dof=int(dof[b]), residuals=z[b], edm=float(sol.edm), optimistix=str(sol.result),
+            num_steps=int(sol.steps), condition=float(cond[b]), weak_direction=weak[b],
+            noise_source=noise, noise_estimated=meta.noise_estimated, start=hows[s], k_free=meta.k_free,
+            n_rows=metas[s].n_rows, n_fit_rows=int(used[b].sum()),
+            effects=model.build(theta[b, theta.shape[1] - model.n:]) if model.n else model.effects, model=model.name,
+            bearing=model.bearing, theta=theta[b], thresholds=thresholds,
+            jacobian_rows=rows_all[b])

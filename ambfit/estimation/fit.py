@@ -68,9 +68,9 @@ from ambfit.estimation.core import (
     si_scale,
     to_theta,
 )
-from ambfit.estimation.covariance import result_at
+from ambfit.estimation.covariance import result_at, results_at
 from ambfit.estimation.lm import solve_sets
-from ambfit.estimation.outliers import screen
+from ambfit.estimation.outliers import screen, studentized
 from ambfit.estimation.problem import build_problems
 from ambfit.estimation.results import FitResult, Thresholds
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
@@ -277,26 +277,38 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
         if not members:
             continue
         sols = solve_sets([starts[s][0] for s in members], [probs[s] for s in members], model, max_steps)
-        for s, sol in zip(members, sols):
-            try:
-                out[s] = result_at(sol, probs[s], built[s][1], model, starts[s][1], thresholds)
-            except FitError as exc:
-                out[s] = exc
-    for s in live:
-        if isinstance(out[s], BaseException):
+        for s, res in zip(members, results_at(sols, [probs[s] for s in members], [built[s][1] for s in members],
+                                              model, [starts[s][1] for s in members], thresholds)):
+            out[s] = res
+    fitted = [s for s in live if not isinstance(out[s], BaseException)]
+    t: dict = {}
+    if name_outliers and loss in ("auto", "linear") and alpha > 0 and not debias:
+        # the outlier test's residuals of every fit at once (a fit with outliers then refits alone)
+        t = dict(zip(fitted, studentized([out[s] for s in fitted], [probs[s] for s in fitted],
+                                         [built[s][1] for s in fitted])))
+    for s in fitted:
+        res = out[s]
+        base = np.asarray(probs[s].mask, dtype=float)
+        used = base > 0
+        if s in t and not inherited[s] and np.all(np.isfinite(res.residuals[used])) and \
+                not np.any(np.abs(t[s][used]) > robust.threshold(int(used.sum()), alpha)):
+            # clean (the common case of a study): plain least squares, as screen finds it, without a refit
+            flags = plausibility.check_result(dict(zip(res.names, res.values)), models[bearings[s]].bearing)
+            out[s] = dataclasses.replace(res, loss=loss, rows=rows[s], weights=base, implausible=tuple(flags))
             continue
         try:
             out[s] = _finish(out[s], probs[s], built[s][1], dfs[s], models[bearings[s]], thresholds, rows[s],
                              loss=loss, alpha=alpha if name_outliers else 0.0, debias=debias, seed=seed,
-                             inherited=inherited[s], name_outliers=name_outliers)
+                             inherited=inherited[s], name_outliers=name_outliers, t=t.get(s))
         except _FAILURES as exc:
             out[s] = exc
     return out
 
 
-def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias, seed, inherited, name_outliers):
-    """A data set's result after its solve: the bias correction, the outlier test (or the robust loss) and the
-    plausibility flags."""
+def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias, seed, inherited, name_outliers,
+            t=None):
+    """A data set's result after its solve: the bias correction, the outlier test (or the robust loss; ``t`` its
+    studentized residuals when measured with the other data sets') and the plausibility flags."""
     if debias and res.edm < EDM_MAX:
         res = _debiased(res, prob, meta, model, thresholds, debias, seed)
 
@@ -304,13 +316,14 @@ def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias
         return _fit_once(p, meta, model, _initial(p, meta, model, start), thresholds)
 
     if name_outliers:
-        res = screen(res, prob, meta, df, model, refit, loss, alpha, rows)
+        res = screen(res, prob, meta, df, model, refit, loss, alpha, rows, t)
+        more = {}
     else:
-        res = dataclasses.replace(res, loss="linear", rows=rows, weights=np.asarray(prob.mask, dtype=float))
+        more = dict(loss="linear", rows=rows, weights=np.asarray(prob.mask, dtype=float))
     if inherited:       # left out before this model was fitted: still named (as the ideal fit judged them)
-        res = dataclasses.replace(res, outliers=inherited + tuple(res.outliers))
+        more["outliers"] = inherited + tuple(res.outliers)
     flags = plausibility.check_result(dict(zip(res.names, res.values)), model.bearing)
-    return dataclasses.replace(res, implausible=tuple(flags))
+    return dataclasses.replace(res, implausible=tuple(flags), **more)
 
 
 def _checked(values, n: int, name: str) -> np.ndarray:

@@ -387,12 +387,16 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
                                                                             sol.jac_all, sol.z))
             for b, s in enumerate(part):
                 nr, m = sizes[s]
-                cols = np.r_[0:6 + m, 6 + loads:6 + loads + model.n]
-                # rows: the data set's own, then the effect priors' (after the padded rows)
-                rws = np.r_[0:nr, rows:rows + model.n]
-                out[s] = Solution(theta=theta[b, cols], result=_text(ok[b], sol.result, b), steps=steps[b],
-                                  edm=edm[b], jac=jac[b][np.ix_(rws, cols)], jac_all=jac_all[b][np.ix_(rws, cols)],
-                                  z=z[b, :nr])
+                if m == loads and not model.n:          # no padded loads nor priors: the data set's own block
+                    cut = (slice(0, nr), slice(0, 6 + m))
+                    th = theta[b, :6 + m]
+                else:
+                    cols = np.r_[0:6 + m, 6 + loads:6 + loads + model.n]
+                    # rows: the data set's own, then the effect priors' (after the padded rows)
+                    cut = np.ix_(np.r_[0:nr, rows:rows + model.n], cols)
+                    th = theta[b, cols]
+                out[s] = Solution(theta=th, result=_text(ok[b], sol.result, b), steps=steps[b], edm=edm[b],
+                                  jac=jac[b][cut], jac_all=jac_all[b][cut], z=z[b, :nr])
     return out
 
 

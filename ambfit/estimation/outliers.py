@@ -41,10 +41,10 @@ def _reweighted(res, prob, meta, model, refit, loss, base):
 
 
 def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: Model, refit, loss: str,
-           alpha: float, rows: np.ndarray) -> FitResult:
+           alpha: float, rows: np.ndarray, t: np.ndarray | None = None) -> FitResult:
     """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``;
     ``refit(prob, start)`` is the fit of ``prob`` (other row weights) from the result ``start``, ``rows`` the file
-    row of each row of ``df``.
+    row of each row of ``df``; ``t``: the studentized residuals of ``res`` when already measured (:func:`studentized`).
 
     The test judges each reading against a fit the outliers cannot drag (Cauchy reweighting; one reading 17 σ
     off pulls plain least squares so far that its neighbours look off too), then leaves the outliers out and
@@ -63,7 +63,9 @@ def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: M
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)
     fitted = base > 0
     limit = robust.threshold(int(fitted.sum()), alpha)
-    if not np.any(np.abs(_studentized(res, prob, meta, model)[fitted]) > limit):
+    if t is None:
+        t = _studentized(res, prob, meta, model)
+    if not np.any(np.abs(t[fitted]) > limit):
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
     anchor, _ = _reweighted(res, prob, meta, model, refit, "cauchy", base)
     out = (np.abs(_studentized(anchor, prob.with_mask(base), meta, model)) > limit) & fitted
@@ -117,3 +119,20 @@ def _outlier(j: int, t: float, df: pd.DataFrame, res: FitResult, prob: Problem, 
         if "x_um" in alt:
             alt[own] = alt.pop("x_um")
     return robust.Outlier(row=int(rows[j]), axis=ax, t=float(t), reading=reading, fits_with=alt)
+
+
+def studentized(results: list[FitResult], probs: list[Problem], metas: list[Meta]) -> list[np.ndarray]:
+    """The studentized residuals of many fits (each at its own row weights), measured together where the fits
+    are alike (:func:`ambfit.estimation.robust.studentized_many`)."""
+    out: list = [None] * len(results)
+    groups: dict = {}
+    for s, (res, meta) in enumerate(zip(results, metas)):
+        groups.setdefault((np.shape(res.jacobian_rows), meta.noise_estimated), []).append(s)
+    for (_, estimated), idx in groups.items():
+        t = robust.studentized_many(np.stack([results[s].jacobian_rows for s in idx]),
+                                    np.stack([results[s].residuals for s in idx]),
+                                    np.stack([np.asarray(probs[s].mask, dtype=float) ** 2 for s in idx]),
+                                    known_noise=not estimated)
+        for b, s in enumerate(idx):
+            out[s] = t[b]
+    return out

@@ -173,10 +173,15 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x) -> tuple[Problem, Meta]:
     ax = np.asarray(r.axis)
     st, sb, sx, source = _noise(df, ax, sigma_i, sigma_x)
     load = df["load_N"].to_numpy(float) if "load_N" in df else np.full(len(df), np.nan)
-    groups = load_groups(df).to_numpy()
-    unknown = list(dict.fromkeys(g for g, l in zip(groups, load) if np.isnan(l)))
-    position = {g: j for j, g in enumerate(unknown)}
-    gidx = np.array([position.get(g, -1) for g in groups], dtype=int)
+    codes, labels = pd.factorize(load_groups(df))       # in order of first appearance
+    # the groups with a row of unknown load, numbered in order of their first such row
+    free = np.isnan(load)
+    present, first = np.unique(codes[free], return_index=True)
+    order = present[np.argsort(first)]
+    lookup = np.full(len(labels) + 1, -1)
+    lookup[order] = np.arange(len(order))
+    gidx = lookup[codes]
+    unknown = [labels[c] for c in order]
     known = np.isfinite(load)
     k_free = tuple(bool(known[ax == a].any()) for a in range(2))
     present = tuple(bool((ax == a).any()) for a in range(2))

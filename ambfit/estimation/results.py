@@ -39,17 +39,30 @@ class Thresholds:
 
 def describe_weakness(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> str:
     """The least-determined direction in words: the most correlated pair and the weakest singular vector."""
-    p = len(names)
-    text = []
+    return describe_weaknesses(names, np.asarray(corr)[None], np.asarray(vt_last)[None])[0]
+
+
+def describe_weaknesses(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> list[str]:
+    """:func:`describe_weakness` of many fits of the same parameters: ``corr[sets, p, p]``, ``vt_last[sets, p]``."""
+    corr, vt_last = np.asarray(corr), np.asarray(vt_last)
+    sets, p = vt_last.shape
+    top = np.argsort(-np.abs(vt_last), axis=1)[:, :2]
+    pair = None
     if p > 1:
-        c = np.nan_to_num(np.abs(np.asarray(corr)), nan=0.0) - np.eye(p)
-        i, j = np.unravel_index(np.argmax(c), c.shape)
-        if np.isfinite(corr[i, j]) and abs(corr[i, j]) <= 1.0 + 1e-9:
-            text.append(f"{names[i]} and {names[j]} are {100 * abs(corr[i, j]):.1f} % "
-                        f"{'anti-' if corr[i, j] < 0 else ''}correlated")
-    top = np.argsort(-np.abs(vt_last))[:2]
-    text.append("weakest direction mostly " + " and ".join(names[t] for t in top))
-    return "; ".join(text)
+        c = np.nan_to_num(np.abs(corr), nan=0.0) - np.eye(p)
+        flat = np.argmax(c.reshape(sets, -1), axis=1)
+        pair = np.unravel_index(flat, (p, p))
+    out = []
+    for b in range(sets):
+        text = []
+        if pair is not None:
+            i, j = pair[0][b], pair[1][b]
+            r = corr[b, i, j]
+            if np.isfinite(r) and abs(r) <= 1.0 + 1e-9:
+                text.append(f"{names[i]} and {names[j]} are {100 * abs(r):.1f} % {'anti-' if r < 0 else ''}correlated")
+        text.append("weakest direction mostly " + " and ".join(names[t] for t in top[b]))
+        out.append("; ".join(text))
+    return out
 
 
 @dataclasses.dataclass(frozen=True)

@@ -89,11 +89,17 @@ def robust_scale(z: np.ndarray, known_noise: bool = True) -> float:
     """``1.4826 median |z|`` of standardized residuals (1 when the model and the noise are right); with known
     noise levels never below 1, so a noise level stated too large does not make readings outliers."""
     z = np.asarray(z, dtype=float)
-    z = z[np.isfinite(z)]
-    if not z.size:
-        return 1.0
-    s = 1.4826 * float(np.median(np.abs(z)))
-    return max(1.0, s) if known_noise else max(s, 1e-300)
+    return float(_scales(z[None], np.ones(z.shape, bool)[None], known_noise)[0])
+
+
+def _scales(z: np.ndarray, fitted: np.ndarray, known_noise: bool) -> np.ndarray:
+    """:func:`robust_scale` of each row of ``z[sets, rows]`` over its ``fitted`` finite entries: array[sets]."""
+    a = np.where(fitted & np.isfinite(z), np.abs(z), np.nan)
+    none = np.all(np.isnan(a), axis=1)
+    with np.errstate(invalid="ignore"):
+        med = np.nanmedian(np.where(none[:, None], 0.0, a), axis=1)
+    s = 1.4826 * med
+    return np.where(none, 1.0, np.maximum(1.0, s) if known_noise else np.maximum(s, 1e-300))
 
 
 def studentized(jac_rows: np.ndarray, z: np.ndarray, used: np.ndarray, weight: np.ndarray | None = None,
@@ -103,14 +109,21 @@ def studentized(jac_rows: np.ndarray, z: np.ndarray, used: np.ndarray, weight: n
     ``jac_rows`` is the unweighted Jacobian of the standardized residuals of every row (free columns only),
     ``weight`` the rows' fit weights (1, or the robust loss's; 0 for left-out rows).
     """
-    w = used.astype(float) if weight is None else np.asarray(weight, dtype=float)
-    jw = jac_rows * np.sqrt(w)[:, None]
-    info = jw.T @ jw
-    cov = np.linalg.pinv(info)
-    h = np.einsum("ij,jk,ik->i", jac_rows, cov, jac_rows)            # leverage of an unweighted row
+    w = np.asarray(used, dtype=float) if weight is None else np.asarray(weight, dtype=float)
+    return studentized_many(np.asarray(jac_rows)[None], np.asarray(z)[None], w[None], known_noise)[0]
+
+
+def studentized_many(jac_rows: np.ndarray, z: np.ndarray, weight: np.ndarray, known_noise: bool = True) -> np.ndarray:
+    """:func:`studentized` of many fits at once: ``jac_rows[sets, rows, params]``, ``z`` and ``weight[sets, rows]``;
+    returns ``t[sets, rows]``."""
+    w = np.asarray(weight, dtype=float)
+    jw = jac_rows * np.sqrt(w)[..., None]
+    cov = np.linalg.pinv(np.einsum("bni,bnj->bij", jw, jw))
+    h = np.einsum("bni,bij,bnj->bn", jac_rows, cov, jac_rows)            # leverage of an unweighted row
     fitted = w > 0
     var = np.where(fitted, 1.0 - np.clip(w * h, 0.0, 0.999), 1.0 + h)
-    return np.asarray(z, dtype=float) / (robust_scale(np.asarray(z)[fitted], known_noise) * np.sqrt(var))
+    return np.asarray(z, dtype=float) / (_scales(np.asarray(z, dtype=float), fitted, known_noise)[:, None]
+                                         * np.sqrt(var))
 
 
 def weights(t: np.ndarray, loss: str) -> np.ndarray:
