@@ -105,8 +105,9 @@ class _State(NamedTuple):
     round: jnp.ndarray
     total: jnp.ndarray          # steps of all rounds
     result: optx.RESULTS
-    final: jnp.ndarray          # the last evaluation (the solution's) is done
-    at: tuple                   # the last evaluation: (F - L, s_eff, d(F - L)/d theta)
+    final: jnp.ndarray          # the solution's measurement is done
+    at: tuple                   # the measurement at y: (F - L, s_eff, d(F - L)/d theta)
+    have: jnp.ndarray           # ``at`` holds it (every point but the start was measured when accepted)
 
 
 # --- one compiled solve for a set of models ------------------------------------------------------------------
@@ -199,7 +200,8 @@ def _solve_in(theta0, prob, models, index, budget) -> Solution:
         return branches[0](theta) if len(models) == 1 else jax.lax.switch(index, branches, theta)
 
     def body(c: _State) -> _State:
-        f, s_now, jf = measure(c.y_eval)
+        # a round starts at the accepted point, measured when it was accepted: only trial points are evaluated
+        f, s_now, jf = jax.lax.cond(c.start & c.have, lambda: c.at, lambda: measure(c.y_eval))
         start, final = c.start, c.start & (c.round == REWEIGHTINGS)
         s = jnp.where(start, s_now, c.s)                    # a round holds the weights of its start
         r_e, j_e = weighted(c.y_eval, (f, s, jf), prob.mask, n)
@@ -220,14 +222,16 @@ def _solve_in(theta0, prob, models, index, budget) -> Solution:
                       y_eval=jnp.where(over, y, y - _damped_step(jac, r, step_size)), start=over,
                       round=c.round + over.astype(int), total=c.total + jnp.where(final, 0, 1),
                       result=optx.RESULTS.where(over & ~final, outcome, c.result),
-                      # the loop ends after the measurement at the solution: the last one is the solution's
-                      final=final, at=(f, s_now, jf))
+                      # the loop ends at the solution's measurement (the accepted point's, kept in ``at``)
+                      final=final, at=jax.tree.map(lambda new, old: jnp.where(accept, new, old), (f, s_now, jf), c.at),
+                      have=c.have | accept)
 
     blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(measure, theta0))
     m = blank[0].shape[0] + n
     init = _State(y=theta0, r=jnp.zeros(m), jac=jnp.zeros((m, p)), s=blank[1], step_size=jnp.asarray(1.0),
                   steps=jnp.asarray(0), y_eval=theta0, start=jnp.asarray(True), round=jnp.asarray(0),
-                  total=jnp.asarray(0), result=optx.RESULTS.successful, final=jnp.asarray(False), at=blank)
+                  total=jnp.asarray(0), result=optx.RESULTS.successful, final=jnp.asarray(False), at=blank,
+                  have=jnp.asarray(False))
     c = jax.lax.while_loop(lambda c: ~c.final, body, init)
     # the Jacobian with the noise held at the solution's: weighted as the fit weighs its rows, and every row at 1
     r, j = weighted(c.y, c.at, prob.mask, n)
