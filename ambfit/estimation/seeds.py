@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import jax
 import numpy as np
 import pandas as pd
 
@@ -129,6 +130,17 @@ def grid_start(prob: Problem, axis: int, bearing: Bearing = PAPER_BEARING) -> tu
     return arg
 
 
+def columns(probs: Sequence[Problem], names: Sequence[str]) -> dict[str, np.ndarray]:
+    """The named row fields (a problem's own or its readings') of many problems, one after another: read from
+    each problem's leaves, whose order one problem's paths give."""
+    if not probs:
+        return {name: np.zeros(0) for name in names}
+    paths = [jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(probs[0])[0]]
+    where = {name: next(i for i, path in enumerate(paths) if path.endswith(f".{name}")) for name in names}
+    leaves = [jax.tree_util.tree_leaves(p) for p in probs]
+    return {name: np.concatenate([np.asarray(ls[i]) for ls in leaves]) for name, i in where.items()}
+
+
 def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bearing],
                  k_held=K_REFERENCE) -> list[np.ndarray]:
     """Each data set's scaled start from its ``(v, w)`` gaps and origins [m] (arrays[n_sets, 2]): ``k`` from its known
@@ -139,16 +151,12 @@ def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bea
     lengths = np.array([len(p.mask) for p in probs])
     set_of_row = np.repeat(np.arange(n), lengths)
 
-    def cat(get):
-        return np.concatenate([np.asarray(get(p)) for p in probs]) if n else np.zeros(0)
-
-    ax = cat(lambda p: p.ax).astype(int)
-    it, ib, x = cat(lambda p: p.i_top), cat(lambda p: p.i_bottom), cat(lambda p: p.x)
-    used = cat(lambda p: p.mask) > 0
-    known, load = cat(lambda p: p.known).astype(bool), cat(lambda p: p.load)
+    col = columns(probs, ("axis", "i_top", "i_bottom", "x", "mask", "known", "load", "gidx"))
+    ax, it, ib, x = col["axis"].astype(int), col["i_top"], col["i_bottom"], col["x"]
+    used, known, load = col["mask"] > 0, col["known"].astype(bool), col["load"]
     n_loads = np.array([p.n_loads for p in probs], dtype=int)
     first_load = np.concatenate([[0], np.cumsum(n_loads)])
-    gidx = cat(lambda p: p.gidx).astype(int)
+    gidx = col["gidx"].astype(int)
     load_seg = np.where(gidx >= 0, first_load[set_of_row] + gidx, -1)
     cos = np.array([b.cos_alpha for b in bearings])[set_of_row]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -176,10 +184,8 @@ def starts(table: pd.DataFrame, probs: Sequence[Problem], metas: Sequence[Meta],
     n = len(probs)
     offsets = np.asarray(offsets)
     set_of_row = np.repeat(np.arange(n), np.diff(offsets))
-    it = np.concatenate([np.asarray(p.i_top) for p in probs])
-    ib = np.concatenate([np.asarray(p.i_bottom) for p in probs])
-    x = np.concatenate([np.asarray(p.x) for p in probs])
-    used = np.concatenate([np.asarray(p.mask) for p in probs]) > 0
+    col = columns(probs, ("i_top", "i_bottom", "x", "mask"))
+    it, ib, x, used = col["i_top"], col["i_bottom"], col["x"], col["mask"] > 0
     sums, counts = np.zeros((n, 2, 2)), np.zeros((n, 2))
     pairs = design_pairs(table)
     if pairs:
