@@ -370,13 +370,20 @@ def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     nan = np.full(n, np.nan)
     if "time_s" not in df.columns:
         return nan, nan.copy()
-    exp = df["experiment"].astype(str) if "experiment" in df.columns else pd.Series("", index=df.index)
-    key = pd.DataFrame({"exp": exp.to_numpy(), "t": df["time_s"].to_numpy(float), "axis": df["axis"].to_numpy(),
-                        "it": df["i_top_A"].to_numpy(float), "ib": df["i_bottom_A"].to_numpy(float)})
-    first = key.dropna(subset=["t"]).drop_duplicates(subset=["exp", "t", "axis"])
-    other = key.assign(axis=key["axis"].map({"v": "w", "w": "v"}))
-    merged = other.merge(first, on=["exp", "t", "axis"], how="left", suffixes=("", "_o"))
-    return merged["it_o"].to_numpy(float), merged["ib_o"].to_numpy(float)
+    exp = df["experiment"].astype(str).to_numpy() if "experiment" in df.columns else np.full(n, "")
+    t = df["time_s"].to_numpy(float)
+    ax = (df["axis"] == "w").to_numpy().astype(int)
+    timed = ~np.isnan(t)
+    # each moment (experiment, time) numbered; the first row of each moment and axis is the one read
+    moment = np.full(n, -1)
+    if timed.any():
+        moment[timed] = pd.DataFrame({"e": exp[timed], "t": t[timed]}).groupby(["e", "t"], sort=False).ngroup()
+    first = np.full((moment.max(initial=-1) + 2, 2), -1)   # (a last row of -1s for the untimed rows)
+    rows = np.nonzero(timed)[0][::-1]                  # in reverse, so that the first row of each is kept
+    first[moment[rows], ax[rows]] = rows
+    partner = first[moment, 1 - ax]
+    it, ib = df["i_top_A"].to_numpy(float), df["i_bottom_A"].to_numpy(float)
+    return np.where(partner >= 0, it[partner], np.nan), np.where(partner >= 0, ib[partner], np.nan)
 
 
 def readings(data: Dataset | pd.DataFrame):

@@ -3,6 +3,8 @@
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from ambfit import data as D
 from ambfit import rig
@@ -147,3 +149,49 @@ def test_a_zero_current_read_through_its_noise_is_accepted(table, tmp_path):
     df.to_csv(path, index=False)
     with pytest.raises(D.DataError, match="negative current"):
         D.read_csv(path)
+
+
+# --- the vectorised row-order functions against their definitions, row by row --------------------------------
+
+def _direction_by_definition(df, column, threshold=2e-3):
+    """approach_direction's docstring, one row at a time: within each experiment and axis, the sign of a change of
+    at least ``threshold`` from the previous reading, else the previous direction; the first reading rises."""
+    out, prev_row, prev_dir = np.zeros(len(df)), {}, {}
+    exp = df["experiment"].astype(str) if "experiment" in df.columns else [""] * len(df)
+    for j, (e, ax, i) in enumerate(zip(exp, df["axis"], df[column])):
+        key = (e, ax)
+        if key in prev_row and abs(i - prev_row[key]) >= threshold:
+            prev_dir[key] = float(np.sign(i - prev_row[key]))
+        prev_dir.setdefault(key, 1.0)
+        prev_row[key] = i
+        out[j] = prev_dir[key]
+    return out
+
+
+def _other_by_definition(df):
+    """other_axis_currents' docstring, one row at a time: the first row of the other axis with the same experiment
+    and time."""
+    it, ib = np.full(len(df), np.nan), np.full(len(df), np.nan)
+    if "time_s" not in df.columns:
+        return it, ib
+    exp = list(df["experiment"].astype(str)) if "experiment" in df.columns else [""] * len(df)
+    for j in range(len(df)):
+        for k in range(len(df)):
+            if exp[k] == exp[j] and df["time_s"].iloc[k] == df["time_s"].iloc[j] and \
+                    df["axis"].iloc[k] != df["axis"].iloc[j]:
+                it[j], ib[j] = df["i_top_A"].iloc[k], df["i_bottom_A"].iloc[k]
+                break
+    return it, ib
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 30), st.integers(0, 2**31 - 1), st.booleans())
+def test_row_order_functions_follow_their_definitions(n, seed, with_experiment):
+    rng = np.random.default_rng(seed)
+    df = pd.DataFrame({"axis": rng.choice(["v", "w"], n), "time_s": rng.choice([0.0, 0.5, 1.0, np.nan], n),
+                       "i_top_A": np.round(rng.normal(1.5, 0.004, n), 4), "i_bottom_A": rng.normal(1.5, 0.1, n)})
+    if with_experiment:
+        df["experiment"] = rng.choice(["a", "b"], n)
+    np.testing.assert_array_equal(D.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
+    for got, want in zip(D.other_axis_currents(df), _other_by_definition(df)):
+        np.testing.assert_array_equal(got, want)
