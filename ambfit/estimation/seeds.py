@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.estimation.closed_form import POSITION_TOLERANCE, eq6, eq7
-from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, to_theta
+from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, SCALE_LOAD
 from ambfit.estimation.problem import Meta, Problem
 from ambfit.estimation.profile import profile
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
@@ -141,17 +141,20 @@ def columns(probs: Sequence[Problem], names: Sequence[str]) -> dict[str, np.ndar
     return {name: np.concatenate([np.asarray(ls[i]) for ls in leaves]) for name, i in where.items()}
 
 
-def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bearing],
-                 k_held=K_REFERENCE) -> list[np.ndarray]:
+_PROFILE_FIELDS = ("axis", "i_top", "i_bottom", "x", "mask", "known", "load", "gidx")
+
+
+def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bearing], k_held=K_REFERENCE,
+                 col: dict | None = None) -> list[np.ndarray]:
     """Each data set's scaled start from its ``(v, w)`` gaps and origins [m] (arrays[n_sets, 2]): ``k`` from its known
     loads (``k_held``, float or array[n_sets, 2], on an axis without) and its nuisance loads profiled there, for all
-    data sets in one pass."""
+    data sets in one pass.  ``col``: the problems' :func:`columns`, when already read."""
     gaps, origins = np.asarray(gaps, dtype=float), np.asarray(origins, dtype=float)
     n = len(probs)
     lengths = np.array([len(p.mask) for p in probs])
     set_of_row = np.repeat(np.arange(n), lengths)
 
-    col = columns(probs, ("axis", "i_top", "i_bottom", "x", "mask", "known", "load", "gidx"))
+    col = columns(probs, _PROFILE_FIELDS) if col is None else col
     ax, it, ib, x = col["axis"].astype(int), col["i_top"], col["i_bottom"], col["x"]
     used, known, load = col["mask"] > 0, col["known"].astype(bool), col["load"]
     n_loads = np.array([p.n_loads for p in probs], dtype=int)
@@ -170,7 +173,9 @@ def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bea
         loads = (np.bincount(load_seg[load_seg >= 0], weights=(k_used[set_of_row, ax] * unit)[load_seg >= 0],
                              minlength=first_load[-1])
                  / np.bincount(load_seg[load_seg >= 0], minlength=first_load[-1]))
-    return [to_theta(gaps[s], origins[s], k[s], loads[first_load[s]:first_load[s + 1]]) for s in range(n)]
+    head = np.concatenate([gaps, origins, k], axis=1) / SCALE_HEAD                   # to_theta of every data set
+    loads = loads / SCALE_LOAD
+    return [np.concatenate([head[s], loads[first_load[s]:first_load[s + 1]]]) for s in range(n)]
 
 
 def starts(table: pd.DataFrame, probs: Sequence[Problem], metas: Sequence[Meta], offsets: Sequence[int],
@@ -184,7 +189,7 @@ def starts(table: pd.DataFrame, probs: Sequence[Problem], metas: Sequence[Meta],
     n = len(probs)
     offsets = np.asarray(offsets)
     set_of_row = np.repeat(np.arange(n), np.diff(offsets))
-    col = columns(probs, ("i_top", "i_bottom", "x", "mask"))
+    col = columns(probs, _PROFILE_FIELDS)
     it, ib, x, used = col["i_top"], col["i_bottom"], col["x"], col["mask"] > 0
     sums, counts = np.zeros((n, 2, 2)), np.zeros((n, 2))
     pairs = design_pairs(table)
@@ -199,22 +204,17 @@ def starts(table: pd.DataFrame, probs: Sequence[Problem], metas: Sequence[Meta],
         np.add.at(counts, (sid[ok], axes[ok]), 1)
     with np.errstate(invalid="ignore"):
         mean = sums / counts[:, :, None]
-    gaps = np.array([[b.nominal_gap] * 2 for b in bearings]).reshape(n, 2)
-    origins = np.zeros((n, 2))
-    how = []
-    for s in range(n):
-        words = []
-        for a, ax in enumerate(AXES):
-            if not metas[s].axes_present[a]:
-                continue
-            if counts[s, a] > 0:
-                gaps[s, a], origins[s, a] = mean[s, a]
-                words.append(f"{ax}: closed form")
-            else:
-                gaps[s, a], origins[s, a] = grid_start(probs[s], a, bearings[s])
-                words.append(f"{ax}: grid")
-        how.append(", ".join(words))
-    return with_profile(gaps, origins, probs, bearings), how
+    present = np.array([m.axes_present for m in metas], dtype=bool).reshape(n, 2)
+    closed = counts > 0
+    gaps = np.where(closed, mean[:, :, 0], np.array([b.nominal_gap for b in bearings])[:, None])
+    origins = np.where(closed, mean[:, :, 1], 0.0)
+    words = {(pv, pw, cv, cw): ", ".join(f"{ax}: {'closed form' if c else 'grid'}"
+                                         for ax, p, c in zip(AXES, (pv, pw), (cv, cw)) if p)
+             for pv in (False, True) for pw in (False, True) for cv in (False, True) for cw in (False, True)}
+    how = [words[tuple(present[s]) + tuple(closed[s])] for s in range(n)]
+    for s, a in zip(*np.nonzero(present & ~closed)):       # an axis without a valid pair starts from a grid
+        gaps[s, a], origins[s, a] = grid_start(probs[s], int(a), bearings[s])
+    return with_profile(gaps, origins, probs, bearings, col=col), how
 
 
 def seed_loads_and_k(theta, prob: Problem, bearing: Bearing = PAPER_BEARING) -> np.ndarray:
