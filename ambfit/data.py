@@ -317,6 +317,12 @@ def zero_based(df: pd.DataFrame) -> pd.DataFrame:
     return df if df.index.equals(pd.RangeIndex(len(df))) else df.reset_index(drop=True)
 
 
+def group_labels(column: pd.Series) -> pd.Series:
+    """A label column for grouping rows: as text (so 1 and "1" are one label), except integer codes, which
+    stand for themselves (a study's joined table numbers its data sets' experiments)."""
+    return column if pd.api.types.is_integer_dtype(column) else column.astype(str)
+
+
 def load_groups(df: pd.DataFrame) -> pd.Series:
     """The static-load group of each row: ``load_id`` and axis, or experiment and axis when no ``load_id``."""
     if "load_id" in df.columns:
@@ -344,8 +350,8 @@ def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -
     n = len(df)
     if n == 0:
         return np.zeros(0)
-    exp = df["experiment"].astype(str) if "experiment" in df.columns else pd.Series("", index=df.index)
-    code = df.groupby([exp, df["axis"]], sort=False).ngroup().to_numpy()
+    exp = group_labels(df["experiment"]) if "experiment" in df.columns else pd.Series("", index=df.index)
+    code = df.groupby([exp, df["axis"]], sort=False, dropna=False).ngroup().to_numpy()
     order = np.argsort(code, kind="stable")              # each group's rows together, in file order
     i, c = df[column].to_numpy(float)[order], code[order]
     step = np.diff(i, prepend=np.nan)
@@ -370,14 +376,15 @@ def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     nan = np.full(n, np.nan)
     if "time_s" not in df.columns:
         return nan, nan.copy()
-    exp = df["experiment"].astype(str).to_numpy() if "experiment" in df.columns else np.full(n, "")
+    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.full(n, "")
     t = df["time_s"].to_numpy(float)
     ax = (df["axis"] == "w").to_numpy().astype(int)
     timed = ~np.isnan(t)
     # each moment (experiment, time) numbered; the first row of each moment and axis is the one read
     moment = np.full(n, -1)
     if timed.any():
-        moment[timed] = pd.DataFrame({"e": exp[timed], "t": t[timed]}).groupby(["e", "t"], sort=False).ngroup()
+        moments = pd.DataFrame({"e": exp[timed], "t": t[timed]}).groupby(["e", "t"], sort=False, dropna=False)
+        moment[timed] = moments.ngroup()
     first = np.full((moment.max(initial=-1) + 2, 2), -1)   # (a last row of -1s for the untimed rows)
     rows = np.nonzero(timed)[0][::-1]                  # in reverse, so that the first row of each is kept
     first[moment[rows], ax[rows]] = rows

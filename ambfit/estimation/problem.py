@@ -168,12 +168,13 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     return (prob if mask is None else prob.with_mask(mask)), meta
 
 
-def _build(df: pd.DataFrame, sigma_i, sigma_x) -> tuple[Problem, Meta]:
+def _build(df: pd.DataFrame, sigma_i, sigma_x, groups=None) -> tuple[Problem, Meta]:
+    """``groups``: the rows' load-group codes and labels when the caller numbered them (a joined table)."""
     r = readings(df)
     ax = np.asarray(r.axis)
     st, sb, sx, source = _noise(df, ax, sigma_i, sigma_x)
     load = df["load_N"].to_numpy(float) if "load_N" in df else np.full(len(df), np.nan)
-    codes, labels = pd.factorize(load_groups(df))       # in order of first appearance
+    codes, labels = pd.factorize(load_groups(df)) if groups is None else groups      # in order of first appearance
     # the groups with a row of unknown load, numbered in order of their first such row
     free = np.isnan(load)
     present, first = np.unique(codes[free], return_index=True)
@@ -197,7 +198,6 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x) -> tuple[Problem, Meta]:
 _ROW_COLUMNS = ("axis", "bias_A", "i_top_A", "i_bottom_A", "v_um", "w_um", "load_N", "load_id", "experiment",
                 "iteration", "time_s", "temperature_C", "i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um",
                 "v_set_um", "w_set_um")
-_SEP = "\x1f"     # joins a data set's number to its labels in the joined table (a character no label contains)
 
 
 def _join_keys(joined: pd.DataFrame, frames: list[pd.DataFrame], set_id: np.ndarray, sigma_i, sigma_x) -> list:
@@ -242,17 +242,37 @@ def _slicer(prob: Problem):
     return rows
 
 
+def _numbered(joined: pd.DataFrame, name: str, set_id: np.ndarray, missing: int | None = None) -> np.ndarray:
+    """Column ``name`` as integers unique to each data set and label, so that no label is shared between data
+    sets; a missing label is ``missing``, or (None) a label of its own."""
+    if name not in joined:
+        return set_id.astype(np.int64)
+    codes, uniques = pd.factorize(joined[name], use_na_sentinel=missing is not None)
+    return np.where(codes >= 0, set_id.astype(np.int64) * (len(uniques) + 1) + codes, missing or 0)
+
+
+def _joined_groups(joined: pd.DataFrame, set_id: np.ndarray):
+    """The rows' load groups (:func:`ambfit.data.load_groups`, numbered per data set): ``(codes, labels)`` in order
+    of first appearance, each label its own data set's."""
+    # (a missing label names no group, as in :func:`ambfit.data.load_groups`)
+    base = _numbered(joined, "load_id" if "load_id" in joined else "experiment", set_id, missing=-1)
+    key = np.where(base >= 0, base * 2 + (joined["axis"] == "w").to_numpy(), -1)
+    codes, keys = pd.factorize(key)
+    codes = np.where(key >= 0, codes, -1)
+    first = np.full(len(keys), len(key))
+    np.minimum.at(first, codes[codes >= 0], np.nonzero(codes >= 0)[0])
+    labels = load_groups(joined.iloc[first[keys >= 0]])
+    lookup = np.cumsum(keys >= 0) - 1                  # (a missing label's key is dropped from the labels)
+    return np.where(codes >= 0, lookup[np.maximum(codes, 0)], -1), pd.Index(labels.to_numpy())
+
+
 def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
     """:func:`build_problem` once for the rows of many data sets (``lengths`` rows each, one after another), each
-    data set's experiments and load groups prefixed with its number so that nothing is shared.  Returns
-    ``(Problem, Meta)`` per data set (NumPy leaves)."""
-    prefix = np.repeat(np.array([f"{s}{_SEP}" for s in range(len(lengths))], dtype=object), lengths)
-    joined = joined.copy()
-    joined["experiment"] = prefix + (joined["experiment"].astype(str).to_numpy(object) if "experiment" in joined
-                                     else "")
-    if "load_id" in joined:
-        joined["load_id"] = prefix + joined["load_id"].astype(str).to_numpy(object)
-    prob, meta = _build(joined, sigma_i, sigma_x)
+    data set's experiments and load groups numbered apart so that nothing is shared.  Returns ``(Problem, Meta)``
+    per data set (NumPy leaves)."""
+    set_id = np.repeat(np.arange(len(lengths)), lengths)
+    groups = _joined_groups(joined, set_id)
+    prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups)
     rows = _slicer(prob)
     offsets = np.cumsum([0] + list(lengths))
     gidx_all, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
@@ -266,11 +286,9 @@ def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
         a, kn = ax[lo:hi], known[lo:hi]
         k_free = tuple(bool(kn[a == i].any()) for i in range(2))
         present = tuple(bool((a == i).any()) for i in range(2))
-        # the data set's own labels (ambfit.data.load_groups of it alone): the joined ones without the prefix
-        names = [lab.replace(f"{s}{_SEP}", "", 1) for lab in meta.load_groups[first:first + m]]
         out.append((rows(lo, hi, k_free, local),
-                    Meta(load_groups=names, k_free=k_free, axes_present=present, noise_source=meta.noise_source,
-                         n_rows=int(hi - lo))))
+                    Meta(load_groups=list(meta.load_groups[first:first + m]), k_free=k_free, axes_present=present,
+                         noise_source=meta.noise_source, n_rows=int(hi - lo))))
     return out
 
 
@@ -316,11 +334,9 @@ def build_problems(frames: list[pd.DataFrame], *, sigma_i: float | None = None, 
 
 
 def _table(joined: pd.DataFrame, lengths: list[int]) -> pd.DataFrame:
-    """The columns that name iterations, biases and positions of the joined rows, each experiment label prefixed
-    with its data set's number."""
-    table = joined[[c for c in ("axis", "bias_A", "v_um", "w_um", "v_set_um", "w_set_um") if c in joined]].copy()
-    table["iteration"] = joined["iteration"].fillna(1).to_numpy() if "iteration" in joined else 1
-    prefix = np.repeat(np.array([f"{s}{_SEP}" for s in range(len(lengths))], dtype=object), lengths)
-    exp = joined["experiment"].astype(str).to_numpy(object) if "experiment" in joined else ""
-    table["experiment"] = prefix + exp
-    return table
+    """The columns that name iterations, biases and positions of the joined rows, each data set's experiments
+    numbered apart."""
+    table = joined[[c for c in ("axis", "bias_A", "v_um", "w_um", "v_set_um", "w_set_um") if c in joined]]
+    set_id = np.repeat(np.arange(len(lengths)), lengths)
+    return table.assign(iteration=joined["iteration"].fillna(1).to_numpy() if "iteration" in joined else 1,
+                        experiment=_numbered(joined, "experiment", set_id))

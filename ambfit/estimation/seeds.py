@@ -13,6 +13,7 @@ import jax
 import numpy as np
 import pandas as pd
 
+from ambfit.data import group_labels
 from ambfit.estimation.closed_form import POSITION_TOLERANCE, eq6, eq7
 from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, SCALE_LOAD
 from ambfit.estimation.problem import Meta, Problem
@@ -31,9 +32,13 @@ def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray]]:
     n = len(df)
     if n == 0:
         return []
-    exp = df["experiment"].astype(str) if "experiment" in df else pd.Series("", index=df.index)
-    it = df["iteration"] if "iteration" in df else pd.Series(1, index=df.index)
-    code = df.groupby([exp, it, df["axis"]], sort=False).ngroup().to_numpy()     # in order of first appearance
+    keys = [group_labels(df["experiment"]) if "experiment" in df else None,
+            df["iteration"] if "iteration" in df else None, df["axis"]]
+    code = np.zeros(n, dtype=np.int64)
+    for key in filter(lambda k: k is not None, keys):     # (experiment, iteration, axis) numbered as one key
+        part, uniques = pd.factorize(key)                   # (a missing label: -1, in no group)
+        code = np.where((code >= 0) & (part >= 0), code * (len(uniques) + 1) + part, -1)
+    code[code >= 0] = pd.factorize(code[code >= 0])[0]  # in order of first appearance
     n_groups = int(code.max(initial=-1)) + 1
     if n_groups == 0:
         return []

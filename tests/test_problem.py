@@ -1,0 +1,78 @@
+"""Many data sets built as one joined table give each data set the problem it gets alone.
+
+:func:`ambfit.estimation.problem.build_problems` numbers every data set's experiments and load groups apart in one
+joined table; the reference is :func:`build_problem` of each table alone (the row-by-row definition).
+"""
+
+import jax
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ambfit.data import zero_based
+from ambfit.estimation.problem import build_problem, build_problems
+from ambfit.rig import protocol
+from ambfit.rig import virtual as rig
+
+_BASE = rig.simulate(rig.PAPER_RIG, protocol.rich(biases=(1.2, 1.5), n_positions=3, masses_kg=(0.0, 0.5)),
+                     seed=3).data
+
+
+def _variant(seed: int, drop: frozenset, unknown: float, shared_labels: bool) -> pd.DataFrame:
+    """A slice of the rig's table with some optional columns dropped and some loads unknown."""
+    rng = np.random.default_rng(seed)
+    lo = int(rng.integers(0, len(_BASE) // 2))
+    df = _BASE.iloc[lo:lo + int(rng.integers(8, len(_BASE) // 2))].copy()
+    if "load_N" in df:
+        df.loc[rng.random(len(df)) < unknown, "load_N"] = np.nan
+    if shared_labels:       # the same labels in every data set: nothing may be shared between them
+        df["experiment"] = "E1"
+        if "load_id" in df:
+            df["load_id"] = np.where(df["axis"] == "v", "L1", "L2")
+    return zero_based(df.drop(columns=[c for c in drop if c in df]))
+
+
+def _leaves(prob):
+    return {jax.tree_util.keystr(p): np.asarray(v) for p, v in jax.tree_util.tree_flatten_with_path(prob)[0]}
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 10_000),
+                          st.frozensets(st.sampled_from(["load_id", "experiment", "time_s", "i_top_std_A"])),
+                          st.sampled_from([0.0, 0.5, 1.0]), st.booleans()), min_size=2, max_size=5))
+def test_joined_build_is_each_tables_own(specs):
+    frames = [_variant(*spec) for spec in specs]
+    _, built, offsets = build_problems(frames)
+    assert list(np.diff(offsets)) == [len(f) for f in frames]
+    for frame, got in zip(frames, built):
+        want_prob, want_meta = build_problem(frame)
+        prob, meta = got
+        assert meta == want_meta
+        a, b = _leaves(prob), _leaves(want_prob)
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_joined_table_numbers_experiments_apart():
+    """Two data sets with one experiment label each get two experiment codes (seeds pair rows within one)."""
+    frames = [_variant(1, frozenset(), 0.0, True), _variant(2, frozenset(), 0.0, True)]
+    table, _, offsets = build_problems(frames)
+    first, second = (set(table["experiment"].iloc[offsets[s]:offsets[s + 1]]) for s in range(2))
+    assert len(first) == len(second) == 1 and first.isdisjoint(second)
+
+
+@pytest.mark.parametrize("fill", ["load_id", "experiment"])
+def test_missing_label_names_no_group(fill):
+    """A row whose load-group label is missing belongs to no group in the joined build, as alone."""
+    frames = [_variant(4, frozenset(), 1.0, False), _variant(5, frozenset(), 1.0, False)]
+    if fill == "experiment":
+        frames = [f.drop(columns="load_id") for f in frames]
+    frames[1] = frames[1].astype({fill: object})
+    frames[1].loc[0, fill] = None
+    _, built, _ = build_problems(frames)
+    want_prob, want_meta = build_problem(frames[1])
+    assert built[1][1] == want_meta
+    np.testing.assert_array_equal(np.asarray(built[1][0].gidx), np.asarray(want_prob.gidx))
