@@ -57,15 +57,20 @@ class Problem(eqx.Module):
 
     def with_mask(self, mask) -> Problem:
         """The same problem with other row weights (``mask``: 0 leaves a row out; robust losses use sqrt(w))."""
-        return eqx.tree_at(lambda p: p.mask, self, jnp.asarray(mask, dtype=float))
+        return dataclasses.replace(self, mask=_leaf(mask))
 
     def with_noise(self, s) -> Problem:
         """The same problem with each row's effective force noise std ``s`` [N] held (0 where it is propagated)."""
-        return eqx.tree_at(lambda p: p.s_held, self, jnp.asarray(s, dtype=float))
+        return dataclasses.replace(self, s_held=_leaf(s))
 
     def with_readings(self, i_top, i_bottom, x) -> Problem:
         """The same problem with other current and position readings (bootstrap, design)."""
         return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))
+
+
+def _leaf(values):
+    """A float row field: traced values as they are, others as a NumPy array (the solve converts at its call)."""
+    return values if isinstance(values, jax.core.Tracer) else np.asarray(values, dtype=float)
 
 
 @dataclasses.dataclass(frozen=True)
