@@ -340,18 +340,20 @@ def pad(probs: Sequence[Problem], rows: int) -> Problem:
     paths, tree = jax.tree_util.tree_flatten_with_path(probs[0])
     names = [jax.tree_util.keystr(path) for path, _ in paths]
     leaves = [jax.tree_util.tree_leaves(p) for p in probs]
+    lengths = np.array([len(np.asarray(p.mask)) for p in probs])
+    j = np.arange(rows)
+    real = j[None, :] < lengths[:, None]
+    # each padded row's source in the data sets' rows one after another: its own row, or its data set's first
+    source = (np.cumsum(lengths) - lengths)[:, None] + np.where(real, j[None, :], 0)
     out = []
     for i, name in enumerate(names):
         column = [np.asarray(ls[i]) for ls in leaves]
         if name.endswith(".k_free"):
             out.append(np.stack(column))
             continue
+        stacked = np.concatenate(column)[source]
         fill = next((v for k, v in _PAD_FILL.items() if name.endswith(k)), None)
-        stacked = np.empty((len(probs), rows), dtype=column[0].dtype)
-        for b, a in enumerate(column):
-            stacked[b, :len(a)] = a
-            stacked[b, len(a):] = a[0] if fill is None else fill
-        out.append(stacked)
+        out.append(stacked if fill is None else np.where(real, stacked, np.asarray(fill, dtype=stacked.dtype)))
     return jax.tree_util.tree_unflatten(tree, out)
 
 
