@@ -37,7 +37,7 @@ import scipy
 from scipy.optimize import least_squares
 
 from ambfit import rig
-from ambfit.estimation import core, fit, lm, seeds
+from ambfit.estimation import batches, core, fit, lm, seeds
 from ambfit.estimation.core import IDEAL
 from ambfit.rig import protocol
 
@@ -90,10 +90,10 @@ def many_fits(n, repeats):
     theta0 = np.stack([seeds.starts(d, [b[0]], [b[1]], [0, len(d)], [spec.bearing])[0][0]
                        for d, b in zip(data, built)])
     th0 = jnp.asarray(theta0)
-    probs = lm.pad([b[0] for b in built], lm.row_bucket(len(data[0])))
+    probs = batches.pad([b[0] for b in built], batches.row_bucket(len(data[0])))
     steps = lm.FIRST_STEPS
-    vm = lambda: jax.block_until_ready(lm._vmapped(th0, probs, IDEAL, steps).theta)  # noqa: E731
-    converged = float(np.mean(np.asarray(lm._vmapped(th0, probs, IDEAL, steps).edm) < core.EDM_MAX))
+    vm = lambda: jax.block_until_ready(batches._vmapped(th0, probs, IDEAL, steps).theta)  # noqa: E731
+    converged = float(np.mean(np.asarray(batches._vmapped(th0, probs, IDEAL, steps).edm) < core.EDM_MAX))
     vm()
 
     def loop():

@@ -36,7 +36,7 @@ import numpy as np
 
 from ambfit._jaxcache import enable_compilation_cache
 from ambfit.engine import Engine
-from ambfit.estimation import fit, lm
+from ambfit.estimation import batches, fit
 from ambfit.rig import protocol as P
 from ambfit.rig import virtual as rig
 
@@ -95,8 +95,8 @@ def peak_rss_mb() -> float:
 
 def warm(n: int, chunk: int, seed: int) -> int:
     """Compile in this process what the timed study needs: the batch solves of every bucket its designs fall in
-    (:func:`ambfit.estimation.lm.precompile`), the rig for every protocol length, then a small study."""
-    lm.precompile([8 * it for it in range(1, 11)], [0, 2])
+    (:func:`ambfit.estimation.batches.precompile`), the rig for every protocol length, then a small study."""
+    batches.precompile([8 * it for it in range(1, 11)], [0, 2])
     for it in range(1, 11):
         simulate({**draw(np.random.SeedSequence([seed, 2, it])), "iterations": it})
     kids = np.random.SeedSequence([seed, 1]).spawn(n)

@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 
 from ambfit import engine
-from ambfit.estimation import core, fit, lm
+from ambfit.estimation import batches, core, fit
 from ambfit.physics.bearing import PAPER_BEARING
 from ambfit.rig import protocol as P
 from ambfit.rig import virtual as rig
@@ -118,8 +118,8 @@ def test_padded_rows_and_loads_cannot_change_a_result(mixed, monkeypatch):
     reference = fit.fit_many(data[2:3], loss="linear")                 # alone: its own shape, no padding
     # two data sets are padded and vmapped: pad far more than the buckets do, three padded rows per real row,
     # three more padded loads
-    monkeypatch.setattr(lm, "row_bucket", lambda n: 4 * n)
-    monkeypatch.setattr(lm, "load_bucket", lambda m: m + 3)
+    monkeypatch.setattr(batches, "row_bucket", lambda n: 4 * n)
+    monkeypatch.setattr(batches, "load_bucket", lambda m: m + 3)
     padded = fit.fit_many([data[2], data[2]], loss="linear")[:1]
     for a, b in zip(padded, reference):
         _assert_same_fit(a, b)
@@ -130,7 +130,7 @@ def test_padded_rows_have_zero_residual_and_zero_jacobian(mixed):
     prob, _ = core.build_problem(data[2])
     theta = fit.fit(data[2], loss="linear").theta
     n, p = len(data[2]), len(theta)
-    stacked = lm.pad([prob], n + 20)
+    stacked = batches.pad([prob], n + 20)
     one = jax.tree.map(lambda a: a[0], stacked)                    # the padded problem of a batch of one
     padded_theta = np.concatenate([theta, np.zeros(3)])            # three loads no row points at
     r = np.asarray(core.residuals(padded_theta, one))
@@ -141,9 +141,9 @@ def test_padded_rows_have_zero_residual_and_zero_jacobian(mixed):
 
 
 def test_row_buckets_bound_the_padding():
-    assert [lm.row_bucket(n) for n in (1, 16, 17, 24, 32, 33, 80, 480)] == [16, 16, 32, 32, 32, 64, 128, 512]
-    assert all(n <= lm.row_bucket(n) < 2 * n for n in range(17, 2000))
-    assert [lm.load_bucket(m) for m in (0, 1, 2, 3, 5)] == [0, 1, 2, 4, 8]
+    assert [batches.row_bucket(n) for n in (1, 16, 17, 24, 32, 33, 80, 480)] == [16, 16, 32, 32, 32, 64, 128, 512]
+    assert all(n <= batches.row_bucket(n) < 2 * n for n in range(17, 2000))
+    assert [batches.load_bucket(m) for m in (0, 1, 2, 3, 5)] == [0, 1, 2, 4, 8]
 
 
 # --- the engine in this process --------------------------------------------------------------------------------

@@ -24,8 +24,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.estimation.core import IDEAL, Model, Problem, target, unpack
-from ambfit.estimation.lm import solve
+from ambfit.estimation.core import (
+    IDEAL,
+    Meta,
+    Model,
+    Problem,
+    free_mask,
+    jacobian,
+    si_scale,
+    standardized,
+    target,
+    unpack,
+)
+from ambfit.estimation.covariance import result_at
+from ambfit.estimation.lm import Solution, solve
+from ambfit.estimation.results import FitResult, Thresholds
 from ambfit.physics.model import pole_gaps
 
 
@@ -83,3 +96,22 @@ def bootstrap_bias(theta, prob: Problem, bias, *, n: int = 2000, seed: int = 0, 
     v = values[ok]
     return Correction(bias=v.mean(axis=0) - np.asarray(theta), mc_error=v.std(axis=0, ddof=1) / np.sqrt(len(v)),
                       n=int(ok.sum()), converged_fraction=float(ok.mean()))
+
+
+def debiased(res: FitResult, prob: Problem, meta: Meta, model: Model, thresholds: Thresholds, n: int,
+             seed: int) -> FitResult:
+    """``res`` less its parametric-bootstrap bias (:func:`bootstrap_bias` from ``n`` synthetic data sets), with its
+    covariance, conditioning and χ² measured again at the corrected estimate."""
+    correction = bootstrap_bias(res.theta, prob, prob.bias, n=n, seed=seed, model=model)
+    theta = res.theta - correction.bias
+    t = jnp.asarray(theta)
+    sol = Solution(theta=theta, result=res.optimistix, steps=res.num_steps, edm=res.edm,
+                   jac=np.asarray(jacobian(t, prob, model)), z=np.asarray(standardized(t, prob, model)),
+                   jac_all=np.asarray(jacobian(t, prob.with_mask(np.ones(len(prob.mask))), model)))
+    res = result_at(sol, prob, meta, model, res.start, thresholds)
+    free = free_mask(prob, meta)
+    scale = si_scale(prob)[0][free]
+    return dataclasses.replace(res, bias_correction={
+        "n": correction.n, "converged_fraction": correction.converged_fraction,
+        **{n: {"subtracted": float(b), "mc_error": float(e)}
+           for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})

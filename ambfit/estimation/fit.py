@@ -30,7 +30,7 @@ One pipeline
 :func:`fit_many` is the only fit; :func:`fit` is ``fit_many([data])[0]``, raising what it holds.  For every data
 set, in order: its arrays (:mod:`ambfit.estimation.problem`, many tables built as one), its start
 (:mod:`ambfit.estimation.seeds`: Eq. 7 or a grid, ``k`` and loads profiled; or another fit's estimate), the solve
-(:mod:`ambfit.estimation.lm`: alone at its own shape, or padded and vmapped with the others), the result
+(:mod:`ambfit.estimation.batches`: alone at its own shape, or padded and vmapped with the others), the result
 (:mod:`ambfit.estimation.covariance`), the outlier test (:mod:`ambfit.estimation.outliers`) and the plausibility
 flags.  A study of thousands of data sets and one fit take the same steps.
 
@@ -57,6 +57,7 @@ import pandas as pd
 
 from ambfit.data import DataError, Dataset, file_rows, zero_based
 from ambfit.estimation import plausibility, robust, seeds
+from ambfit.estimation.batches import solve_sets
 from ambfit.estimation.core import (
     EDM_MAX,
     K_REFERENCE,
@@ -64,12 +65,11 @@ from ambfit.estimation.core import (
     Meta,
     Model,
     Problem,
-    free_mask,
     si_scale,
     to_theta,
 )
 from ambfit.estimation.covariance import result_at, results_at
-from ambfit.estimation.lm import solve_sets
+from ambfit.estimation.debias import debiased
 from ambfit.estimation.outliers import screen, studentized
 from ambfit.estimation.problem import build_problems
 from ambfit.estimation.results import FitResult, Thresholds
@@ -112,7 +112,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         The model is ``adequate`` when χ² has a p-value of at least this (only when the noise
         levels are known, not estimated from the residuals).
     max_steps : int
-        Levenberg-Marquardt step budget per reweighting round (:func:`ambfit.estimation.lm.solve_sets`).
+        Levenberg-Marquardt step budget per reweighting round (:func:`ambfit.estimation.batches.solve_sets`).
     loss : {"auto", "linear", "huber", "cauchy"}
         ``auto`` (default): least squares with an outlier test on the studentized residuals; readings
         beyond the Bonferroni bound (false-alarm probability ``alpha`` per data set) are named in
@@ -182,7 +182,7 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
 
     The data sets may differ in length, axes, biases, set-points, iterations, load groups and bearing; each
     result is the one :func:`fit` gives for that data set alone (it is this function on one data set).  Their
-    solves are bucketed by padded length and number of loads and vmapped (:func:`ambfit.estimation.lm.solve_sets`),
+    solves are bucketed by padded length and number of loads and vmapped (:func:`ambfit.estimation.batches.solve_sets`),
     so thousands of data sets cost a few compilations and little more than their solve.
 
     Parameters
@@ -310,7 +310,7 @@ def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias
     """A data set's result after its solve: the bias correction, the outlier test (or the robust loss; ``t`` its
     studentized residuals when measured with the other data sets') and the plausibility flags."""
     if debias and res.edm < EDM_MAX:
-        res = _debiased(res, prob, meta, model, thresholds, debias, seed)
+        res = debiased(res, prob, meta, model, thresholds, debias, seed)
 
     def refit(p, start):
         return _fit_once(p, meta, model, _initial(p, meta, model, start), thresholds)
@@ -338,30 +338,6 @@ def _fit_once(prob: Problem, meta: Meta, model: Model, start: tuple[np.ndarray, 
     """One weighted least-squares fit of ``prob`` (its mask as row weights) from ``start = (theta, how)``."""
     sol = solve_sets([start[0]], [prob], model, thresholds.max_steps)[0]
     return result_at(sol, prob, meta, model, start[1], thresholds)
-
-
-def _debiased(res: FitResult, prob: Problem, meta: Meta, model: Model, thresholds: Thresholds, n: int,
-              seed: int) -> FitResult:
-    """``res`` less its parametric-bootstrap bias (:mod:`ambfit.estimation.debias`), measured again there."""
-    import jax.numpy as jnp
-
-    from ambfit.estimation.core import jacobian, standardized
-    from ambfit.estimation.debias import bootstrap_bias
-    from ambfit.estimation.lm import Solution
-
-    correction = bootstrap_bias(res.theta, prob, prob.bias, n=n, seed=seed, model=model)
-    theta = res.theta - correction.bias
-    t = jnp.asarray(theta)
-    sol = Solution(theta=theta, result=res.optimistix, steps=res.num_steps, edm=res.edm,
-                   jac=np.asarray(jacobian(t, prob, model)), z=np.asarray(standardized(t, prob, model)),
-                   jac_all=np.asarray(jacobian(t, prob.with_mask(np.ones(len(prob.mask))), model)))
-    res = result_at(sol, prob, meta, model, res.start, thresholds)
-    free = free_mask(prob, meta)
-    scale = si_scale(prob)[0][free]
-    return dataclasses.replace(res, bias_correction={
-        "n": correction.n, "converged_fraction": correction.converged_fraction,
-        **{n: {"subtracted": float(b), "mc_error": float(e)}
-           for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
 
 
 def _require_k(meta: Meta):

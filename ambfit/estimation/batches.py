@@ -1,0 +1,166 @@
+"""Many data sets' solves: the schedule every fit runs, and the buckets and padding that let one vmapped program
+solve thousands of data sets.
+
+:func:`solve_sets` is the schedule of :func:`ambfit.estimation.fit.fit_many`: a first budget of steps, then more
+for the data sets not yet converged.  A data set alone is solved at its own shape (:func:`ambfit.estimation.lm.solve`);
+several are padded to a few bucket shapes (:func:`pad`) and solved by one vmapped program per bucket, so a study of
+thousands of data sets compiles a handful of programs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+import optimistix as optx
+
+from ambfit.estimation.core import IDEAL, Model, Problem
+from ambfit.estimation.lm import FIRST_STEPS, Solution, solve
+
+ROW_BUCKET_MIN = 16
+"""Shortest padded length; longer data sets are padded to the next power of two (16, 32, 64, 128, ... rows).
+Every bucket is a compilation while the padded solve itself is cheap, so few coarse buckets beat tight padding."""
+
+BATCH = 64
+"""Data sets per vmapped solve: a bucket's data sets are solved 64 at a time, the last batch padded with copies,
+so chunks of any size reuse one compiled shape per bucket."""
+
+BATCH_AGAIN = 8
+"""Data sets per vmapped later solve (the few that the first budget left short of convergence)."""
+
+
+def row_bucket(n: int) -> int:
+    """The padded length of a data set of ``n`` rows (see ``ROW_BUCKET_MIN``)."""
+    return max(ROW_BUCKET_MIN, 1 << (int(n) - 1).bit_length())
+
+
+def load_bucket(m: int) -> int:
+    """The padded number of nuisance loads: 0, 1, 2, 4, 8, ..."""
+    return 0 if m <= 0 else 1 << (int(m) - 1).bit_length()
+
+
+_PAD_FILL = {".load": 0.0, ".known": True, ".gidx": -1, ".mask": 0.0, ".s_held": 0.0}
+"""What a padded row holds, by field: no load, weight 0, no propagated noise; other fields repeat the first row."""
+
+
+def pad(probs: Sequence[Problem], rows: int) -> Problem:
+    """Problems stacked into one batch of ``rows`` rows each: padded rows repeat a data set's first row with weight 0
+    and point at no load (zero residual, zero Jacobian row), so they cannot move an estimate."""
+    paths, tree = jax.tree_util.tree_flatten_with_path(probs[0])
+    names = [jax.tree_util.keystr(path) for path, _ in paths]
+    leaves = [jax.tree_util.tree_leaves(p) for p in probs]
+    lengths = np.array([len(np.asarray(p.mask)) for p in probs])
+    j = np.arange(rows)
+    real = j[None, :] < lengths[:, None]
+    # each padded row's source in the data sets' rows one after another: its own row, or its data set's first
+    source = (np.cumsum(lengths) - lengths)[:, None] + np.where(real, j[None, :], 0)
+    out = []
+    for i, name in enumerate(names):
+        column = [np.asarray(ls[i]) for ls in leaves]
+        if name.endswith(".k_free"):
+            out.append(np.stack(column))
+            continue
+        stacked = np.concatenate(column)[source]
+        fill = next((v for k, v in _PAD_FILL.items() if name.endswith(k)), None)
+        out.append(stacked if fill is None else np.where(real, stacked, np.asarray(fill, dtype=stacked.dtype)))
+    return jax.tree_util.tree_unflatten(tree, out)
+
+
+@eqx.filter_jit
+def _vmapped(theta0, probs, model, max_steps) -> Solution:
+    return jax.vmap(lambda t, p: solve(t, p, model, max_steps=max_steps))(theta0, probs)
+
+
+def _text(ok: bool, result, b=None) -> str:
+    return "successful" if ok else str(result if b is None else jax.tree.map(lambda a: a[b], result))
+
+
+def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, max_steps: int,
+                 size: int) -> list[Solution]:
+    """:func:`solve` of each problem: alone at its own shape, or padded to its bucket and vmapped ``size`` at a
+    time (the last batch padded with copies of its first problem).  NumPy leaves, ``result`` as text."""
+    if len(probs) == 1:
+        sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps)
+        return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
+    out: list = [None] * len(probs)
+    sizes = [(len(np.asarray(p.mask)), p.n_loads) for p in probs]
+    keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
+    for key in dict.fromkeys(keys):
+        rows, loads = key
+        members = [s for s, k in enumerate(keys) if k == key]
+        for lo in range(0, len(members), size):
+            part = members[lo:lo + size]
+            idx = part + [part[0]] * (size - len(part))
+            theta0 = np.zeros((size, 6 + loads + model.n))
+            for b, s in enumerate(idx):
+                t = np.asarray(thetas[s], dtype=float)
+                m = sizes[s][1]
+                theta0[b, :6 + m], theta0[b, 6 + loads:] = t[:6 + m], t[6 + m:]
+            sol = _vmapped(theta0, pad([probs[s] for s in idx], rows), model, max_steps)
+            ok = np.asarray(sol.result == optx.RESULTS.successful)
+            theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
+                                                                            sol.jac_all, sol.z))
+            for b, s in enumerate(part):
+                nr, m = sizes[s]
+                if m == loads and not model.n:          # no padded loads nor priors: the data set's own block
+                    cut = (slice(0, nr), slice(0, 6 + m))
+                    th = theta[b, :6 + m]
+                else:
+                    cols = np.r_[0:6 + m, 6 + loads:6 + loads + model.n]
+                    # rows: the data set's own, then the effect priors' (after the padded rows)
+                    cut = np.ix_(np.r_[0:nr, rows:rows + model.n], cols)
+                    th = theta[b, cols]
+                out[s] = Solution(theta=th, result=_text(ok[b], sol.result, b), steps=steps[b], edm=edm[b],
+                                  jac=jac[b][cut], jac_all=jac_all[b][cut], z=z[b, :nr])
+    return out
+
+
+def solve_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model = IDEAL,
+               max_steps: int = 200) -> list[Solution]:
+    """Every problem's solve by the schedule of a fit: ``FIRST_STEPS`` per round for the ideal law from its
+    closed-form or grid start (``max_steps`` for a model with effects, which start further away), then
+    ``max_steps`` once more for the problems not converged (a model with effects: while its budget is not spent,
+    since its effective-variance weights can move after the last round).  Returns one :class:`Solution` per problem (NumPy leaves, ``steps``
+    summed over the solves)."""
+    first = max_steps if model.n else min(FIRST_STEPS, max_steps)
+    out = _solve_batch(list(thetas), list(probs), model, first, BATCH)
+    again = [s for s, sol in enumerate(out)
+             if not sol.converged and (max_steps > first or (model.n and sol.steps < max_steps))]
+    if again:
+        more = _solve_batch([out[s].theta for s in again], [probs[s] for s in again], model, max_steps, BATCH_AGAIN)
+        for s, sol in zip(again, more):
+            out[s] = sol._replace(steps=out[s].steps + sol.steps)
+    return out
+
+
+def precompile(rows: Sequence[int], loads: Sequence[int] = (0,), *, bearing=None, max_steps: int = 200) -> int:
+    """Compile the vmapped solves of :func:`solve_sets` for data sets of these row counts and numbers of nuisance
+    loads (both budgets' shapes of every bucket they fall in), so that a worker or a timed run does not pay it on
+    its first batch.  Compilation depends only on the shapes, so a synthetic table stands in for the data.
+    Returns the number of buckets compiled."""
+    import pandas as pd
+
+    from ambfit.estimation.core import K_REFERENCE, to_theta
+    from ambfit.estimation.problem import build_problem
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    bearing = PAPER_BEARING if bearing is None else bearing
+    model = Model.of((), bearing)
+    done = set()
+    for n in rows:
+        for m in loads:
+            r = max(int(n), int(m), 1)              # (rows of one axis: a load group is a load_id and an axis)
+            key = (row_bucket(r), load_bucket(m))
+            if key in done:
+                continue
+            done.add(key)
+            frame = pd.DataFrame({"axis": ["v"] * r, "bias_A": 1.5, "i_top_A": 1.6, "i_bottom_A": 1.4, "v_um": 0.0,
+                                  "w_um": 0.0, "load_N": np.nan if m else 5.0,
+                                  "load_id": [f"l{j % max(m, 1)}" for j in range(r)]})
+            prob, meta = build_problem(frame)
+            theta = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(len(meta.load_groups)))
+            for steps, size in ((min(FIRST_STEPS, max_steps), BATCH), (max_steps, BATCH_AGAIN)):
+                _solve_batch([theta, theta], [prob, prob], model, steps, size)
+    return len(done)
