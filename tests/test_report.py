@@ -51,6 +51,7 @@ def ls(data):
 
 def test_identification_quotes_the_fit_and_the_closed_form(data, ls):
     from ambfit.estimation import closed_form
+    from ambfit.estimation.units import pm
 
     closed = closed_form.identify(data)
     html = str(section(DATA, "identification", dataset.identification(ls, closed)))
@@ -58,11 +59,34 @@ def test_identification_quotes_the_fit_and_the_closed_form(data, ls):
     assert expanded(html)
     assert f"reduced χ² {ls.reduced_chi2:.3f} on {ls.dof} dof" in text
     assert f"condition number of the scaled Jacobian {ls.condition:.3g}" in text
-    for key, p in ls.contract_params().items():
-        if key.endswith("_um"):      # the table prints µm to 4 decimals
-            assert f"<td>{p['value']:.4f}</td>" in html, key
-    assert f"<td>{closed.params()['g_v0_um']['value']:.4f}</td>" in html
+    for key, p in ls.contract_params().items():          # contract units are the display units
+        assert f"<td>{pm(p['value'], p['std'])}</td>" in html, key
+    c = closed.params()["g_v0_um"]
+    assert f"<td>{pm(c['value'], c['std'])}</td>" in html
     assert "Closed form: mean ± standard error" in text
+
+
+def test_identification_shows_k_with_its_unit_to_the_digits_its_error_justifies(data, ls):
+    """Issue 24: k (~3e-6 N·m²/A²) read 0.0000 ± 0.0000 in the report: a fixed number of decimals per column."""
+    import re
+
+    from ambfit.estimation import closed_form
+
+    html = str(section(DATA, "identification", dataset.identification(ls, closed_form.identify(data))))
+    assert "0.0000" not in html
+    for name in ("k_v", "k_w"):
+        row = re.search(rf"<td>{name} \[N·m²/A²\]</td>\s*<td>([^<]+)</td>\s*<td>([^<]+)</td>", html)
+        assert row, name
+        shown = row.group(1)
+        value, std = (float(t) for t in shown.split(" ± "))
+        # the value to the std's second significant digit, the two on one power of ten
+        assert abs(value - ls.value(name)) <= 0.5 * 10 ** (np.floor(np.log10(ls.error(name))) - 1) * (1 + 1e-9)
+        assert std == pytest.approx(ls.error(name), rel=0.05)
+        assert shown.split(" ± ")[0][-4:] == shown.split(" ± ")[1][-4:]          # same exponent, e.g. e-06
+        assert len(shown.split(" ± ")[1].split("e")[0].lstrip("0.")) == 2          # two significant digits
+        # one formatter: the report's text is the command line's table and print(result)
+        assert shown in ls.display_row()[f"{name} [N·m²/A²]"] and shown in str(ls)
+        assert row.group(2) != "0.0000 ± 0.0000"
 
 
 def test_identification_says_why_the_closed_form_does_not_apply(ls):

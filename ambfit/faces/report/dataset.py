@@ -47,19 +47,22 @@ def identification(result, closed=None) -> dict:
     :class:`~ambfit.estimation.closed_form.ClosedFormResult`, the
     :class:`~ambfit.estimation.closed_form.ClosedFormError` that says why it does not apply, or None.
     """
-    ident = pd.DataFrame([{"parameter": key, "value": p["value"], "std": p["std"]}
-                          for key, p in result.contract_params().items()])
+    from ambfit.estimation.units import CONTRACT_PARAMS, pm, with_unit
+
     closed_error = str(closed) if isinstance(closed, Exception) else None
-    if closed is not None and closed_error is None:
-        params = closed.params()
-
-        def column(field):
-            return [np.nan if params.get(k, {}).get(field) is None else float(params[k][field])
-                    for k in ident["parameter"]]
-
-        ident["closed form (Eq. 5-7)"] = column("value")
-        ident["closed form std"] = column("std")
-    return {"table": table(ident, 4), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
+    cf = closed.params() if closed is not None and closed_error is None else None
+    rows = []
+    for name, key, _ in CONTRACT_PARAMS:
+        if name not in result.names:
+            continue
+        text, unit = with_unit(name, result.value(name), result.error(name))
+        row = {"parameter": f"{name} [{unit}]", "least squares": text}
+        if cf is not None:       # the closed form's block is in the contract's units, which are the display units
+            c = cf.get(key)
+            row["closed form (Eq. 5-7)"] = "–" if c is None else pm(c["value"], np.nan if c["std"] is None else c["std"])
+        rows.append(row)
+    ident = pd.DataFrame(rows)
+    return {"table": table(ident), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
             "dof": result.dof, "condition": result.condition, "weak_direction": result.weak_direction,
             "noise_source": result.noise_source, "closed_form": closed is not None, "closed_error": closed_error}
 
@@ -204,7 +207,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
     def sample():
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
-                          bearing=bearing)
+                          bearing=bearing, progress=progress)
         record["bayes"] = sr.to_json()
         return posterior(sr)
 
