@@ -43,6 +43,7 @@ from ambfit.estimation.core import (
     to_theta,
     unpack,
 )
+from ambfit.estimation.ensembles import PHASE, Tally, advance, run_until_settled
 from ambfit.estimation.fit import FitResult, fit
 from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, like, pm, si_unit
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
@@ -258,12 +259,6 @@ class Posterior:
             "hdi_prob": ci_prob, "rhat_max": rhat_max}
 
 
-TAU_TOLERANCE = 0.1
-"""When a run had to be extended, tau counts as settled once the last extension moved no ensemble's estimate by more
-than this fraction.  An integrated autocorrelation time estimated from 50 tau of chain scatters by about 10 %
-(emcee's documentation, "Autocorrelation analysis"), so a tighter test would chase that noise."""
-
-
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
            n_steps: int = 3000, max_steps: int = 30000, min_tau_multiple: float = 50.0, seed: int = 0,
            progress: Callable[[str, int, int | None], None] | None = None, bearing: Bearing = PAPER_BEARING,
@@ -273,7 +268,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     Each ensemble starts in a small Gaussian ball (0.1 sd of the least-squares
     covariance) around the least-squares optimum and runs ``n_steps`` steps; while the run is
     shorter than ``min_tau_multiple`` times the largest integrated autocorrelation time (or,
-    once extended, tau still moves by more than ``TAU_TOLERANCE``), every ensemble is extended
+    once extended, tau still moves by more than ``ensembles.TAU_TOLERANCE``), every ensemble is extended
     to what the current tau asks for, up to ``max_steps``.  The draws are burned in by
     ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
     :meth:`Prior.from_bearing` of ``bearing``.  A run that hits ``max_steps`` is marked
@@ -309,15 +304,15 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     def logp(zs):
         return np.asarray(_logp_batch(post, jnp.asarray(zs)))
 
-    tally = _Tally(progress, n_ensembles * n_steps)
+    tally = Tally(progress, n_ensembles * n_steps)
     samplers = []
     for e in range(n_ensembles):
         p0 = theta_hat[free] + 0.1 * rng.standard_normal((n_walkers, ndim)) @ chol.T
         sampler = emcee.EnsembleSampler(n_walkers, ndim, logp, vectorize=True)
         sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
-        _advance(sampler, p0, n_steps, tally, f"{PHASE}: ensemble {e + 1} of {n_ensembles}")
+        advance(sampler, p0, n_steps, tally, f"{PHASE}: ensemble {e + 1} of {n_ensembles}")
         samplers.append(sampler)
-    steps, tau, settled = _run_until_settled(samplers, n_steps, max_steps, min_tau_multiple, tally)
+    steps, tau, settled = run_until_settled(samplers, n_steps, max_steps, min_tau_multiple, tally)
     tmax = float(np.max(tau))
     burn = int(np.ceil(2 * tmax))
     thin = max(1, int(tmax / 2))
@@ -333,57 +328,6 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     dt = _datatree(names, draws, post, draws_z, df, tau, accs)
     return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=steps, n_walkers=n_walkers,
                      too_short=bool(too_short), message=message, datatree=dt, ls=ls, acceptance=accs)
-
-
-class _Tally:
-    """Steps done and planned over all ensembles, reported to a ``progress(what, done, total)`` callback."""
-
-    def __init__(self, progress, total: int):
-        self.progress, self.done, self.total = progress, 0, total
-
-    def __call__(self, what: str, steps: int = 0) -> None:
-        self.done += steps
-        if self.progress is not None:
-            self.progress(what, self.done, self.total)
-
-
-PHASE = "posterior steps, all ensembles"
-"""The ``what`` of every progress report of :func:`sample`, before ``": "`` and what runs now."""
-
-PROGRESS_CHUNKS = 20
-"""Progress reports per run of one ensemble: the run goes in this many pieces (the same chain as one run)."""
-
-
-def _advance(sampler, start, n: int, tally: _Tally, what: str) -> None:
-    """``n`` more steps of ``sampler`` from ``start`` (None: where it stopped), reporting after each piece."""
-    tally(what)
-    chunk = max(1, -(-n // PROGRESS_CHUNKS))
-    for done in range(0, n, chunk):
-        k = min(chunk, n - done)
-        sampler.run_mcmc(start if done == 0 else None, k, progress=False)
-        tally(what, k)
-
-
-def _run_until_settled(samplers, n_steps: int, max_steps: int, min_tau_multiple: float, tally: _Tally):
-    """Extend every ensemble until the run is ``min_tau_multiple`` times its largest tau and tau has settled, or
-    ``max_steps`` is reached.  Returns ``(steps, tau[ensembles, p], settled)``."""
-    steps = n_steps
-    tau = np.array([s.get_autocorr_time(tol=0) for s in samplers])
-    settled = True   # a run long enough at once needs no second estimate (emcee: 50 tau is reliable)
-    while steps < min_tau_multiple * np.max(tau) or not settled:
-        if steps >= max_steps:
-            break
-        target = int(np.ceil(1.1 * min_tau_multiple * np.max(tau)))
-        extra = min(max(target - steps, n_steps // 4, 100), max_steps - steps)
-        tally.total += extra * len(samplers)
-        for e, s in enumerate(samplers):
-            _advance(s, None, extra, tally, f"{PHASE}: ensemble {e + 1} of {len(samplers)}, {extra} more to reach "
-                                            f"{min_tau_multiple:g} x tau {np.max(tau):.0f}")
-        steps += extra
-        new = np.array([s.get_autocorr_time(tol=0) for s in samplers])
-        settled = bool(np.all(np.abs(new - tau) <= TAU_TOLERANCE * new))
-        tau = new
-    return steps, tau, settled
 
 
 OBSERVED_UNITS = {"i_top_A": "A", "i_bottom_A": "A", "v_um": "µm", "w_um": "µm"}

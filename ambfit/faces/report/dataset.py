@@ -251,7 +251,7 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
     closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
     the page says why and the record's ``least_squares`` holds the ``error``.  ``progress``, if given, is
     called as ``progress("report: <section>", done, total)`` as each section starts (and by the diagnosis as
-    ``progress("candidate effects", done, total)``).
+    ``progress("candidate effects", done, total)``, and by the sampler, :func:`ambfit.estimation.bayes.sample`).
 
     Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
     """
