@@ -51,12 +51,11 @@ def plot_ranking(diagnosis, ax=None):
         vals = [r["heldout_rms_after"] for r in rk]
         before = rk[0]["heldout_rms_before"]
         ax.barh(range(len(rk)), vals, color=colours)
-        ax.axvspan(0.0, 1.0, color="grey", alpha=0.15, lw=0, label="within the noise (RMS up to 1)")
         ax.axvline(1.0, color="grey", lw=1.5, label="noise floor: RMS 1 if the model were right")
         ax.axvline(before, color="k", ls="--", label="ideal model")
         ax.set_xlim(0.0, 1.15 * max(1.0, before, *vals))
         ax.set_xlabel("held-out RMS standardized residual [noise units]")
-        ax.set_title(f"verdict: {record['verdict']}: held-out residuals on the noise floor, nothing to remove")
+        ax.set_title(f"verdict: {record['verdict']}\nheld-out residuals on the noise floor: nothing to remove")
     else:
         vals = [r["heldout_excess_after"] for r in rk]
         ax.barh(range(len(rk)), vals, color=colours)
@@ -66,7 +65,10 @@ def plot_ranking(diagnosis, ax=None):
         ax.set_title(f"verdict: {record['verdict']}, shrink {record['shrink']:.2f}")
     ax.set_yticks(range(len(rk)), names)
     ax.invert_yaxis()
-    ax.legend(fontsize=7)
+    if on_floor:        # the bars fill the axes up to the floor: the legend goes below them
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
+    else:
+        ax.legend(fontsize=7)
     return ax
 
 

@@ -133,10 +133,14 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
 
     ``result``: :class:`~ambfit.diagnosis.Diagnosis`."""
     nf = result.noise_floor
-    ranking = pd.DataFrame([{"effect": c.effect, "held-out excess after": c.after, "shrink": c.shrink,
-                             "ΔAIC": c.to_json(result.ideal)["delta_aic"]} for c in result.ranking])
-    regions = result.where.regions[:max_regions]
-    where = pd.DataFrame([{"region": r.describe(), "rows": r.rows, "z": r.z} for r in regions])
+    rows = []
+    for c in result.ranking:
+        rec = c.to_json(result.ideal)
+        rows.append({"effect": c.effect, "held-out RMS z": rec["heldout_rms_after"],
+                     "held-out excess [noise units]": c.after, "shrink": c.shrink, "ΔAIC": rec["delta_aic"],
+                     "fit": "converged" if c.fit.converged else "not converged"})
+    ranking = pd.DataFrame(rows)
+    regions = [{"region": r.describe(), "rows": r.rows, "z": r.z} for r in result.where.regions[:max_regions]]
     bars = correction = None
     if draw:
         from ambfit.faces import plots
@@ -144,11 +148,13 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
         bars = figure(plots.plot_ranking(result))
         if result.discrepancy is not None and result.discrepancy.get("fit") is not None:
             correction = figure(plots.plot_discrepancy(result))
+    rms_before = float(np.sqrt(result.ideal.score))
     return {"verdict": result.verdict, "confounded_with": list(result.confounded_with), "shrink": result.shrink,
             "noise_source": nf.source, "mean_z2": nf.mean_z2, "expected_mean_z2": nf.expected_mean_z2,
-            "heldout_excess_before": result.heldout_excess_before, "folds": result.folds,
-            "ranking": table(ranking, 3), "figure": bars, "where": table(where, 2) if regions else None,
-            "flagged": [e for e in result.parameter_gap if e.get("flagged")],
+            "heldout_excess_before": result.heldout_excess_before, "heldout_rms_before": rms_before,
+            "on_floor": not result.heldout_excess_before > 0, "folds": result.folds,
+            "ranking": table(ranking, 3) if rows else None, "figure": bars, "where": regions,
+            "n_regions": len(result.where.regions), "flagged": result.flagged_parameters(),
             "force_check": _force_table(result.force_check), "notes": result.findings(),
             "discrepancy_figure": correction}
 
