@@ -197,7 +197,7 @@ def test_diagnosis_section_is_structured_not_one_paragraph(small_diagnosis):
         assert f"<th>{col}</th>" in ranking, col
     assert ranking.count("<tr") == len(dg.ranking) + 1                              # head and one row each
     items = re.findall(r"<li>(.*?)</li>", html[html.index(heads[1]):html.index(heads[2])], re.S)
-    assert items == [f"{r.describe()}: {r.rows} readings, {r.z:.1f} noise units" for r in regions]
+    assert items == [f"{r.describe()}: {r.rows} readings, z {r.z:+.1f}" for r in regions]
     force = html[html.index(heads[2]):]
     assert "<th>RMS per reading [%]</th>" in force and "<td>0.580</td>" in force
     # no paragraph carries the whole story
