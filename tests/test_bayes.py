@@ -140,3 +140,43 @@ def test_a_short_start_is_extended_until_fifty_tau(table2):
     assert res.n_steps >= 50 * float(np.max(res.tau))
     assert "added to reach 50 tau" in res.message
     assert res.to_json()["converged"]
+
+
+def test_posterior_variables_state_their_units_and_value_agrees_with_least_squares(short_run, tmp_path):
+    """Issue 24: FitResult.value is in metres, the DataTree in µm, and nothing said so."""
+    import arviz as az
+
+    to_si = {"µm": 1e-6, "N·m²/A²": 1.0, "N": 1.0}          # the units a reader may meet in the tree
+    post, ls = short_run.datatree.posterior, short_run.ls
+    assert post["g_v0"].attrs["units"] == "µm" and post["k_v"].attrs["units"] == "N·m²/A²"
+    assert ls.units["g_v0"] == short_run.units["g_v0"] == "m" and ls.units["k_v"] == "N·m²/A²"
+    for name in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w"):
+        mean_si = float(post[name].mean()) * to_si[post[name].attrs["units"]]
+        assert mean_si == pytest.approx(short_run.value(name), rel=1e-12), name
+        # near-Gaussian posterior: the mean within 0.1 least-squares sd of the estimate (as above)
+        assert abs(short_run.value(name) - ls.value(name)) < 0.1 * ls.error(name), name
+        assert short_run.error(name) == pytest.approx(ls.error(name), rel=0.1), name
+    for var in post.data_vars:
+        assert post[var].attrs["units"] in to_si, var
+    for col in ("i_top_A", "v_um"):
+        assert short_run.datatree.observed_data[col].attrs["units"] == col.rsplit("_", 1)[1].replace("um", "µm")
+    path = tmp_path / "post.nc"
+    short_run.datatree.to_netcdf(path, engine="h5netcdf")
+    assert az.from_netcdf(path).posterior["w0"].attrs["units"] == "µm"
+
+
+def test_progress_is_one_labelled_callback_and_the_sampler_draws_nothing(table2, capfd):
+    """Issue 24: ``ambfit sample`` showed emcee's bars, one unlabelled bar per ensemble and extension (20)."""
+    calls = []
+    ls = fit.fit(table2)
+    capfd.readouterr()
+    bayes.sample(table2, n_ensembles=2, n_steps=60, max_steps=200, seed=2, ls=ls,
+                 progress=lambda what, done, total: calls.append((what, done, total)))
+    assert capfd.readouterr().err == ""                          # the library draws nothing itself
+    assert calls and all(w.startswith(bayes.PHASE + ": ensemble ") for w, _, _ in calls)
+    done = [d for _, d, _ in calls]
+    assert done == sorted(done) and all(d <= t for _, d, t in calls)
+    assert calls[-1][1] == calls[-1][2] == 2 * 200               # 60 steps, extended to the cap, both ensembles
+    assert {w.split(": ")[1][:14] for w, _, _ in calls} == {"ensemble 1 of ", "ensemble 2 of "}
+    with pytest.raises(TypeError, match="callback"):
+        bayes.sample(table2, n_ensembles=1, n_steps=10, ls=ls, progress=True)

@@ -153,6 +153,22 @@ def test_ranking_has_one_bar_per_candidate_and_the_baseline():
     assert len(plots.plot_ranking(obj).patches) == 3
 
 
+def test_ranking_on_the_noise_floor_draws_the_residuals_not_empty_bars():
+    """Issue 24: with the verdict none every excess is 0 and the chart was an empty axes."""
+    floor = {"verdict": "none", "shrink": 0.0, "heldout_excess_before": 0.0,
+             "ranking": [{"effect": e, "heldout_excess_after": 0.0, "heldout_rms_before": 0.97,
+                          "heldout_rms_after": r} for e, r in (("fringing", 0.95), ("leakage", 0.99))]}
+    ax = plots.plot_ranking(floor)
+    widths = [b.get_width() for b in ax.patches]
+    np.testing.assert_allclose(widths, [0.95, 0.99], rtol=REL)        # something to see in every bar
+    assert tuple(line(ax, "noise floor: RMS 1 if the model were right").get_xdata()) == (1.0, 1.0)
+    assert tuple(line(ax, "ideal model").get_xdata()) == (0.97, 0.97)
+    assert ax.get_xlabel() == "held-out RMS standardized residual [noise units]"
+    assert "noise floor" in ax.get_title()
+    none = plots.plot_ranking(dict(floor, ranking=[]))
+    assert [t.get_text() for t in none.texts] == ["no candidate effect was scored"]
+
+
 def test_design_comparison_marks_unbounded_designs():
     ax = plots.plot_design_comparison(DESIGNS)
     bars = ax.patches

@@ -51,6 +51,7 @@ def ls(data):
 
 def test_identification_quotes_the_fit_and_the_closed_form(data, ls):
     from ambfit.estimation import closed_form
+    from ambfit.estimation.units import pm
 
     closed = closed_form.identify(data)
     html = str(section(DATA, "identification", dataset.identification(ls, closed)))
@@ -58,11 +59,34 @@ def test_identification_quotes_the_fit_and_the_closed_form(data, ls):
     assert expanded(html)
     assert f"reduced χ² {ls.reduced_chi2:.3f} on {ls.dof} dof" in text
     assert f"condition number of the scaled Jacobian {ls.condition:.3g}" in text
-    for key, p in ls.contract_params().items():
-        if key.endswith("_um"):      # the table prints µm to 4 decimals
-            assert f"<td>{p['value']:.4f}</td>" in html, key
-    assert f"<td>{closed.params()['g_v0_um']['value']:.4f}</td>" in html
+    for key, p in ls.contract_params().items():          # contract units are the display units
+        assert f"<td>{pm(p['value'], p['std'])}</td>" in html, key
+    c = closed.params()["g_v0_um"]
+    assert f"<td>{pm(c['value'], c['std'])}</td>" in html
     assert "Closed form: mean ± standard error" in text
+
+
+def test_identification_shows_k_with_its_unit_to_the_digits_its_error_justifies(data, ls):
+    """Issue 24: k (~3e-6 N·m²/A²) read 0.0000 ± 0.0000 in the report: a fixed number of decimals per column."""
+    import re
+
+    from ambfit.estimation import closed_form
+
+    html = str(section(DATA, "identification", dataset.identification(ls, closed_form.identify(data))))
+    assert "0.0000" not in html
+    for name in ("k_v", "k_w"):
+        row = re.search(rf"<td>{name} \[N·m²/A²\]</td>\s*<td>([^<]+)</td>\s*<td>([^<]+)</td>", html)
+        assert row, name
+        shown = row.group(1)
+        value, std = (float(t) for t in shown.split(" ± "))
+        # the value to the std's second significant digit, the two on one power of ten
+        assert abs(value - ls.value(name)) <= 0.5 * 10 ** (np.floor(np.log10(ls.error(name))) - 1) * (1 + 1e-9)
+        assert std == pytest.approx(ls.error(name), rel=0.05)
+        assert shown.split(" ± ")[0][-4:] == shown.split(" ± ")[1][-4:]          # same exponent, e.g. e-06
+        assert len(shown.split(" ± ")[1].split("e")[0].lstrip("0.")) == 2          # two significant digits
+        # one formatter: the report's text is the command line's table and print(result)
+        assert shown in ls.display_row()[f"{name} [N·m²/A²]"] and shown in str(ls)
+        assert row.group(2) != "0.0000 ± 0.0000"
 
 
 def test_identification_says_why_the_closed_form_does_not_apply(ls):
@@ -123,26 +147,77 @@ def test_design_section_describes_the_grid_it_chose_from(data, ls):
     assert "biases 0.8-1.8 A" in text
 
 
-def test_diagnosis_section_reads_the_typed_diagnosis(data):
+@pytest.fixture(scope="module")
+def small_diagnosis(data):
     from ambfit import diagnosis as gap
     from ambfit.physics import effects
 
-    dg = gap.diagnose(data, candidates=[effects.PositionGain(), effects.IronReluctance()], pairs=False)
+    return gap.diagnose(data, candidates=[effects.PositionGain(), effects.IronReluctance()], pairs=False)
+
+
+def test_diagnosis_section_reads_the_typed_diagnosis(small_diagnosis):
+    from ambfit import diagnosis as gap
+
+    dg = small_diagnosis
     html = str(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
     text = plain(html)
     assert expanded(html)
-    assert f"Verdict: {dg.verdict};" in text and f"shrink {dg.shrink:.3f}" in text
+    assert f"Verdict: {dg.verdict}" in text
     nf = dg.noise_floor
-    assert f"mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f})" in text
-    assert f"held-out excess of the ideal model {dg.heldout_excess_before:.2f} noise units (folds: {dg.folds})" in text
+    assert f"mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}" in text
+    assert f"Held-out excess of the ideal model {dg.heldout_excess_before:.2f} noise units" in text
+    assert f"folds: {dg.folds}" in text
     where = [html.index(f"<td>{c.effect}</td>") for c in dg.ranking]
     assert where == sorted(where)                       # best first, as ranked
-    assert f"<td>{dg.ranking[0].after:.3f}</td>" in html
+    shrink = f"{dg.ranking[0].shrink:.3f}".replace("-0.000", "0.000")
+    assert f"<td>{dg.ranking[0].after:.3f}</td>" in html and f"<td>{shrink}</td>" in html
     # the nominal gap is the bearing's: another bearing, another sentence
     other = dataclasses.replace(PAPER_BEARING, nominal_gap=750e-6)
     text = plain(section(DATA, "diagnosis", dataset.diagnosis(
         dataclasses.replace(dg, parameter_gap=gap.parameter_gap(dg.baseline, other)), draw=False)))
     assert f"identified {dg.baseline.value('g_v0') * 1e6:.4g} vs nominal 750 (" in text and "762" not in text
+
+
+def test_diagnosis_section_is_structured_not_one_paragraph(small_diagnosis):
+    """Issue 24: the Diagnosis was a run-on paragraph; now a verdict line, lists, and tables with their heads."""
+    from ambfit.diagnosis.residuals import Region, Where
+
+    regions = [Region("b_top_T", "v", 0.8, 0.9, 42, 7.5, 1.2), Region("time_s", "w", 0.0, 60.0, 12, -4.1, -1.2)]
+    fc = {"method": "leave-one-load-out", "ideal": {"rms_rel": 0.0058, "max_rel": 0.03, "noise_floor_rel": 0.001}}
+    dg = dataclasses.replace(small_diagnosis, where=Where(small_diagnosis.where.tests, regions, 4.0), force_check=fc)
+    html = str(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
+    assert expanded(html)
+    verdict = re.search(r'<p class="verdict">(.*?)</p>', html, re.S)
+    assert verdict and f"<b>{dg.verdict}</b>" in verdict.group(1)
+    assert "mean z²" not in verdict.group(1) and len(plain(verdict.group(1))) < 120     # one line, the verdict
+    heads = re.findall(r"<h3>(.*?)</h3>", html)
+    assert heads[:3] == ["Candidate effects, held out (best first)", "Where the ideal law fails", "Force measurement"]
+    ranking = html[html.index(heads[0]):html.index(heads[1])]
+    for col in ("effect", "held-out RMS z", "held-out excess [noise units]", "shrink", "ΔAIC", "fit"):
+        assert f"<th>{col}</th>" in ranking, col
+    assert ranking.count("<tr") == len(dg.ranking) + 1                              # head and one row each
+    items = re.findall(r"<li>(.*?)</li>", html[html.index(heads[1]):html.index(heads[2])], re.S)
+    assert items == [f"{r.describe()}: {r.rows} readings, z {r.z:+.1f}" for r in regions]
+    force = html[html.index(heads[2]):]
+    assert "<th>RMS per reading [%]</th>" in force and "<td>0.580</td>" in force
+    # no paragraph carries the whole story
+    assert max(len(plain(p)) for p in re.findall(r"<p[^>]*>(.*?)</p>", html, re.S)) < 300
+
+
+def test_diagnosis_section_on_the_noise_floor_says_so_with_no_empty_where(small_diagnosis):
+    from ambfit.diagnosis.residuals import Where
+
+    dg = dataclasses.replace(small_diagnosis, verdict="none", where=Where(small_diagnosis.where.tests, [], 4.0))
+    text = plain(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
+    assert "Verdict: none: the residuals are consistent with noise." in text
+    assert "Nowhere: no region of the operating space has residuals beyond the noise" in text
+
+
+def test_tables_write_a_rounded_tiny_negative_as_zero():
+    from ambfit.faces.report.render import table
+
+    html = str(table(pd.DataFrame({"shrink": [-1e-12, 0.5, -0.25]}), 3))
+    assert "<td>0.000</td>" in html and "-0.000" not in html and "<td>-0.250</td>" in html
 
 
 def test_data_report_without_a_fit_says_why(tmp_path, monkeypatch):
@@ -189,7 +264,7 @@ def test_data_report_cli_writes_all_sections(tmp_path):
     assert expanded(page)
     rec = json.loads((out / "report.json").read_text())
     assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "design", "diagnosis"}
-    assert f"shrink {rec['diagnosis']['shrink']:.3f}" in page
+    assert f"Verdict: <b>{rec['diagnosis']['verdict']}</b>" in page
     assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
 
 

@@ -21,6 +21,7 @@ guidance in its documentation: run for at least 50 tau).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -42,8 +43,9 @@ from ambfit.estimation.core import (
     to_theta,
     unpack,
 )
+from ambfit.estimation.ensembles import PHASE, Tally, advance, run_until_settled
 from ambfit.estimation.fit import FitResult, fit
-from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, pm
+from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, like, pm, si_unit
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 
@@ -135,9 +137,10 @@ class Posterior:
     Attributes
     ----------
     names : list[str]
-        Parameter names (SI units; the DataTree and the JSON use the display units of :data:`ambfit.estimation.results.DISPLAY`).
+        Parameter names, as :attr:`FitResult.names <ambfit.estimation.results.FitResult.names>`.
     draws : array[n_ensembles, n_draws, p]
-        Thinned post-burn-in draws, SI units, walkers pooled per ensemble.
+        Thinned post-burn-in draws in SI units (:attr:`units`: m, N·m²/A², N), walkers pooled per ensemble;
+        :meth:`value` and :meth:`error` are their mean and sd, comparable with ``FitResult.value``.
     tau : array[n_ensembles, p]
         Integrated autocorrelation time of each ensemble [steps].
     burn, thin : int
@@ -147,7 +150,10 @@ class Posterior:
     message : str
         What the diagnostics say, and how long to run if too short.
     datatree :
-        ArviZ DataTree (posterior, log_likelihood, sample_stats, observed_data).
+        ArviZ DataTree (posterior, log_likelihood, sample_stats, observed_data) in the units people read and the
+        contract JSON uses (:data:`ambfit.estimation.units.DISPLAY`): gaps and origins in µm, ``k`` in N·m²/A²,
+        loads in N.  Every variable states its unit in its ``units`` attribute
+        (``datatree.posterior["g_v0"].attrs["units"] == "µm"``), which the NetCDF file keeps.
     ls : FitResult
         The least-squares fit the ensembles started from.
     """
@@ -171,6 +177,20 @@ class Posterior:
 
         return az.summary(self.datatree, ci_prob=ci_prob, ci_kind="hdi", round_to="none")
 
+    def value(self, name: str) -> float:
+        """Posterior mean of ``name`` in SI units (:attr:`units`), as ``FitResult.value``."""
+        return float(np.mean(self.draws[..., self.names.index(name)]))
+
+    def error(self, name: str) -> float:
+        """Posterior standard deviation of ``name`` in SI units (:attr:`units`), as ``FitResult.error``."""
+        return float(np.std(self.draws[..., self.names.index(name)], ddof=1))
+
+    @property
+    def units(self) -> dict:
+        """The unit of :attr:`draws`, :meth:`value` and :meth:`error` per parameter: ``{"g_v0": "m", ...}`` (the
+        DataTree's are in each variable's ``units`` attribute)."""
+        return {n: si_unit(n) for n in self.names}
+
     @property
     def converged(self) -> bool:
         """Long enough for its autocorrelation time and R-hat below 1.01 across the ensembles (see :meth:`to_json`)."""
@@ -192,8 +212,7 @@ class Posterior:
                 continue
             p = rec[key]
             text = pm(p["value"], p["std"])
-            decimals = text.split(" ± ")[0]
-            hdi = _same_precision(decimals, p["hdi_low"]) + " … " + _same_precision(decimals, p["hdi_high"])
+            hdi = like(p["value"], p["std"], p["hdi_low"]) + " … " + like(p["value"], p["std"], p["hdi_high"])
             out.append((f"{name} [{DISPLAY[name][0]}]", text, hdi, f"{p['r_hat']:.3f}", f"{p['ess_bulk']:.0f}"))
         return out
 
@@ -240,35 +259,29 @@ class Posterior:
             "hdi_prob": ci_prob, "rhat_max": rhat_max}
 
 
-def _same_precision(reference: str, value: float) -> str:
-    """``value`` printed with as many decimals (or the same exponent style) as ``reference``."""
-    if "e" in reference:
-        return f"{value:.{len(reference.split('e')[0].split('.')[-1]) if '.' in reference else 0}e}"
-    return f"{value:.{len(reference.split('.')[-1]) if '.' in reference else 0}f}"
-
-
-TAU_TOLERANCE = 0.1
-"""When a run had to be extended, tau counts as settled once the last extension moved no ensemble's estimate by more
-than this fraction.  An integrated autocorrelation time estimated from 50 tau of chain scatters by about 10 %
-(emcee's documentation, "Autocorrelation analysis"), so a tighter test would chase that noise."""
-
-
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
            n_steps: int = 3000, max_steps: int = 30000, min_tau_multiple: float = 50.0, seed: int = 0,
-           progress: bool = False, bearing: Bearing = PAPER_BEARING, ls: FitResult | None = None,
-           **fit_kw) -> Posterior:
+           progress: Callable[[str, int, int | None], None] | None = None, bearing: Bearing = PAPER_BEARING,
+           ls: FitResult | None = None, **fit_kw) -> Posterior:
     """Sample the posterior with ``n_ensembles`` independent emcee ensembles, long enough for their autocorrelation.
 
     Each ensemble starts in a small Gaussian ball (0.1 sd of the least-squares
     covariance) around the least-squares optimum and runs ``n_steps`` steps; while the run is
     shorter than ``min_tau_multiple`` times the largest integrated autocorrelation time (or,
-    once extended, tau still moves by more than ``TAU_TOLERANCE``), every ensemble is extended
+    once extended, tau still moves by more than ``ensembles.TAU_TOLERANCE``), every ensemble is extended
     to what the current tau asks for, up to ``max_steps``.  The draws are burned in by
     ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
     :meth:`Prior.from_bearing` of ``bearing``.  A run that hits ``max_steps`` is marked
     ``too_short`` and its message says how long it should be.
+
+    ``progress``, if given, is called as ``progress(f"{PHASE}: <what runs>", done, total)`` with the steps done
+    and planned over all ensembles (``total`` grows when the run is extended); nothing is drawn otherwise (the
+    command line turns the calls into one labelled bar).
     """
     import emcee
+
+    if progress is not None and not callable(progress):
+        raise TypeError(f"progress must be a callback progress(what, done, total) or None, not {progress!r}")
 
     prior = prior if prior is not None else Prior.from_bearing(bearing)
     df = data.frame if isinstance(data, Dataset) else data
@@ -291,14 +304,15 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     def logp(zs):
         return np.asarray(_logp_batch(post, jnp.asarray(zs)))
 
+    tally = Tally(progress, n_ensembles * n_steps)
     samplers = []
-    for _ in range(n_ensembles):
+    for e in range(n_ensembles):
         p0 = theta_hat[free] + 0.1 * rng.standard_normal((n_walkers, ndim)) @ chol.T
         sampler = emcee.EnsembleSampler(n_walkers, ndim, logp, vectorize=True)
         sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
-        sampler.run_mcmc(p0, n_steps, progress=progress)
+        advance(sampler, p0, n_steps, tally, f"{PHASE}: ensemble {e + 1} of {n_ensembles}")
         samplers.append(sampler)
-    steps, tau, settled = _run_until_settled(samplers, n_steps, max_steps, min_tau_multiple, progress)
+    steps, tau, settled = run_until_settled(samplers, n_steps, max_steps, min_tau_multiple, tally)
     tmax = float(np.max(tau))
     burn = int(np.ceil(2 * tmax))
     thin = max(1, int(tmax / 2))
@@ -316,35 +330,23 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
                      too_short=bool(too_short), message=message, datatree=dt, ls=ls, acceptance=accs)
 
 
-def _run_until_settled(samplers, n_steps: int, max_steps: int, min_tau_multiple: float, progress: bool):
-    """Extend every ensemble until the run is ``min_tau_multiple`` times its largest tau and tau has settled, or
-    ``max_steps`` is reached.  Returns ``(steps, tau[ensembles, p], settled)``."""
-    steps = n_steps
-    tau = np.array([s.get_autocorr_time(tol=0) for s in samplers])
-    settled = True   # a run long enough at once needs no second estimate (emcee: 50 tau is reliable)
-    while steps < min_tau_multiple * np.max(tau) or not settled:
-        if steps >= max_steps:
-            break
-        target = int(np.ceil(1.1 * min_tau_multiple * np.max(tau)))
-        extra = min(max(target - steps, n_steps // 4, 100), max_steps - steps)
-        for s in samplers:
-            s.run_mcmc(None, extra, progress=progress)
-        steps += extra
-        new = np.array([s.get_autocorr_time(tol=0) for s in samplers])
-        settled = bool(np.all(np.abs(new - tau) <= TAU_TOLERANCE * new))
-        tau = new
-    return steps, tau, settled
+OBSERVED_UNITS = {"i_top_A": "A", "i_bottom_A": "A", "v_um": "µm", "w_um": "µm"}
+"""The observed_data group's variables (contract columns) and their units."""
+
+
+def tree_name(name: str) -> str:
+    """A parameter's variable name in the DataTree: ``load[rotor]`` becomes ``load_rotor``."""
+    return name.replace("[", "_").replace("]", "").replace("|", "_")
 
 
 def _datatree(names, draws, post, draws_z, df, tau, acc):
     import arviz as az
 
     ens, nd, p = draws.shape
-    posterior = {n.replace("[", "_").replace("]", "").replace("|", "_"): draws[:, :, j] * display(n, 1.0)[0]
-                 for j, n in enumerate(names)}
+    posterior = {tree_name(n): draws[:, :, j] * display(n, 1.0)[0] for j, n in enumerate(names)}
     ll = np.asarray(_pointwise_batch(post, jnp.asarray(draws_z.reshape(-1, p)))).reshape(ens, nd, -1)
     lp = ll.sum(axis=-1)
-    observed = {c: df[c].to_numpy(float) for c in ("i_top_A", "i_bottom_A", "v_um", "w_um")}
+    observed = {c: df[c].to_numpy(float) for c in OBSERVED_UNITS}
     dt = az.from_dict(
         {"posterior": posterior, "log_likelihood": {"reading": ll}, "sample_stats": {"lp": lp},
          "observed_data": observed},
@@ -352,6 +354,10 @@ def _datatree(names, draws, post, draws_z, df, tau, acc):
         attrs={"posterior": {"units": "gaps and origins in µm, k in N m²/A², loads in N",
                              "tau_max": float(np.max(tau)), "acceptance": float(np.mean(acc))}},
     )
+    for n in names:
+        dt.posterior[tree_name(n)].attrs["units"] = display(n, 1.0)[1]
+    for c, unit in OBSERVED_UNITS.items():
+        dt.observed_data[c].attrs["units"] = unit
     return dt
 
 

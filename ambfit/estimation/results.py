@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, pm
+from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, si_unit, with_unit
 from ambfit.physics.bearing import AXES, Bearing
 
 
@@ -136,12 +136,20 @@ class FitResult:
     # --- values ---------------------------------------------------------------------------------------------
 
     def value(self, name: str) -> float:
-        """Estimate of ``name`` [SI]."""
+        """Estimate of ``name`` in SI units (:attr:`units`: gaps and origins in m, ``k`` in N·m²/A²).
+
+        The contract JSON (:meth:`contract_params`) and the printed tables give gaps and origins in µm.
+        """
         return float(self.values[self.names.index(name)])
 
     def error(self, name: str) -> float:
-        """Standard error of ``name`` [SI]."""
+        """Standard error of ``name`` in SI units (:attr:`units`)."""
         return float(self.std[self.names.index(name)])
+
+    @property
+    def units(self) -> dict:
+        """The unit of each parameter's :meth:`value` and :meth:`error`: ``{"g_v0": "m", "k_v": "N·m²/A²", ...}``."""
+        return {n: si_unit(n) for n in self.names}
 
     @property
     def fitted_rows(self) -> np.ndarray:
@@ -318,8 +326,7 @@ class FitResult:
         for n in self.names:
             if n.startswith("load["):
                 continue
-            v, unit = display(n, self.value(n))
-            yield n, pm(v, display(n, self.error(n))[0]), unit
+            yield n, *with_unit(n, self.value(n), self.error(n))
 
     def display_row(self) -> dict:
         """The head parameters as ``{"g_v0 [µm]": "774.5 ± 1.4", ...}`` plus χ²/dof (one table row)."""

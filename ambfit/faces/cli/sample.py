@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -41,7 +40,8 @@ def sample(
                                                           "(log-sd --gap-prior-log-sd).")] = None,
     gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
     seed: Annotated[int, typer.Option(help="Seed.")] = 0,
-    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar (on a terminal): steps of every ensemble, "
+                                           "and the extension to 50 autocorrelation times.")] = True,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -53,6 +53,7 @@ def sample(
     """
     from ambfit.data import DataError
     from ambfit.estimation import bayes, fit
+    from ambfit.faces.cli.progress import progress_bar
 
     check_output(out, json_out, pair_png)
     enable_compilation_cache()
@@ -61,8 +62,9 @@ def sample(
     try:
         prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
                                          gap_log_sd=gap_prior_log_sd)
-        res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
-                           max_steps=max_steps, seed=seed, progress=progress and sys.stderr.isatty(), bearing=desc)
+        with progress_bar(enabled=None if progress else False) as bar:
+            res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
+                               max_steps=max_steps, seed=seed, progress=bar, bearing=desc)
     except DataError as exc:
         fail(str(exc))
     except fit.FitError as exc:

@@ -31,21 +31,44 @@ def plot_diagnosis_residuals(diagnosis, ax=None):
 def plot_ranking(diagnosis, ax=None):
     """Held-out excess residual (noise units) after adding each candidate effect; the baseline as a line.
 
+    When the ideal law's held-out residuals sit on the noise floor (its excess is 0, so every candidate's bar would
+    be empty: there is nothing to remove), each bar is instead the model's held-out RMS standardized residual,
+    drawn against the noise floor (RMS 1 if the model were right) and the ideal law's.
+
     ``diagnosis``: a :class:`ambfit.Diagnosis` or its contract record (``to_json()``).
     """
     ax = _axes(ax)
     record = diagnosis.to_json() if hasattr(diagnosis, "to_json") else diagnosis
     rk = record["ranking"]
     names = [r["effect"] for r in rk]
-    vals = [r["heldout_excess_after"] for r in rk]
-    ax.barh(range(len(rk)), vals, color=["tab:green" if n == record["verdict"] else "tab:blue" for n in names])
-    ax.axvline(record["heldout_excess_before"], color="k", ls="--", label="ideal model")
+    on_floor = not record["heldout_excess_before"] > 0
+    colours = ["tab:green" if n == record["verdict"] else "tab:blue" for n in names]
+    if not rk:
+        ax.text(0.5, 0.5, "no candidate effect was scored", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return ax
+    if on_floor:
+        vals = [r["heldout_rms_after"] for r in rk]
+        before = rk[0]["heldout_rms_before"]
+        ax.barh(range(len(rk)), vals, color=colours)
+        ax.axvline(1.0, color="grey", lw=1.5, label="noise floor: RMS 1 if the model were right")
+        ax.axvline(before, color="k", ls="--", label="ideal model")
+        ax.set_xlim(0.0, 1.15 * max(1.0, before, *vals))
+        ax.set_xlabel("held-out RMS standardized residual [noise units]")
+        ax.set_title(f"verdict: {record['verdict']}\nheld-out residuals on the noise floor: nothing to remove")
+    else:
+        vals = [r["heldout_excess_after"] for r in rk]
+        ax.barh(range(len(rk)), vals, color=colours)
+        ax.axvline(record["heldout_excess_before"], color="k", ls="--", label="ideal model")
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.set_xlabel("held-out excess residual [noise units]")
+        ax.set_title(f"verdict: {record['verdict']}, shrink {record['shrink']:.2f}")
     ax.set_yticks(range(len(rk)), names)
     ax.invert_yaxis()
-    ax.set_xscale("symlog", linthresh=1.0)
-    ax.set_xlabel("held-out excess residual [noise units]")
-    ax.set_title(f"verdict: {record['verdict']}, shrink {record['shrink']:.2f}")
-    ax.legend(fontsize=7)
+    if on_floor:        # the bars fill the axes up to the floor: the legend goes below them
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
+    else:
+        ax.legend(fontsize=7)
     return ax
 
 

@@ -47,19 +47,22 @@ def identification(result, closed=None) -> dict:
     :class:`~ambfit.estimation.closed_form.ClosedFormResult`, the
     :class:`~ambfit.estimation.closed_form.ClosedFormError` that says why it does not apply, or None.
     """
-    ident = pd.DataFrame([{"parameter": key, "value": p["value"], "std": p["std"]}
-                          for key, p in result.contract_params().items()])
+    from ambfit.estimation.units import CONTRACT_PARAMS, pm, with_unit
+
     closed_error = str(closed) if isinstance(closed, Exception) else None
-    if closed is not None and closed_error is None:
-        params = closed.params()
-
-        def column(field):
-            return [np.nan if params.get(k, {}).get(field) is None else float(params[k][field])
-                    for k in ident["parameter"]]
-
-        ident["closed form (Eq. 5-7)"] = column("value")
-        ident["closed form std"] = column("std")
-    return {"table": table(ident, 4), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
+    cf = closed.params() if closed is not None and closed_error is None else None
+    rows = []
+    for name, key, _ in CONTRACT_PARAMS:
+        if name not in result.names:
+            continue
+        text, unit = with_unit(name, result.value(name), result.error(name))
+        row = {"parameter": f"{name} [{unit}]", "least squares": text}
+        if cf is not None:       # the closed form's block is in the contract's units, which are the display units
+            c = cf.get(key)
+            row["closed form (Eq. 5-7)"] = "–" if c is None else pm(c["value"], np.nan if c["std"] is None else c["std"])
+        rows.append(row)
+    ident = pd.DataFrame(rows)
+    return {"table": table(ident), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
             "dof": result.dof, "condition": result.condition, "weak_direction": result.weak_direction,
             "noise_source": result.noise_source, "closed_form": closed is not None, "closed_error": closed_error}
 
@@ -130,10 +133,14 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
 
     ``result``: :class:`~ambfit.diagnosis.Diagnosis`."""
     nf = result.noise_floor
-    ranking = pd.DataFrame([{"effect": c.effect, "held-out excess after": c.after, "shrink": c.shrink,
-                             "ΔAIC": c.to_json(result.ideal)["delta_aic"]} for c in result.ranking])
-    regions = result.where.regions[:max_regions]
-    where = pd.DataFrame([{"region": r.describe(), "rows": r.rows, "z": r.z} for r in regions])
+    rows = []
+    for c in result.ranking:
+        rec = c.to_json(result.ideal)
+        rows.append({"effect": c.effect, "held-out RMS z": rec["heldout_rms_after"],
+                     "held-out excess [noise units]": c.after, "shrink": c.shrink, "ΔAIC": rec["delta_aic"],
+                     "fit": "converged" if c.fit.converged else "not converged"})
+    ranking = pd.DataFrame(rows)
+    regions = [{"region": r.describe(), "rows": r.rows, "z": r.z} for r in result.where.regions[:max_regions]]
     bars = correction = None
     if draw:
         from ambfit.faces import plots
@@ -141,11 +148,13 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
         bars = figure(plots.plot_ranking(result))
         if result.discrepancy is not None and result.discrepancy.get("fit") is not None:
             correction = figure(plots.plot_discrepancy(result))
+    rms_before = float(np.sqrt(result.ideal.score))
     return {"verdict": result.verdict, "confounded_with": list(result.confounded_with), "shrink": result.shrink,
             "noise_source": nf.source, "mean_z2": nf.mean_z2, "expected_mean_z2": nf.expected_mean_z2,
-            "heldout_excess_before": result.heldout_excess_before, "folds": result.folds,
-            "ranking": table(ranking, 3), "figure": bars, "where": table(where, 2) if regions else None,
-            "flagged": [e for e in result.parameter_gap if e.get("flagged")],
+            "heldout_excess_before": result.heldout_excess_before, "heldout_rms_before": rms_before,
+            "on_floor": not result.heldout_excess_before > 0, "folds": result.folds,
+            "ranking": table(ranking, 3) if rows else None, "figure": bars, "where": regions,
+            "n_regions": len(result.where.regions), "flagged": result.flagged_parameters(),
             "force_check": _force_table(result.force_check), "notes": result.findings(),
             "discrepancy_figure": correction}
 
@@ -204,7 +213,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
     def sample():
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
-                          bearing=bearing)
+                          bearing=bearing, progress=progress)
         record["bayes"] = sr.to_json()
         return posterior(sr)
 
@@ -248,7 +257,7 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
     closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
     the page says why and the record's ``least_squares`` holds the ``error``.  ``progress``, if given, is
     called as ``progress("report: <section>", done, total)`` as each section starts (and by the diagnosis as
-    ``progress("candidate effects", done, total)``).
+    ``progress("candidate effects", done, total)``, and by the sampler, :func:`ambfit.estimation.bayes.sample`).
 
     Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
     """

@@ -99,15 +99,21 @@ def _cell(v, digits: int) -> str:
     return str(v)
 
 
+def _unsigned_zero(text: str) -> str:
+    """``-0.000`` (a tiny negative rounded away) as ``0.000``."""
+    return text[1:] if re.fullmatch(r"-0(\.0*)?", text) else text
+
+
 def table(df: pd.DataFrame, digits: int = 2) -> Markup:
     """A DataFrame as an HTML table, one number format per column: ``digits`` decimals when the column's
     numbers are of ordinary size (so a shrink of 1e-9 reads 0.000 beside 0.975), 4 significant digits when
-    they are all tiny or huge (force constants); NaN as blank; cells escaped."""
+    they are all tiny or huge (force constants); NaN as blank; ``-0.000`` as ``0.000``; cells escaped.  Estimates
+    with errors go in as text (:func:`ambfit.estimation.units.pm`), not as two number columns."""
     def formatter(column):
         values = pd.to_numeric(df[column], errors="coerce").abs()
         ordinary = bool(((values >= 1e-3) & (values < 1e5)).any())
-        return lambda v: (f"{v:.{digits}f}" if ordinary and isinstance(v, (float, np.floating)) and np.isfinite(v)
-                          and abs(v) < 1e5 else _cell(v, digits))
+        return lambda v: _unsigned_zero(f"{v:.{digits}f}" if ordinary and isinstance(v, (float, np.floating))
+                                        and np.isfinite(v) and abs(v) < 1e5 else _cell(v, digits))
 
     return Markup(df.to_html(index=False, border=0, formatters={c: formatter(c) for c in df.columns},
                              escape=True, na_rep=""))
