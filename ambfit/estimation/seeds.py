@@ -35,10 +35,11 @@ def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray]]:
     keys = [group_labels(df["experiment"]) if "experiment" in df else None,
             df["iteration"] if "iteration" in df else None, df["axis"]]
     code = np.zeros(n, dtype=np.int64)
-    for key in filter(lambda k: k is not None, keys):     # (experiment, iteration, axis) numbered as one key
-        part, uniques = pd.factorize(key)                   # (a missing label: -1, in no group)
+    # (experiment, iteration, axis) numbered as one key, in order of first appearance; a missing label: no group
+    for key in filter(lambda k: k is not None, keys):
+        part, uniques = pd.factorize(key)
         code = np.where((code >= 0) & (part >= 0), code * (len(uniques) + 1) + part, -1)
-    code[code >= 0] = pd.factorize(code[code >= 0])[0]  # in order of first appearance
+    code[code >= 0] = pd.factorize(code[code >= 0])[0]
     n_groups = int(code.max(initial=-1)) + 1
     if n_groups == 0:
         return []
