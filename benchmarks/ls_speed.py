@@ -22,6 +22,7 @@ Writes reports/benchmarks/ls_speed.{json,md}.
 """
 
 import argparse
+import gc
 import json
 import os
 import subprocess
@@ -47,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _median_time(fn, repeats):
     ts = []
     for _ in range(repeats):
+        gc.collect()        # (as timeit does: no repeat pays for the garbage of the one before, or of the other side)
         t = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t)
