@@ -86,3 +86,42 @@ def test_a_flag_names_file_row_column_and_value(clean):
     (flag,) = plausibility.check_data(d, PAPER_BEARING, "probe.csv")
     assert (flag.file, flag.row, flag.column, flag.value) == ("probe.csv", 6, "i_top_A", 1400.0)
     assert str(flag).startswith("probe.csv, row 6 (line 7), column 'i_top_A': ") and "mA instead of A" in str(flag)
+
+
+# --- one coil current of 0 (issue 24, item 3) ---------------------------------------------------------------------
+
+
+def test_a_coil_off_under_a_load_it_would_have_to_carry_is_named(tmp_path, clean):
+    # row 4 (axis w): the top coil's current written as 0 under a known load of +6.9 N along +axis; with the top
+    # coil off the bearing pulls only towards -axis, so the reading is no equilibrium (1750 σ off the clean fit)
+    d = clean.copy()
+    d.loc[3, "i_top_A"] = 0.0
+    path = tmp_path / "zero.csv"
+    d.to_csv(path, index=False)
+    for cmd in ("check", "identify"):
+        r = runner.invoke(app, [cmd, str(path)])
+        assert r.exit_code == 2 and "i_top_A" in r.output and "0.0" in r.output, r.output
+        assert "-axis" in r.output and "Traceback" not in r.output
+    # the bottom coil at 0 under the same load is possible (the top coil alone pulls towards +axis): no error
+    d = clean.copy()
+    d.loc[3, "i_bottom_A"] = 0.0
+    d.to_csv(path, index=False)
+    assert runner.invoke(app, ["check", str(path)]).exit_code == 0
+
+
+@pytest.mark.parametrize("row", [39, 41])
+def test_a_fit_that_stalls_names_the_cause_not_the_solvers_label(clean, row):
+    # Past the data check (a table handed to the library): the reading drags plain least squares out of the
+    # physical region, where the trust region collapses and optimistix's relative stopping test passes far from
+    # the minimum ("successful", EDM 1e-3 and 2e5 on these rows).  The message must say so and name the row.
+    import ambfit
+
+    d = clean.copy()
+    d.loc[row, "i_top_A"] = 0.0
+    res = ambfit.fit(d, throw=False)
+    assert not res.converged
+    (text,) = [t for name, ok, t in res.checks() if name == "converged"]
+    assert "optimistix: successful" not in text
+    if res.optimistix == "successful":
+        assert "stalled" in text and "not the minimum" in text and "within" not in text
+    assert f"row {row + 1} (" in text or "physical region" in text, text

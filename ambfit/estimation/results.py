@@ -199,6 +199,7 @@ class FitResult:
 
     def checks(self) -> list[tuple[str, bool | None, str]]:
         """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
+        from ambfit.estimation.convergence import not_converged
         from ambfit.estimation.core import EDM_MAX
 
         rel = self.relative_gap_std
@@ -210,10 +211,7 @@ class FitResult:
             ("well_conditioned", self.well_conditioned,
              f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more positions "
              "(the paper's symmetric pairs) and two or more biases"),
-            ("converged", self.converged,
-             f"least squares did not converge within {self.thresholds.max_steps} steps (EDM {self.edm:.2g}, limit "
-             f"{EDM_MAX:g}; optimistix: {self.optimistix}); check the data for outliers or a wrong unit, or give a "
-             "better start"),
+            ("converged", self.converged, not_converged(self, EDM_MAX)),
             ("adequate", self.adequate,
              f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
              f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose"),
