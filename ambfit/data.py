@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ambfit.checks import CURRENTS, MAX_CURRENT_A, STD_COLUMNS, ZERO_CURRENT_NOISE_A, ranges  # noqa: F401
 from ambfit.physics.bearing import AXES, PAPER_BEARING
 
 REQUIRED = ("axis", "bias_A", "i_top_A", "i_bottom_A", "v_um", "w_um")
@@ -32,12 +33,6 @@ NUMERIC_OPTIONAL = (
 """Optional numeric columns; an empty cell means 'not known'."""
 
 LABELS = ("load_id", "experiment")
-CURRENTS = ("bias_A", "i_top_A", "i_bottom_A")
-STD_COLUMNS = ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")
-
-MAX_CURRENT_A = 1e4
-"""Currents at least this large [A] are input errors, not readings (squared they overflow the force law);
-smaller ones beyond the bearing's coil limit are judged by :mod:`ambfit.estimation.plausibility`."""
 
 DEFAULT_MAX_POSITION_UM = PAPER_BEARING.nominal_gap * 1e6
 """Positions at least this large [µm] are rejected as 'as large as the gap' (the paper's nominal gap; the
@@ -213,7 +208,7 @@ def _check(raw: pd.DataFrame, problems: _Problems, max_position_um: float) -> pd
         df["axis"] = df["axis"].astype(str).str.strip()
         problems.rows(~df["axis"].isin(AXES), "unknown axis; valid axes are 'v' and 'w'", "axis", df["axis"])
     _numeric(df, problems)
-    _ranges(df, problems, max_position_um)
+    ranges(df, problems, max_position_um)
     _consistency(df, problems)
     return df
 
@@ -232,36 +227,6 @@ def _numeric(df: pd.DataFrame, problems: _Problems):
         num = pd.to_numeric(text.where(text != "", None), errors="coerce")
         problems.rows((text != "") & ~(np.isfinite(num) & (num == np.round(num))), "iteration must be an integer",
                       "iteration", df["iteration"])
-
-
-ZERO_CURRENT_NOISE_A = 3e-3
-"""A measured coil current slightly below 0 is a zero current read through its sensor's noise: accepted down to
--5 times the row's std column, or -3 mA without one (a 0.6 mA sensor at 5 sigma).  Biases must not be negative."""
-
-
-def _ranges(df: pd.DataFrame, problems: _Problems, max_position_um: float):
-    for col in [c for c in CURRENTS if c in df.columns]:
-        floor = 0.0
-        if col != "bias_A":
-            std = f"{col[:-2]}_std_A"
-            floor = (-5.0 * df[std].fillna(ZERO_CURRENT_NOISE_A / 5.0).clip(lower=0.0) if std in df.columns
-                     else -ZERO_CURRENT_NOISE_A)
-        problems.rows(df[col] < floor, "negative current; coil currents and biases cannot be negative (a coil "
-                      "current within its noise of 0 is accepted)", col, df[col])
-    for col in [c for c in CURRENTS if c in df.columns]:
-        problems.rows(df[col] >= MAX_CURRENT_A, f"not a coil current (at least {MAX_CURRENT_A:g} A); currents must "
-                      "be in amperes", col, df[col])
-    if "i_top_A" in df.columns and "i_bottom_A" in df.columns:
-        problems.rows((df["i_top_A"] == 0) & (df["i_bottom_A"] == 0),
-                      "both coil currents are 0: the bearing carries no force at this reading (amplifier off or a "
-                      "missing value written as 0?); remove the row", "i_top_A", df["i_top_A"])
-    for col in [c for c in STD_COLUMNS if c in df.columns]:
-        problems.rows(df[col] <= 0, "a standard error must be positive (leave the cell empty when it is not known)",
-                      col, df[col])
-    for col in [c for c in ("v_um", "w_um", "v_set_um", "w_set_um") if c in df.columns]:
-        problems.rows(df[col].abs() >= max_position_um,
-                      f"position as large as the air gap (>= {max_position_um:g} µm); positions must be in "
-                      "micrometres from the sensor zero: was another unit used?", col, df[col])
 
 
 def _consistency(df: pd.DataFrame, problems: _Problems):

@@ -1,7 +1,7 @@
 """ambfit's modules import downwards only (STYLE.md section 6), and no two of them import each other.
 
 Layers, bottom to top: helpers with no ambfit imports (``_recent``, ``_jaxcache``), ``physics``, the low-level
-infrastructure (``data``, ``engine``, ``workers``), ``rig``, ``estimation``, ``diagnosis``, ``studies``, ``faces``.  A
+infrastructure (``checks``, ``data``, ``engine``, ``workers``), ``rig``, ``estimation``, ``diagnosis``, ``studies``, ``faces``.  A
 module may import from its own layer and the layers below it.  Every import counts, wherever it stands: at module
 level, inside a function, or under ``TYPE_CHECKING`` (a dependency that static analysers and readers follow all the
 same).  The source is read with :mod:`ast`, not imported, so the check is cheap and sees every import.
@@ -19,7 +19,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "ambfit"
 LAYERS = (
     ("helpers", ("ambfit._recent", "ambfit._jaxcache")),
     ("physics", ("ambfit.physics",)),
-    ("infrastructure", ("ambfit.data", "ambfit.engine", "ambfit.workers")),
+    ("infrastructure", ("ambfit.checks", "ambfit.data", "ambfit.engine", "ambfit.workers")),
     ("rig", ("ambfit.rig",)),
     ("estimation", ("ambfit.estimation",)),
     ("diagnosis", ("ambfit.diagnosis",)),

@@ -78,7 +78,9 @@ class Diagnosis:
         return self.where.regions[0].variable if self.where.regions else "b_top_T"
 
     def to_json(self) -> dict:
-        """The contract section 3 record."""
+        """The contract section 3 record, marked as a diagnose model file (schema, kind, ambfit version)."""
+        from ambfit.estimation.model_file import stamp
+
         rec = {
             "baseline": "ideal", "noise_floor": self.noise_floor.to_json(), "folds": self.folds,
             "where": [r.to_json() for r in self.where.regions[:20]],
@@ -114,7 +116,7 @@ class Diagnosis:
             host = self.discrepancy["host"]
             rec["discrepancy_fit"] = {"model": f"{host.model}+discrepancy",
                                       "model_state": host.model_state() | {"discrepancy": self.discrepancy["fit"].to_json()}}
-        return rec
+        return stamp(rec, "diagnose")
 
     def steps(self) -> list[dict]:
         """How the verdict was reached, each step with its held-out shrink: the first effect, then the second of

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ambfit.estimation.fit import FitError, FitResult
+from ambfit.estimation.model_file import ModelFileError  # noqa: F401  (raised by FittedModel.from_json)
 from ambfit.physics.bearing import AXES
 from ambfit.physics.model import BearingParams, Readings, evaluate
 
@@ -172,10 +173,6 @@ def force_noise(res: FitResult, df, *, sigma_i: float | None = None, sigma_x: fl
     return np.asarray(noise_std(jnp.asarray(res.theta), prob, Model.of(res.effects, res.bearing)))
 
 
-class ModelFileError(ValueError):
-    """A model JSON that cannot be used for force measurement; the message says why."""
-
-
 @dataclasses.dataclass(frozen=True)
 class FittedModel:
     """A fitted force model, as ``ambfit identify``/``ambfit diagnose`` write it (``model_state``), ready to
@@ -192,6 +189,7 @@ class FittedModel:
     bearing: object
     model: str
     discrepancy: object = None          # a fitted ambfit.estimation.discrepancy.Discrepancy, added to the force
+    file: object = None                 # the ambfit.estimation.model_file.ModelFile it was read from (provenance)
 
     @classmethod
     def from_result(cls, result: FitResult) -> FittedModel:
@@ -204,22 +202,15 @@ class FittedModel:
         ``use`` picks a diagnose JSON's model: ``"verdict"``, ``"discrepancy"`` (the verdict's model, or the
         ideal law when there is none, with the model-discrepancy correction) or ``"ideal"``; default: the
         verdict's model, else the discrepancy model (a verdict ``unexplained``), else the ideal law.
+
+        Every value the force uses is checked first (:mod:`ambfit.estimation.model_file`): a damaged, foreign or
+        newer file raises :class:`ModelFileError` naming the file, the key and the value.
         """
-        keys = {"verdict": "verdict_fit", "discrepancy": "discrepancy_fit", "ideal": "baseline_fit"}
-        if use is not None and use not in keys:
-            raise ValueError(f"use must be one of {sorted(keys)}, got {use!r}")
-        state = record.get("model_state") if use is None else None
-        if state is None:
-            order = [keys[use]] if use is not None else ["verdict_fit", "discrepancy_fit", "baseline_fit"]
-            fitted = next((record[k] for k in order if record.get(k)), {})
-            state = fitted.get("model_state")
-            if state is None and use is not None:
-                raise ModelFileError(f"{source}: no {use} model in this JSON (a diagnose JSON has 'verdict' only "
-                                     "when the verdict names effects, 'discrepancy' only when it was fitted)")
-        if state is None:
-            raise ModelFileError(f"{source}: no fitted model in this JSON (write it with ambfit identify --json or "
-                                 "ambfit diagnose --json of this version)")
-        return cls.from_state(state, bearing, source)
+        from ambfit.estimation import model_file
+
+        mf = model_file.read(record, source, use)
+        model_file.check(mf, bearing)
+        return dataclasses.replace(cls.from_state(mf.state, bearing, source), file=mf)
 
     @classmethod
     def from_state(cls, state: dict, bearing, source: str = "<json>") -> FittedModel:

@@ -56,18 +56,25 @@ CURRENT_FACTOR = 1.2
 
 @dataclasses.dataclass(frozen=True)
 class Flag:
-    """One implausible quantity: what, its value, what the bearing allows, and the likely cause."""
+    """One implausible quantity: what, its value, what the bearing allows, and the likely cause; for a flag on
+    the readings also the file, the row (data rows from 1) and the column of the value shown."""
 
     quantity: str
     value: float
     expected: str
     cause: str
+    file: str | None = None
+    row: int | None = None
+    column: str | None = None
 
     def __str__(self) -> str:
-        return f"{self.quantity} = {self.value:.4g} is implausible for this bearing ({self.expected}): {self.cause}"
+        where = [w for w in (self.file, None if self.row is None else f"row {self.row} (line {self.row + 1})",
+                             None if self.column is None else f"column {self.column!r}") if w is not None]
+        text = f"{self.quantity} = {self.value:.4g} is implausible for this bearing ({self.expected}): {self.cause}"
+        return ", ".join(where) + ": " + text if where else text
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None or k in ("quantity", "value")}
 
 
 def _decades(ratio: float) -> int:
@@ -132,37 +139,83 @@ def _gap_cause(ratio: float) -> str:
             "bearing's")
 
 
-def check_data(df: pd.DataFrame, bearing: Bearing) -> list[Flag]:
-    """Flags for the readings themselves: loads beyond the load capacity, currents beyond the coil limit,
-    positions too small to be micrometres."""
+TINY_POSITION_UM = 0.01
+"""Largest |position| [µm] of a file whose positions are all this small: a perturbation protocol moves the rotor by
+micrometres (and sensor noise alone is ~0.1 µm), so positions in metres (or mm) typed into a µm column."""
+
+SPAN_FACTOR = 1.5
+"""Largest spread of one position column over the file, as a multiple of twice the back-up clearance (the rotor
+cannot move further, whatever the sensor's zero)."""
+
+CURRENT_STD_FACTOR = 0.1
+"""Largest current standard error as a fraction of the coil current limit (a DAQ averages to mA or better)."""
+
+
+def check_data(df: pd.DataFrame, bearing: Bearing, source: str | None = None) -> list[Flag]:
+    """Flags for the readings themselves, judged against the bearing description: loads beyond what the bearing
+    can lift (``LOAD_FACTOR`` x its load capacity ``k (i_max / g)^2``), currents beyond its coil limit, positions
+    too small to be micrometres or spread beyond the back-up clearance, current errors as large as currents.
+    Each names the file (``source``), the row and column of the worst value and the likely unit mistake."""
+    rows = file_rows(df)
     flags = []
+
+    def flag(column, mask, values, expected, cause, key=None):
+        """A flag on ``column``, showing the value of the masked row with the largest |key| (default |value|)."""
+        r = int(np.nanargmax(np.where(mask, np.abs(values if key is None else key), -np.inf)))
+        flags.append(Flag(f"{column} ({int(mask.sum())} row(s) in all)", float(values[r]), expected, cause,
+                          source, int(rows[r]), column))
+
     cap = bearing.load_capacity()
     if "load_N" in df.columns:
         load = df["load_N"].to_numpy(float)
         big = np.abs(load) > LOAD_FACTOR * cap
         if big.any():
-            r = int(np.nanargmax(np.where(big, np.abs(load), -np.inf)))
+            ratio = np.nanmax(np.abs(load[big])) / cap
             everywhere = big.sum() == np.isfinite(load).sum()
-            flags.append(Flag(f"load_N (row {file_rows(df)[r]}, {int(big.sum())} row(s) in all)", float(load[r]),
-                              f"|load| up to {LOAD_FACTOR:g} x the load capacity {cap:.3g} N",
-                              "every known load is too large: loads in mN or grams instead of N, or a bearing "
-                              "description that is not this bearing's" if everywhere else
-                              "a typing error in load_N on these rows"))
+            flag("load_N", big, load, f"|load| up to {LOAD_FACTOR:g} x the load capacity {cap:.3g} N "
+                 f"(one coil at {bearing.max_current:g} A); this is {ratio:.3g} x", _load_cause(ratio, everywhere))
     limit = CURRENT_FACTOR * bearing.max_current
-    for col in ("i_top_A", "i_bottom_A"):
-        cur = df[col].to_numpy(float)
-        over = cur > limit
-        if over.any():
-            r = int(np.argmax(cur))
-            ratio = cur[r] / bearing.max_current
-            flags.append(Flag(f"{col} (row {file_rows(df)[r]}, {int(over.sum())} row(s) in all)", float(cur[r]),
-                              f"up to {CURRENT_FACTOR:g} x the coil limit {bearing.max_current:g} A",
-                              "currents given in mA instead of A" if ratio > 100 else
-                              "a current above the coil limit: a wrong bearing description (max_current_A) or a "
-                              "saturated amplifier"))
-            break
-    pos = np.abs(np.concatenate([df["v_um"].to_numpy(float), df["w_um"].to_numpy(float)]))
-    if len(pos) and 0 < np.max(pos) < 1e-3:
-        flags.append(Flag("positions [µm]", float(np.max(pos)), "set-points of micrometres to tens of micrometres",
-                          "every position is below 0.001 µm: positions given in metres (or mm) instead of µm"))
+    for col in ("i_top_A", "i_bottom_A", "bias_A"):
+        if col in df.columns:
+            cur = df[col].to_numpy(float)
+            over = cur > limit
+            if over.any():
+                ratio = np.nanmax(cur) / bearing.max_current
+                flag(col, over, cur, f"up to {CURRENT_FACTOR:g} x the coil limit {bearing.max_current:g} A; this is "
+                     f"{ratio:.3g} x", "currents given in mA instead of A" if ratio > 100 else
+                     "a current above the coil limit: a wrong bearing description (max_current_A) or a saturated "
+                     "amplifier")
+    for col in ("i_top_std_A", "i_bottom_std_A"):
+        if col in df.columns:
+            std = df[col].to_numpy(float)
+            big = std > CURRENT_STD_FACTOR * bearing.max_current
+            if big.any():
+                flag(col, big, std, f"below {CURRENT_STD_FACTOR:g} x the coil limit {bearing.max_current:g} A",
+                     "current standard errors given in mA instead of A")
+    moved = any(col in df.columns and np.nanmax(np.abs(df[col].to_numpy(float)), initial=0.0) > 0
+                for col in ("v_set_um", "w_set_um"))
+    for col in ("v_um", "w_um", "v_set_um", "w_set_um"):
+        if col not in df.columns:
+            continue
+        x = df[col].to_numpy(float)
+        largest = np.nanmax(np.abs(x), initial=0.0)
+        if largest < TINY_POSITION_UM and (largest > 0 or (moved and col in ("v_um", "w_um"))):
+            flag(col, np.isfinite(x), x, f"set-points of micrometres to tens of micrometres; every |{col}| is below "
+                 f"{TINY_POSITION_UM:g} µm", "positions given in metres (or mm) instead of µm")
+        span, room = np.nanmax(x, initial=0.0) - np.nanmin(x, initial=0.0), 2 * bearing.backup_clearance * 1e6
+        if span > SPAN_FACTOR * room:
+            flag(col, np.isfinite(x), x, f"a spread of at most twice the back-up clearance "
+                 f"{bearing.backup_clearance * 1e6:.4g} µm (x {SPAN_FACTOR:g}); these spread over {span:.4g} µm "
+                 "(the value shown: the furthest from their median)", "positions in a unit smaller than µm (e.g. "
+                 "0.1 µm counts), or a bearing description with another back-up clearance (backup_clearance_um)",
+                 key=x - np.nanmedian(x))
     return flags
+
+
+def _load_cause(ratio: float, everywhere: bool) -> str:
+    if not everywhere:
+        return "a typing error in load_N on these rows (or a unit mistake on them only)"
+    n = _decades(ratio) or int(math.floor(math.log10(ratio)))
+    beyond = f"; {n} orders of magnitude beyond what the bearing can lift" if n >= 1 else ""
+    return (f"every known load is too large: loads given in mN, or masses in grams, instead of N{beyond}; or a "
+            "bearing description that is not this bearing's")

@@ -207,6 +207,7 @@ class FitResult:
 
     def checks(self) -> list[tuple[str, bool | None, str]]:
         """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
+        from ambfit.estimation.convergence import not_converged
         from ambfit.estimation.core import EDM_MAX
 
         rel = self.relative_gap_std
@@ -218,10 +219,7 @@ class FitResult:
             ("well_conditioned", self.well_conditioned,
              f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more positions "
              "(the paper's symmetric pairs) and two or more biases"),
-            ("converged", self.converged,
-             f"least squares did not converge within {self.thresholds.max_steps} steps (EDM {self.edm:.2g}, limit "
-             f"{EDM_MAX:g}; optimistix: {self.optimistix}); check the data for outliers or a wrong unit, or give a "
-             "better start"),
+            ("converged", self.converged, not_converged(self, EDM_MAX)),
             ("adequate", self.adequate,
              f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
              f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose"),
@@ -280,12 +278,15 @@ class FitResult:
                 for name, key, f in CONTRACT_PARAMS if name in self.names}
 
     def to_json(self) -> dict:
-        """The contract record (section 2) plus fit health."""
+        """The contract record (section 2) plus fit health, marked as an identify model file
+        (:func:`ambfit.estimation.model_file.stamp`: schema, kind, ambfit version)."""
+        from ambfit.estimation.model_file import stamp
+
         head = [n for n in self.names if not n.startswith("load[")]
         with np.errstate(invalid="ignore"):
             corr = {f"{a}|{b}": float(self.corr[self.names.index(a), self.names.index(b)])
                     for i, a in enumerate(head) for b in head[i + 1:]}
-        return {
+        return stamp({
             "method": "least_squares", "model": self.model, "params": self.contract_params(),
             "converged": self.converged, "n_rows": self.n_rows, "goodness_of_fit": self.goodness_of_fit(),
             "well_conditioned": self.well_conditioned, "health": self.health(),
@@ -299,17 +300,19 @@ class FitResult:
             "model_state": self.model_state(),
             "loss": self.loss, "outliers": [o.to_json() for o in self.outliers],
             "outlier_shift_sigma": self.plain_shift, "implausible": [f.to_json() for f in self.implausible],
-        }
+        }, "identify")
 
     def model_state(self) -> dict:
         """Everything ``ambfit force`` needs to predict forces with errors from this fit, in SI units: the
-        estimated parameters and their covariance, and the model's effects (name, switched-off pieces)."""
+        estimated parameters and their covariance, the model's effects (name, switched-off pieces), and the
+        bearing description it was fitted with (what a reader judges the values against)."""
         keep = [j for j, n in enumerate(self.names) if not n.startswith("load[")]
         return {"names": [self.names[j] for j in keep], "values": [float(self.values[j]) for j in keep],
                 "covariance": [[float(self.cov[i, j]) for j in keep] for i in keep],
                 "effects": [{"name": type(e).name, "off": list(getattr(e, "off", ())), "held": _held_fields(e)}
                             for e in self.effects],
-                "bearing": self.bearing.name, "units": "SI (m, N·m²/A², effect parameters as named)"}
+                "bearing": self.bearing.name, "bearing_description": self.bearing.to_dict(),
+                "units": "SI (m, N·m²/A², effect parameters as named)"}
 
     def to_dataframe(self):
         """One row per estimated parameter: name, value and std in SI and in the display unit."""

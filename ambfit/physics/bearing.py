@@ -153,6 +153,21 @@ class Bearing:
 
     # --- files --------------------------------------------------------------------------------------------
 
+    def to_dict(self) -> dict:
+        """The description in the contract's keys (section 4, units as in their names): what a model file
+        records so that a reader can judge it against the bearing it was fitted with (:meth:`from_dict` reads
+        it back)."""
+        out = {"name": self.name, "pole_angle_deg": math.degrees(self.pole_angle),
+               "turns_per_pole": self.turns_per_pole, "pole_area_mm2": self.pole_area * 1e6,
+               "pole_width_mm": self.pole_width * 1e3, "nominal_gap_um": self.nominal_gap * 1e6,
+               "backup_clearance_um": self.backup_clearance * 1e6, "max_current_A": self.max_current,
+               "polarity": self.polarity, "iron_path_mm": self.iron_path * 1e3, "lamination": self.lamination,
+               "position_gain_tolerance": self.position_gain_tolerance,
+               "current_gain_tolerance": self.current_gain_tolerance, "bore_diameter_mm": self.bore_diameter * 1e3}
+        if self.b_curve:
+            out["material"] = {"B_T": list(self.b_curve), "H_A_per_m": list(self.h_curve)}
+        return out
+
     @classmethod
     def from_toml(cls, path: str | Path) -> Bearing:
         """Read a bearing description (contract section 4); missing keys take the paper rig's values.

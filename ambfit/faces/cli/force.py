@@ -8,7 +8,17 @@ from typing import Annotated
 
 import typer
 
-from ambfit.faces.cli.app import BearingOption, app, bearing_of, check_output, console, fail, show_table, write_json
+from ambfit.faces.cli.app import (
+    BearingOption,
+    app,
+    bearing_of,
+    check_output,
+    console,
+    fail,
+    show_table,
+    warn,
+    write_json,
+)
 from ambfit.faces.cli.explore import Axis
 
 
@@ -51,25 +61,21 @@ def force(
     from ambfit.estimation.measure import FittedModel, ModelFileError
 
     check_output(out, json_out)
-    desc = bearing_of(bearing)
-    try:
-        record = json.loads(Path(model).read_text())
-    except FileNotFoundError:
-        fail(f"{model}: no such file")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        fail(f"{model}: not a model JSON ({exc})")
+    record = _read_record(model)
+    desc = _bearing(model, record, bearing, use)
     try:
         fm = FittedModel.from_json(record, desc, str(model), use=use)
     except ModelFileError as exc:
         fail(str(exc))
-    except ValueError as exc:
-        fail(f"--use: {exc}")
-    fitted_with = FittedModel.bearing_name(record)
-    if fitted_with is not None and fitted_with != desc.name:
-        fail(f"{model}: the model was fitted with the bearing {fitted_with!r}, this run describes {desc.name!r}; "
-             "give the same --bearing as the fit (forces depend on its turns, pole face and iron)")
+    for line in fm.file.warnings:
+        warn(line)
     frame = _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bottom_other)
-    missing_k = sorted({ax for ax in frame["axis"] if f"k_{ax}" not in fm.names})
+    from ambfit.estimation import model_file
+
+    try:
+        missing_k = model_file.unfitted_k(fm.file, frame["axis"], record)
+    except ModelFileError as exc:
+        fail(str(exc))
     if missing_k:
         fail(f"{model}: k_{' and k_'.join(missing_k)} not identified in this model (it was fitted without known "
              "loads on that axis): it gives gap and origin, not forces", 3)
@@ -90,17 +96,61 @@ def force(
     if data is None:                     # one reading (a second row only carried the other axis' currents)
         result, f, s = result.iloc[:1], f[:1], s[:1]
     shown = result.head(20)
+    made = fm.file.provenance()
+    version = made["model_ambfit_version"] or "no version recorded"
     show_table([{"#": str(j + 1), "axis": r.axis, "force [N]": _pm(r.force_N, r.force_std_N)}
-                for j, r in enumerate(shown.itertuples())], f"force from the {fm.model} model ({len(result)} "
-               f"reading(s){', first 20' if len(result) > 20 else ''})")
+                for j, r in enumerate(shown.itertuples())], f"force from the {fm.model} model of {model} "
+               f"(ambfit {version}), {len(result)} reading(s){', first 20' if len(result) > 20 else ''}")
     if out is not None:
         from ambfit.data import write_csv
 
-        write_csv(result, out)
+        write_csv(result.assign(model_file=str(model), model_ambfit_version=made["model_ambfit_version"]), out)
         console.print(f"wrote {out}")
     if json_out is not None:
-        write_json({"model": fm.model, "source": str(model), "n": len(result),
+        from ambfit import __version__
+
+        write_json({"model": fm.model, "source": str(model), **made, "bearing": desc.name,
+                    "ambfit_version": __version__, "n": len(result),
                     "force_N": [float(v) for v in f], "force_std_N": [float(v) for v in s]}, json_out)
+
+
+def _read_record(model: Path):
+    """The model file's JSON (exit 2 when it cannot be read as JSON)."""
+    try:
+        return json.loads(Path(model).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        fail(f"{model}: no such file")
+    except IsADirectoryError:
+        fail(f"{model}: is a directory, not a model JSON")
+    except UnicodeDecodeError:
+        fail(f"{model}: not a model JSON (not UTF-8 text: a binary file?)")
+    except (OSError, json.JSONDecodeError, RecursionError) as exc:
+        fail(f"{model}: not a model JSON ({exc})")
+
+
+def _bearing(model: Path, record, bearing: Path | None, use: str | None):
+    """The bearing to measure with: --bearing when given (it must be the one the model was fitted with), else
+    the description the model file records, else the paper's rig."""
+    from ambfit.estimation import model_file
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    try:
+        mf = model_file.read(record, str(model), use)
+        recorded = model_file.recorded_bearing(mf)
+    except model_file.ModelFileError as exc:
+        fail(str(exc))
+    except ValueError as exc:
+        fail(f"--use: {exc}")
+    desc = bearing_of(bearing) if bearing is not None else recorded or PAPER_BEARING
+    fitted_with = mf.state.get("bearing")
+    if fitted_with is not None and fitted_with != desc.name:
+        fail(f"{model}: the model was fitted with the bearing {fitted_with!r}, this run describes {desc.name!r}; "
+             "give the same --bearing as the fit (forces depend on its turns, pole face and iron)")
+    if recorded is not None and (key := model_file.differing_key(recorded, desc)) is not None:
+        fail(f"{model}: {mf.key}.bearing_description.{key} = {recorded.to_dict().get(key)!r}, the --bearing "
+             f"{bearing} gives {desc.to_dict().get(key)!r}: the model was fitted with another description of "
+             "this bearing; give the one it was fitted with")
+    return desc
 
 
 def _reading_noise(frame, current_noise_ma: float, position_noise_um: float):

@@ -129,7 +129,9 @@ def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, 
                   "n_ok": sum(e["status"] == "ok" for e in entries), "groups": entries}
         if pooled_entry is not None:
             record["pooled"] = pooled_entry
-        write_json(record, json_out)
+        from ambfit.estimation.model_file import stamp
+
+        write_json(stamp(record, "identify"), json_out)
     if table is not None:
         _write_table([_table_row(e) for e in shown], column, table)
     bad = [e for e in shown if e["status"] != "ok"]
@@ -192,7 +194,7 @@ class _Prepared:
 def _prepare_group(ds, name: str, opts: _Options, say=say) -> _Prepared:
     from ambfit.estimation import plausibility
 
-    data_flags = plausibility.check_data(ds.frame, opts.bearing)
+    data_flags = plausibility.check_data(ds.frame, opts.bearing, None if ds.source == "<memory>" else ds.source)
     deduplicated, dropped = drop_duplicates(ds, name, opts.keep_duplicates, say)
     return _Prepared(data_flags=data_flags, original=ds, ds=deduplicated, dropped=dropped)
 

@@ -50,19 +50,27 @@ def check(
 ):
     """List every problem of a data file at once (row, column, value, why), and exact duplicate readings.
 
-    Exits 2 when the file has problems, 0 when it is ready for identify.
+    Besides the contract's checks, every column is judged against the bearing description (--bearing): currents
+    beyond the coil limit (mA for A?), loads beyond what the bearing can lift, positions too small to be µm
+    (metres?) or spread beyond the back-up clearance, the same checks identify makes.  Exits 2 when the file has
+    problems, 0 when it is ready for identify.
     """
     from ambfit.data import duplicate_rows, inspect, read_csv
+    from ambfit.estimation import plausibility
 
     desc = bearing_of(bearing)
     limit = max_position_um or desc.nominal_gap * 1e6
     problems = inspect(data, max_position_um=limit)
-    if problems:
-        show_table([{"row": "" if e.row is None else str(e.row), "column": e.column or "",
-                     "value": "" if e.value is None else repr(e.value), "problem": e.reason} for e in problems],
-                   f"{data}: {len(problems)} problem(s)", left=("column", "value", "problem"))
+    rows = [{"row": "" if e.row is None else str(e.row), "column": e.column or "",
+             "value": "" if e.value is None else repr(e.value), "problem": e.reason} for e in problems]
+    if not problems:
+        ds = read_csv(data, max_position_um=limit)
+        rows = [{"row": str(f.row), "column": f.column, "value": repr(f.value),
+                 "problem": f"implausible for the bearing {desc.name!r} ({f.expected}): {f.cause}"}
+                for f in plausibility.check_data(ds.frame, desc, str(data))]
+    if rows:
+        show_table(rows, f"{data}: {len(rows)} problem(s)", left=("column", "value", "problem"))
         raise typer.Exit(2)
-    ds = read_csv(data, max_position_um=limit)
     df = ds.frame
     dupes = duplicate_rows(df)
     for row, first in dupes:
@@ -188,7 +196,9 @@ def _identify_file(data: Path, opts: _Options, max_position_um, json_out, table)
     record["duplicates_dropped"] = dropped
     flags = [plausibility.Flag(**f) for f in record.get("implausible", [])]
     if json_out is not None:
-        write_json(record, json_out)
+        from ambfit.estimation.model_file import stamp
+
+        write_json(stamp(record, "identify"), json_out)
     if table is not None:
         status = _status(record, flags, opts.accept)
         _write_table([_table_row({"group": data.name, "file": str(data), "status": status, **record})], None, table)

@@ -75,7 +75,9 @@ def sample(
         res.datatree.to_netcdf(out, engine="h5netcdf")
         console.print(f"wrote {out}")
     if json_out is not None:
-        write_json(record, json_out)
+        from ambfit.estimation.model_file import stamp
+
+        write_json(stamp(record, "sample"), json_out)
     if pair_png is not None:
         from ambfit.faces import plots
 
