@@ -221,7 +221,7 @@ def _effects(names: list[str], bearing) -> tuple:
     out = []
     for text in names:
         try:
-            e = effect_by_name(text.strip())
+            e = effect_by_name(text.strip(), bearing=bearing)
         except ValueError as exc:
             fail(f"--effect: {exc}")
         if getattr(e, "needs_other_axis", False) and not bearing.b_curve:

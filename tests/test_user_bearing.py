@@ -1,0 +1,85 @@
+"""Every command on a user's own bearing (a 500 µm gap, 5 A coils, 40 µm back-up clearance), not the paper's.
+
+The bearing description is read from TOML as a user gives it; the virtual rig is built around it
+(:meth:`ambfit.rig.RigSpec.for_bearing`), and what the commands propose or map must follow its gap, clearance
+and current limit.
+"""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from ambfit import rig
+from ambfit.faces.cli import app
+from ambfit.physics.bearing import Bearing
+from ambfit.rig import protocol as P
+
+runner = CliRunner()
+
+USER_TOML = """name = "user 500"
+pole_angle_deg = 22.5
+turns_per_pole = 200
+pole_area_mm2 = 80.0
+nominal_gap_um = 500.0
+backup_clearance_um = 40.0
+max_current_A = 5.0
+polarity = "NNSS"
+iron_path_mm = 60.0
+rotor_mass_kg = 2.5
+"""
+
+PAPER_BIASES_A = {0.8, 1.0, 1.2, 1.4, 1.5, 1.6, 1.8}
+"""Every bias the paper ran (Tables 1-4) or the old fixed design grid offered [A]."""
+
+
+@pytest.fixture(scope="module")
+def toml(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bearing") / "user.toml"
+    path.write_text(USER_TOML)
+    return path
+
+
+@pytest.fixture(scope="module")
+def bearing(toml):
+    return Bearing.from_toml(toml)
+
+
+@pytest.fixture(scope="module")
+def spec(bearing):
+    return rig.RigSpec.for_bearing(bearing)
+
+
+@pytest.fixture(scope="module")
+def data(spec):
+    """The paper's Table 2 protocol about the rig's bearing centre, on the user's bearing."""
+    proto = P.paper_table2(iterations=5, center=(-spec.x0[0], -spec.x0[1]), loads=spec.loads)
+    return rig.simulate(spec, proto, seed=4).data
+
+
+def test_rig_for_a_bearing_takes_its_gap_lamination_and_load(bearing, spec):
+    assert rig.RigSpec.for_bearing(rig.PAPER_RIG.bearing) == rig.PAPER_RIG
+    # the paper rig's true gaps are 775/762 and 763/762 of its drawing; the same excess on a 500 µm drawing
+    assert spec.g0 == pytest.approx((500e-6 * 775 / 762, 500e-6 * 763 / 762), rel=1e-12)
+    assert spec.bearing.iron_path == 0.06 and spec.lamination == bearing.lamination
+    load = spec.loads["rotor"]
+    assert load.force_v == pytest.approx(2.5 * P.G_STANDARD * np.cos(np.pi / 4), rel=1e-12) and load.known
+
+
+def test_simulate_with_a_bearing_fits_to_its_gap(toml, tmp_path):
+    csv, truth, fitted = tmp_path / "d.csv", tmp_path / "t.json", tmp_path / "f.json"
+    r = runner.invoke(app, ["simulate", "-o", str(csv), "--bearing", str(toml), "--truth", str(truth),
+                            "--effect", "iron_reluctance:mu_r=3000"])
+    assert r.exit_code == 0, r.output
+    t = json.loads(truth.read_text())
+    assert t["params"]["0"]["g_v0_um"] == pytest.approx(500 * 775 / 762, rel=1e-9)
+    assert t["effects"][0]["l_fe"] == pytest.approx(0.06)        # the bearing's iron path, not the paper's 80 mm
+    df = pd.read_csv(csv)
+    assert df["load_N"].to_numpy() == pytest.approx(2.5 * P.G_STANDARD * np.cos(np.pi / 4), rel=1e-9)
+    r = runner.invoke(app, ["identify", str(csv), "--bearing", str(toml), "--json", str(fitted)])
+    assert r.exit_code == 0, r.output
+    g = json.loads(fitted.read_text())["params"]["g_v0_um"]
+    # the iron's l_fe / (2 mu_r) = 10 µm adds to the effective gap; nothing of the paper's 775 µm is left
+    assert 500 < g["value"] < 530, g
