@@ -114,13 +114,17 @@ def test_design_section_describes_the_grid_it_chose_from(data, ls):
     text = plain(html)
     assert expanded(html)
     assert f"A-optimal choice for g_v0 (now ± {rec.std_now * 1e6:.3g} µm)" in text
-    assert "set-points ±30 µm" in text and "biases 1-1.5 A" in text and "kept within" not in text
+    assert "set-points ±30 µm" in text and "biases 1-1.5 A" in text
+    assert f"kept within {rec.radius_um:.3g} µm of it" in text
     after = rec.steps["predicted_std_after"].iloc[-1] * 1e6
     assert "g_v0 std after [µm]" in html and f"<td>{after:.2f}</td>" in html
-    # without a grid: the one recommend() uses by default
+    # without a grid: the one recommend() chose from, the bearing's default cut to its limits
+    rec = design.recommend(data, n_steps=2, result=ls)
     text = plain(section(DATA, "design", dataset.design(rec, max_radius_um=45.0)))
-    assert "set-points ±50 µm" in text and "kept within 45 µm of the sensor origin" in text
+    assert "set-points ±50 µm" in text and "kept within 45 µm of it" in text
     assert "biases 0.8-1.8 A" in text
+    text = plain(section(DATA, "design", dataset.design(rec)))
+    assert f"kept within {rec.radius_um:.3g} µm of it" in text and 55 < rec.radius_um < 60
 
 
 def test_diagnosis_section_reads_the_typed_diagnosis(data):

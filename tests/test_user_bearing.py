@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from ambfit import rig
 from ambfit.faces.cli import app
 from ambfit.physics.bearing import Bearing
+from ambfit.rig import limits
 from ambfit.rig import protocol as P
 
 runner = CliRunner()
@@ -83,3 +84,51 @@ def test_simulate_with_a_bearing_fits_to_its_gap(toml, tmp_path):
     g = json.loads(fitted.read_text())["params"]["g_v0_um"]
     # the iron's l_fe / (2 mu_r) = 10 µm adds to the effective gap; nothing of the paper's 775 µm is left
     assert 500 < g["value"] < 530, g
+
+
+def _run_recommended(spec, steps: pd.DataFrame) -> P.Protocol:
+    return P.concat(*(P.grid([(s.v_set_um * 1e-6, s.w_set_um * 1e-6)], [s.bias_A], loads=spec.loads,
+                             iteration=i + 1) for i, s in enumerate(steps.itertuples())))
+
+
+def test_every_step_design_recommends_is_accepted_by_simulates_limit_check(spec, data, bearing):
+    from ambfit.estimation import design
+
+    rec = design.recommend(data, n_steps=8, bearing=bearing)
+    proto = _run_recommended(spec, rec.steps)
+    assert limits.limit_violations(spec, proto) == []
+    sim = rig.simulate(spec, proto, seed=1)
+    assert limits.limit_violations(spec, proto, currents=sim.physical_currents) == []
+    # the grid it chose from reaches the clearance (less the origin's uncertainty), measured from the centre
+    grid = rec.candidates
+    lim = limits.step_limits(grid[["v_set_um", "w_set_um"]].to_numpy() * 1e-6, grid["bias_A"].to_numpy(),
+                             spec.x0, bearing)
+    assert lim.ok.all() and lim.distance.max() > 0.8 * bearing.backup_clearance
+
+
+def test_design_candidates_scale_with_the_bearing(data, bearing):
+    from ambfit.estimation import design
+
+    grid = design.candidate_steps(bearing=bearing)
+    assert grid["bias_A"].max() == pytest.approx(0.6 * 5.0) and grid["bias_A"].max() > 1.8
+    assert not set(grid["bias_A"].round(6)) & PAPER_BIASES_A
+    assert grid["v_set_um"].max() == pytest.approx(40 * 5 / 6, abs=0.05)
+    rec = design.recommend(data, n_steps=6, bearing=bearing)
+    assert (rec.steps["bias_A"] <= bearing.max_current).all()
+    assert not set(rec.steps["bias_A"].round(6)) & PAPER_BIASES_A, rec.steps
+    centre = np.array(rec.centre_um)
+    r = np.hypot(rec.steps["v_set_um"] - centre[0], rec.steps["w_set_um"] - centre[1])
+    assert (r <= 40.0).all() and rec.radius_um < 40.0
+
+
+def test_design_command_on_the_users_bearing_passes_simulate(toml, data, spec, tmp_path):
+    csv, js, out = tmp_path / "d.csv", tmp_path / "rec.json", tmp_path / "next.csv"
+    data.to_csv(csv, index=False)
+    r = runner.invoke(app, ["design", str(csv), "--bearing", str(toml), "--steps", "4", "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    steps = pd.DataFrame(json.loads(js.read_text())["steps"])
+    plan = tmp_path / "next.toml"
+    plan.write_text("".join(f'[[block]]\nkind = "grid"\npoints_um = [[{s.v_set_um}, {s.w_set_um}]]\n'
+                            f"biases_A = [{s.bias_A}]\n" for s in steps.itertuples()))
+    r = runner.invoke(app, ["simulate", "-o", str(out), "--protocol", str(plan), "--bearing", str(toml)])
+    assert r.exit_code == 0 and "beyond" not in r.output, r.output

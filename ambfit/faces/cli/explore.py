@@ -96,8 +96,8 @@ def design(
                                                  "origin covariance).")] = Criterion.A,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
     max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
-                                                        "sensor origin [µm] (default: the bearing's back-up "
-                                                        "clearance, 60 µm on the paper's rig).")] = None,
+                                                        "estimated bearing centre [µm] (default: the bearing's "
+                                                        "back-up clearance, less the origin's uncertainty).")] = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):

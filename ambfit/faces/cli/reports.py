@@ -32,8 +32,9 @@ def report(
     ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat across them).")] = 4,
     design_steps: Annotated[int, typer.Option(help="How many next perturbations to recommend.")] = 8,
     max_radius_um: Annotated[float | None, typer.Option(help="Recommend only set-points within this distance "
-                                                        "of the sensor origin [µm] (back-up bearing clearance "
-                                                        "less a margin).")] = 50.0,
+                                                        "of the estimated bearing centre [µm] (default: the "
+                                                        "bearing's back-up clearance less the origin's "
+                                                        "uncertainty).")] = None,
     bearing: BearingOption = None,
     posterior: Annotated[bool, typer.Option(help="Sample the posterior (the slowest section).")] = True,
     diagnosis: Annotated[bool, typer.Option(help="Run the sim-to-real gap diagnosis.")] = True,

@@ -107,8 +107,10 @@ def design(recommendation, *, max_radius_um: float | None = None, candidates: pd
     """The recommended next steps with the target's predicted standard error after each.
 
     ``recommendation``: :class:`~ambfit.estimation.design.Recommendation`; ``candidates``: the grid it chose
-    from (default: :func:`ambfit.estimation.design.candidate_steps`, which
-    :func:`~ambfit.estimation.design.recommend` centres on the estimated effective origin).
+    from (default: the recommendation's own, :func:`ambfit.estimation.design.candidate_steps` of the bearing
+    centred on the estimated bearing centre and cut to the bearing's limits).  ``max_radius_um``: the
+    distance from the estimated bearing centre the set-points were kept within [µm] (default: the
+    recommendation's, the back-up clearance less the origin's uncertainty).
     """
     from ambfit.estimation import design as design_mod
     from ambfit.estimation.units import display
@@ -119,9 +121,11 @@ def design(recommendation, *, max_radius_um: float | None = None, candidates: pd
     steps.insert(0, "step", np.arange(1, len(steps) + 1))
     if "predicted_std_after" in steps:
         steps[f"{rec.target} std after [{unit}]"] = steps.pop("predicted_std_after") * factor
-    grid = design_mod.candidate_steps() if candidates is None else candidates
+    grid = candidates if candidates is not None else rec.candidates
+    grid = design_mod.candidate_steps() if grid is None else grid
+    radius = max_radius_um if max_radius_um is not None else rec.radius_um
     return {"table": table(steps, 2), "target": rec.target, "criterion": rec.criterion, "std_now": rec.std_now * factor,
-            "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": max_radius_um,
+            "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": radius,
             "bias_A": (float(grid["bias_A"].min()), float(grid["bias_A"].max()))}
 
 
@@ -241,7 +245,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
 
 def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
-                bearing=PAPER_BEARING, max_radius_um: float | None = 50.0, do_posterior: bool = True,
+                bearing=PAPER_BEARING, max_radius_um: float | None = None, do_posterior: bool = True,
                 do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None) -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
     and ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the
