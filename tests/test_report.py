@@ -171,7 +171,8 @@ def test_data_report_skips_sections_on_request(tmp_path):
                                     do_diagnosis=False)
     page = path.read_text()
     assert expanded(page) and _self_contained(page)
-    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "design"}
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "solution_space", "design"}
+    assert {ax: m["on_edge"] for ax, m in rec["solution_space"].items()} == {"v": False, "w": False}
     assert json.loads((tmp_path / "r" / "report.json").read_text())["n_rows"] == rec["n_rows"] == 80
     assert "Skipped (--no-posterior)." in page and "Skipped (--no-diagnosis)." in page
     assert f"reduced χ² {rec['least_squares']['reduced_chi2']:.3f}" in page
@@ -192,7 +193,8 @@ def test_data_report_cli_writes_all_sections(tmp_path):
     assert page.count("<img") >= 3
     assert expanded(page)
     rec = json.loads((out / "report.json").read_text())
-    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "design", "diagnosis"}
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "solution_space", "design",
+                        "diagnosis"}
     assert f"shrink {rec['diagnosis']['shrink']:.3f}" in page
     assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
 

@@ -6,6 +6,7 @@ and current limit.
 """
 
 import json
+import re
 
 import numpy as np
 import pandas as pd
@@ -132,3 +133,55 @@ def test_design_command_on_the_users_bearing_passes_simulate(toml, data, spec, t
                             f"biases_A = [{s.bias_A}]\n" for s in steps.itertuples()))
     r = runner.invoke(app, ["simulate", "-o", str(out), "--protocol", str(plan), "--bearing", str(toml)])
     assert r.exit_code == 0 and "beyond" not in r.output, r.output
+
+
+def test_solution_space_is_centred_on_the_users_gap(data, bearing):
+    from ambfit.estimation import conditioning, fit
+
+    res = fit.fit(data[data["axis"] == "v"], bearing=bearing)
+    space = conditioning.solution_space(data, "v", weights_at=res, bearing=bearing)
+    g, x = space.minimum
+    step = space.gap[1] - space.gap[0]
+    assert not space.on_edge and space.widened == 0
+    assert abs(g - res.value("g_v0")) <= step and abs(x - res.value("v0")) <= step
+    # wide enough to show the valley: a quarter of the gap to each side, far beyond 10 standard errors here
+    assert space.gap[0] <= 0.76 * g and space.gap[-1] >= 1.24 * g
+    # the paper's Fig. 2 axes (600-1000 µm) do not hold a 508 µm gap: the minimum sits on their edge, said so
+    paper = conditioning.solution_space(data, "v", weights_at=res, bearing=bearing, **conditioning.PAPER_FIG2)
+    assert paper.on_edge and paper.minimum[0] == pytest.approx(600e-6)
+    assert "edge of the grid" in paper.edge_text() and "EDGE" in paper.summary()
+
+
+def test_solution_space_widens_until_the_minimum_is_inside(data, bearing, monkeypatch):
+    from ambfit.estimation import conditioning
+
+    # a first grid beside the minimum (508, 33) µm: doubled about its edge minimum, the next one holds it
+    monkeypatch.setattr(conditioning, "_default_ranges", lambda *a: ((420e-6, 470e-6), (0.0, 20e-6)))
+    space = conditioning.solution_space(data, "v", bearing=bearing)
+    assert space.widened == 1 and not space.on_edge
+    assert space.minimum[0] == pytest.approx(508e-6, abs=3e-6)
+
+
+def test_solution_space_command_on_the_users_bearing(toml, data, tmp_path):
+    csv, png = tmp_path / "d.csv", tmp_path / "map.png"
+    data.to_csv(csv, index=False)
+    r = runner.invoke(app, ["solution-space", str(csv), "--png", str(png), "--bearing", str(toml)],
+                      env={"COLUMNS": "300"})
+    assert r.exit_code == 0 and png.exists(), r.output
+    minimum = re.search(r"minimum at gap ([\d.]+) µm", r.output)
+    assert minimum and float(minimum.group(1)) == pytest.approx(500 * 775 / 762, abs=3.0), r.output
+    assert "EDGE" not in r.output
+    r = runner.invoke(app, ["solution-space", str(csv), "--png", str(png), "--bearing", str(toml),
+                            "--gap-um", "600,1000", "--origin-um", "-100,100"], env={"COLUMNS": "300"})
+    assert r.exit_code == 3 and "minimum lies on the edge of the grid" in r.output, r.output
+
+
+def test_report_section_says_when_the_minimum_is_on_the_edge(data, bearing):
+    from ambfit.estimation import conditioning, fit
+    from ambfit.faces.report import dataset
+
+    res = fit.fit(data, bearing=bearing)
+    spaces = {"v": conditioning.solution_space(data, "v", weights_at=res, bearing=bearing, **conditioning.PAPER_FIG2),
+              "w": conditioning.solution_space(data, "w", weights_at=res, bearing=bearing)}
+    out = dataset.solution_space(spaces, res)
+    assert len(out["edges"]) == 1 and out["edges"][0].startswith("axis v: the minimum lies on the edge")

@@ -50,14 +50,24 @@ def solution_space_cmd(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     png: Annotated[Path, typer.Option(help="Write the map here (PNG).")],
     axis: Annotated[Axis, typer.Option(help="Axis: v or w.")] = Axis.v,
-    gap_um: Annotated[str, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
-    origin_um: Annotated[str, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
-    step_um: Annotated[float, typer.Option(help="Grid step [µm].")] = 1.0,
+    gap_um: Annotated[str | None, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000; "
+                                               "default: centred on the fit, 10 standard errors or a quarter "
+                                               "of the gap to each side, widened while the minimum is on the "
+                                               "edge).")] = None,
+    origin_um: Annotated[str | None, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100; default: "
+                                                  "centred on the fit, 10 standard errors or an eighth of the "
+                                                  "gap to each side).")] = None,
+    step_um: Annotated[float | None, typer.Option(help="Grid step [µm] (default: 1, coarser beyond 401 points "
+                                                  "per axis).")] = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Map the misfit over a (gap, origin) grid (the paper's Fig. 2), with the least-squares ellipse
-    and the weakest Fisher direction drawn on it."""
+    and the weakest Fisher direction drawn on it.
+
+    Exits 3 (after drawing the map) when the minimum lies on the grid's edge: the valley runs beyond the
+    grid and the map does not show the best fit.
+    """
     from ambfit.data import DataError
     from ambfit.estimation import conditioning, fit
     from ambfit.faces import plots
@@ -78,13 +88,16 @@ def solution_space_cmd(
                 res = None
             bar.step("χ² map")
             space = conditioning.solution_space(ds, axis.value, gap=pair(gap_um, 1e-6),
-                                                origin=pair(origin_um, 1e-6), step=step_um * 1e-6, weights_at=res,
+                                                origin=pair(origin_um, 1e-6),
+                                                step=None if step_um is None else step_um * 1e-6, weights_at=res,
                                                 bearing=desc)
         except (DataError, ValueError) as exc:
             fail(str(exc))
         bar.step("drawing")
         plots.save(plots.plot_solution_space(space, result=res), png)
     note(f"{space.summary()}; wrote {png}")
+    if space.on_edge:
+        fail(space.edge_text() + " (--gap-um, --origin-um)", 3)
 
 
 @app.command()

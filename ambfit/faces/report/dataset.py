@@ -100,7 +100,8 @@ def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 
             ax.text(0.5, 0.5, f"axis {axis}: {space}", ha="center", wrap=True)
         else:
             plots.plot_solution_space(space, result=result, ax=ax, levels=(*levels, *outer_levels))
-    return {"figure": figure(fig), "levels": levels, "coverage_percent": [c * 100 for c in coverage]}
+    edges = [space.edge_text() for space in spaces.values() if not isinstance(space, Exception) and space.on_edge]
+    return {"figure": figure(fig), "levels": levels, "coverage_percent": [c * 100 for c in coverage], "edges": edges}
 
 
 def design(recommendation, *, max_radius_um: float | None = None, candidates: pd.DataFrame | None = None) -> dict:
@@ -221,6 +222,10 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
             spaces[axis] = conditioning.solution_space(ds, axis, weights_at=res, bearing=bearing)
         except Exception as exc:  # noqa: BLE001 - the panel says why, the other axis still stands
             spaces[axis] = exc
+    record["solution_space"] = {
+        axis: {"gap_um": [sp.gap[0] * 1e6, sp.gap[-1] * 1e6], "origin_um": [sp.origin[0] * 1e6, sp.origin[-1] * 1e6],
+               "minimum_um": [m * 1e6 for m in sp.minimum], "on_edge": sp.on_edge}
+        for axis, sp in spaces.items() if not isinstance(sp, Exception)}
     out["solution_space"] = _attempt("Solution space", lambda: solution_space(spaces, res))
 
     def recommend():
