@@ -185,3 +185,39 @@ def test_report_section_says_when_the_minimum_is_on_the_edge(data, bearing):
               "w": conditioning.solution_space(data, "w", weights_at=res, bearing=bearing)}
     out = dataset.solution_space(spaces, res)
     assert len(out["edges"]) == 1 and out["edges"][0].startswith("axis v: the minimum lies on the edge")
+
+
+FITTING_COMMANDS = ("identify", "diagnose", "sample", "solution-space", "design", "report")
+"""Every command that fits data: each takes the readings' noise the same way."""
+
+
+@pytest.mark.parametrize("command", FITTING_COMMANDS)
+def test_every_fitting_command_takes_the_declared_noise(command):
+    import inspect
+
+    from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption
+
+    callback = next(c.callback for c in app.registered_commands
+                    if (c.name or c.callback.__name__.replace("_", "-")) == command)
+    params = inspect.signature(callback, eval_str=True).parameters
+    # the one definition identify uses, not a copy
+    assert params["current_noise_ma"].annotation is CurrentNoiseOption, command
+    assert params["position_noise_um"].annotation is PositionNoiseOption, command
+    r = runner.invoke(app, [command, "--help"], env={"COLUMNS": "200"})
+    assert "--current-noise-ma" in r.output and "--position-noise-um" in r.output
+
+
+def test_diagnose_without_std_columns_reports_the_declared_noise(tmp_path):
+    from ambfit.physics.effects import Saturation
+
+    # saturated iron that the ideal law does not fit: estimated from the residuals, the current noise would be
+    # the model error (about 10 mA), not the rig's 0.6 mA
+    sim = rig.simulate(rig.PAPER_RIG, P.rich(center=(-33.3e-6, 11.3e-6)), [Saturation(b_sat=1.2)], seed=1)
+    csv, js = tmp_path / "sweep.csv", tmp_path / "diag.json"
+    sim.data.drop(columns=[c for c in sim.data if "_std_" in c]).to_csv(csv, index=False)
+    r = runner.invoke(app, ["diagnose", str(csv), "--json", str(js), "--current-noise-ma", "0.6",
+                            "--position-noise-um", "0.1"], env={"COLUMNS": "300"})
+    assert r.exit_code == 0, r.output
+    floor = json.loads(js.read_text())["noise_floor"]
+    assert floor["source"] == "current 0.6 mA declared; position 0.1 µm declared", floor
+    assert "current 0.6 mA declared" in r.output and "estimated" not in r.output.split("\n")[0]

@@ -24,6 +24,7 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
+from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 
 
 class Axis(str, Enum):
@@ -59,6 +60,8 @@ def solution_space_cmd(
                                                   "gap to each side).")] = None,
     step_um: Annotated[float | None, typer.Option(help="Grid step [µm] (default: 1, coarser beyond 401 points "
                                                   "per axis).")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -76,13 +79,14 @@ def solution_space_cmd(
     check_output(png)
     enable_compilation_cache()
     desc = bearing_of(bearing)
+    noise = declared_noise(current_noise_ma, position_noise_um)
     ds = read_data(data, desc, accept_implausible)
     with progress_bar(3) as bar:
         try:
             sub = ds.frame[ds.frame["axis"] == axis.value]
             bar.step("least squares")
             try:
-                res = fit.fit(sub, bearing=desc)
+                res = fit.fit(sub, bearing=desc, **noise)
             except fit.FitError as exc:
                 warn(f"least squares not shown: {exc}")
                 res = None
@@ -90,7 +94,7 @@ def solution_space_cmd(
             space = conditioning.solution_space(ds, axis.value, gap=pair(gap_um, 1e-6),
                                                 origin=pair(origin_um, 1e-6),
                                                 step=None if step_um is None else step_um * 1e-6, weights_at=res,
-                                                bearing=desc)
+                                                bearing=desc, **noise)
         except (DataError, ValueError) as exc:
             fail(str(exc))
         bar.step("drawing")
@@ -111,6 +115,8 @@ def design(
     max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
                                                         "estimated bearing centre [µm] (default: the bearing's "
                                                         "back-up clearance, less the origin's uncertainty).")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -127,10 +133,11 @@ def design(
     try:
         with progress_bar(2) as bar:
             bar.step("least squares")
-            res = fit.fit(ds, bearing=desc)
+            noise = declared_noise(current_noise_ma, position_noise_um)
+            res = fit.fit(ds, bearing=desc, **noise)
             bar.step("choosing steps")
             rec = design_mod.recommend(ds, n_steps=steps, target=target.value, criterion=criterion.value,
-                                       max_radius_um=max_radius_um, bearing=desc, result=res)
+                                       max_radius_um=max_radius_um, bearing=desc, result=res, **noise)
     except DataError as exc:
         fail(str(exc))
     except (fit.FitError, ValueError) as exc:
@@ -144,6 +151,8 @@ def design(
 def diagnose(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     bearing: BearingOption = None,
     accept_implausible: AcceptOption = False,
     pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
@@ -166,7 +175,8 @@ def diagnose(
     ds = read_data(data, desc, accept_implausible)
     try:
         with progress_bar() as bar:
-            dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict, progress=bar)
+            dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict, progress=bar,
+                               **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, ValueError, OSError) as exc:
         fail(str(exc))
     except FitError as exc:

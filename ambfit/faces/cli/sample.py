@@ -21,6 +21,7 @@ from ambfit.faces.cli.app import (
     read_data,
     write_json,
 )
+from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 
 
 @app.command()
@@ -42,6 +43,8 @@ def sample(
     gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
     seed: Annotated[int, typer.Option(help="Seed.")] = 0,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -62,7 +65,8 @@ def sample(
         prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
                                          gap_log_sd=gap_prior_log_sd)
         res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
-                           max_steps=max_steps, seed=seed, progress=progress and sys.stderr.isatty(), bearing=desc)
+                           max_steps=max_steps, seed=seed, progress=progress and sys.stderr.isatty(), bearing=desc,
+                           **declared_noise(current_noise_ma, position_noise_um))
     except DataError as exc:
         fail(str(exc))
     except fit.FitError as exc:

@@ -194,8 +194,10 @@ def _step(progress, name: str) -> None:
 
 
 def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
-              do_diagnosis, seed, progress=None) -> dict:
-    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON."""
+              do_diagnosis, seed, progress=None, noise=None) -> dict:
+    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON.
+    ``noise``: the declared ``sigma_i``/``sigma_x`` (:func:`data_report`)."""
+    noise = noise or {}
     from ambfit.estimation import bayes, closed_form, conditioning
     from ambfit.estimation import design as design_mod
 
@@ -209,7 +211,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
     def sample():
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
-                          bearing=bearing)
+                          bearing=bearing, **noise)
         record["bayes"] = sr.to_json()
         return posterior(sr)
 
@@ -219,7 +221,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
     spaces = {}
     for axis in ("v", "w"):
         try:
-            spaces[axis] = conditioning.solution_space(ds, axis, weights_at=res, bearing=bearing)
+            spaces[axis] = conditioning.solution_space(ds, axis, weights_at=res, bearing=bearing, **noise)
         except Exception as exc:  # noqa: BLE001 - the panel says why, the other axis still stands
             spaces[axis] = exc
     record["solution_space"] = {
@@ -230,7 +232,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
     def recommend():
         rec = design_mod.recommend(ds, n_steps=design_steps, target="g_v0", result=res, max_radius_um=max_radius_um,
-                                   bearing=bearing)
+                                   bearing=bearing, **noise)
         record["design"] = {k: v for k, v in rec.to_json().items() if k in ("std_now", "steps")}
         return design(rec, max_radius_um=max_radius_um)
 
@@ -240,7 +242,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
     def diagnose():
         from ambfit import diagnosis as gap
 
-        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress)
+        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress, **noise)
         record["diagnosis"] = dg.to_json()
         return diagnosis(dg)
 
@@ -251,13 +253,16 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
 def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
                 bearing=PAPER_BEARING, max_radius_um: float | None = None, do_posterior: bool = True,
-                do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None) -> tuple[Path, dict]:
+                do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None, sigma_i: float | None = None,
+                sigma_x: float | None = None) -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
     and ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the
     closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
     the page says why and the record's ``least_squares`` holds the ``error``.  ``progress``, if given, is
     called as ``progress("report: <section>", done, total)`` as each section starts (and by the diagnosis as
-    ``progress("candidate effects", done, total)``).
+    ``progress("candidate effects", done, total)``).  ``sigma_i`` [A] and ``sigma_x`` [m] declare the readings'
+    noise for every fit of the report (as in :func:`ambfit.estimation.fit.fit`; default: the std columns, else
+    estimated).
 
     Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
     """
@@ -272,7 +277,7 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
     sections = {"overview": overview(data_path, ds)}
     _step(progress, "least squares")
     try:
-        res = fit(ds, bearing=bearing)
+        res = fit(ds, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x)
     except FitError as exc:
         record["least_squares"] = {"error": str(exc)}
         sections["identification"] = failed("Least squares", exc)
@@ -280,7 +285,8 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
         record["least_squares"] = res.to_json()
         sections |= _sections(ds, res, record, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                               bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
-                              do_diagnosis=do_diagnosis, seed=seed, progress=progress)
+                              do_diagnosis=do_diagnosis, seed=seed, progress=progress,
+                              noise=dict(sigma_i=sigma_i, sigma_x=sigma_x))
     _step(progress, "writing")
     (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
     html_path = out / "index.html"
