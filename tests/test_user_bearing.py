@@ -87,6 +87,17 @@ def test_simulate_with_a_bearing_fits_to_its_gap(toml, tmp_path):
     assert 500 < g["value"] < 530, g
 
 
+def test_simulate_presets_fit_the_users_bearing(toml, tmp_path):
+    # the rich sweep spans two thirds of the back-up clearance (±40 µm on the paper's 60 µm): inside this 40 µm one
+    for preset in ("table2", "rich"):
+        r = runner.invoke(app, ["simulate", "-o", str(tmp_path / f"{preset}.csv"), "--preset", preset,
+                                "--bearing", str(toml)], env={"COLUMNS": "300"})
+        assert r.exit_code == 0 and "beyond" not in r.output, (preset, r.output)
+    df = pd.read_csv(tmp_path / "rich.csv")
+    r = np.hypot(df["v_set_um"] + 33.3, df["w_set_um"] - 11.3)
+    assert 30.0 < r.max() <= 40.0
+
+
 def _run_recommended(spec, steps: pd.DataFrame) -> P.Protocol:
     return P.concat(*(P.grid([(s.v_set_um * 1e-6, s.w_set_um * 1e-6)], [s.bias_A], loads=spec.loads,
                              iteration=i + 1) for i, s in enumerate(steps.itertuples())))

@@ -35,7 +35,8 @@ def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="CSV file to write (contract format).")],
     preset: Annotated[Preset, typer.Option(help="Protocol: 'table2' (paper's Table 2: 1.4/1.6 A, ±20 µm, "
                                            "10 iterations), 'rich' (biases 1.0-1.6 A up and down, "
-                                           "±40 µm, four known loads), or 'perturbation' (built from "
+                                           "± two thirds of the back-up clearance (40 µm on the paper's rig), "
+                                           "four known loads), or 'perturbation' (built from "
                                            "--biases-a/--offsets-um/--iterations); each centred on "
                                            "--center-um.")] = Preset.table2,
     protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset): "
@@ -96,7 +97,8 @@ def simulate(
         elif preset is Preset.table2:
             proto = proto_mod.paper_table2(iterations, center=center, loads=spec.loads)
         elif preset is Preset.rich:
-            proto = proto_mod.rich(center=center, rotor_kg=desc.rotor_mass)
+            # ±40 µm on the paper's 60 µm clearance: two thirds of the bearing's, so the sweep stays within it
+            proto = proto_mod.rich(center=center, rotor_kg=desc.rotor_mass, span=desc.backup_clearance * 2 / 3)
         else:
             proto = proto_mod.perturbation(
                 [float(b) for b in biases_a.split(",")], [float(o) * 1e-6 for o in offsets_um.split(",")],
