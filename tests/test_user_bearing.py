@@ -138,7 +138,9 @@ def test_design_command_on_the_users_bearing_passes_simulate(toml, data, spec, t
     data.to_csv(csv, index=False)
     r = runner.invoke(app, ["design", str(csv), "--bearing", str(toml), "--steps", "4", "--json", str(js)])
     assert r.exit_code == 0, r.output
-    steps = pd.DataFrame(json.loads(js.read_text())["steps"])
+    record = json.loads(js.read_text())
+    steps = pd.DataFrame(record["steps"])
+    assert record["bearing_centre_um"] == pytest.approx([-33.3, 11.3], abs=1.0) and record["max_distance_um"] < 40
     plan = tmp_path / "next.toml"
     plan.write_text("".join(f'[[block]]\nkind = "grid"\npoints_um = [[{s.v_set_um}, {s.w_set_um}]]\n'
                             f"biases_A = [{s.bias_A}]\n" for s in steps.itertuples()))

@@ -69,8 +69,11 @@ class Recommendation:
                 for i, r in enumerate(self.steps.itertuples(), 1)]
 
     def to_json(self) -> dict:
-        return {"target": self.target, "criterion": self.criterion, "std_now": self.std_now,
-                "steps": self.steps.to_dict(orient="records")}
+        out = {"target": self.target, "criterion": self.criterion, "std_now": self.std_now,
+               "steps": self.steps.to_dict(orient="records")}
+        if self.centre_um is not None:      # where the limits were measured from, and how far a set-point may go
+            out |= {"bearing_centre_um": list(self.centre_um), "max_distance_um": self.radius_um}
+        return out
 
     def to_dataframe(self) -> pd.DataFrame:
         return self.steps.copy()
