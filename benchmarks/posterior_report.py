@@ -92,9 +92,9 @@ def main():
         parts += [P.grid([(d, d)], [1.4, 1.6], load=lid, loads={lid: P.Load.gravity(1.0, known=False)}, iteration=i,
                          experiment="fig2") for i in range(1, 11)]
     first = rig.simulate(rig.PAPER_RIG, P.concat(*parts), seed=7).data
-    sp_first = conditioning.solution_space(first, "v", weights_at=None)
+    sp_first = conditioning.solution_space(first, "v", weights_at=None, **conditioning.PAPER_FIG2)
     t0 = time.perf_counter()
-    sp_first = conditioning.solution_space(first, "v", weights_at=None)
+    sp_first = conditioning.solution_space(first, "v", weights_at=None, **conditioning.PAPER_FIG2)
     t_grid = time.perf_counter() - t0
     try:
         ls_first = fit.fit(first)

@@ -34,7 +34,7 @@ from ambfit.studies.paper import fig2_data
 
 # %%
 first = fig2_data(seed=7)
-space = conditioning.solution_space(first, "v")
+space = conditioning.solution_space(first, "v", **conditioning.PAPER_FIG2)   # the paper's axes
 ls = ambfit.fit(first)
 print(f"g_v0 = {ls.value('g_v0') * 1e6:.0f} ± {ls.error('g_v0') * 1e6:.0f} µm, v0 = {ls.value('v0') * 1e6:.1f} ± "
       f"{ls.error('v0') * 1e6:.1f} µm, correlation {ls.corr[ls.names.index('g_v0'), ls.names.index('v0')]:+.3f}")

@@ -71,7 +71,7 @@ def test_predictive_force(short_run):
 
 def test_solution_space_grid_and_minimum(table2):
     res = fit.fit(table2)
-    space = conditioning.solution_space(table2, "v", weights_at=res)
+    space = conditioning.solution_space(table2, "v", weights_at=res, **conditioning.PAPER_FIG2)
     assert space.chi2.shape == (401, 201)          # the paper's Fig. 2 axes at 1 µm
     g, x = space.minimum
     assert abs(g - res.value("g_v0")) <= 1e-6 and abs(x - res.value("v0")) <= 1e-6

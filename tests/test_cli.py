@@ -188,8 +188,9 @@ def test_check_passes_a_good_file_and_names_duplicates(tmp_path):
 
 
 def test_design_stays_inside_the_bearings_clearance_and_current_limit(tmp_path):
-    # a bearing with a 30 µm back-up clearance and a 1.5 A coil limit: no recommended set-point lies beyond
-    # 30 µm from the sensor origin, no bias reaches 1.5 A
+    # a bearing with a 30 µm back-up clearance and a 1.5 A coil limit: no recommended set-point puts the rotor
+    # beyond 30 µm from the bearing centre (the estimated one, at the sensor reading (-v0, -w0)), no bias or
+    # predicted coil current exceeds 1.5 A
     bearing = tmp_path / "b.toml"
     bearing.write_text("backup_clearance_um = 30.0\nmax_current_A = 1.5\n")
     js = tmp_path / "rec.json"
@@ -202,8 +203,8 @@ def test_design_stays_inside_the_bearings_clearance_and_current_limit(tmp_path):
     assert r.exit_code == 0, r.output
     steps = json.loads(js.read_text())["steps"]
     assert len(steps) == 4
-    for s in steps:
-        assert (s["v_set_um"] ** 2 + s["w_set_um"] ** 2) ** 0.5 <= 30.0 and s["bias_A"] < 1.5, s
+    for s in steps:   # the data's origin is (33.3, -11.3) µm to well under a µm
+        assert ((s["v_set_um"] + 33.3) ** 2 + (s["w_set_um"] - 11.3) ** 2) ** 0.5 <= 30.0 and s["bias_A"] < 1.5, s
 
 
 def test_simulate_presets_stay_inside_the_bearings_limits(tmp_path):

@@ -108,8 +108,11 @@ def test_design_stays_within_the_back_up_bearing(tmp_path):
     from ambfit.data import read_csv
     from ambfit.estimation import design
 
+    # the distance is the rotor's from the bearing centre: the set-point plus the estimated origin
     rec = design.recommend(read_csv(ROOT / "data" / "paper_table2.csv"), n_steps=4, max_radius_um=50.0)
-    assert (np.hypot(rec.steps["v_set_um"], rec.steps["w_set_um"]) <= 50.0).all()
+    centre = rec.centre_um
+    assert (np.hypot(rec.steps["v_set_um"] - centre[0], rec.steps["w_set_um"] - centre[1]) <= 50.0).all()
+    assert centre == pytest.approx((-33.3, 11.3), abs=1.0)
 
 
 def test_table2_trend_is_the_least_squares_slope(rep):

@@ -138,13 +138,17 @@ def test_design_section_describes_the_grid_it_chose_from(data, ls):
     text = plain(html)
     assert expanded(html)
     assert f"A-optimal choice for g_v0 (now ± {rec.std_now * 1e6:.3g} µm)" in text
-    assert "set-points ±30 µm" in text and "biases 1-1.5 A" in text and "kept within" not in text
+    assert "set-points ±30 µm" in text and "biases 1-1.5 A" in text
+    assert f"kept within {rec.radius_um:.3g} µm of it" in text
     after = rec.steps["predicted_std_after"].iloc[-1] * 1e6
     assert "g_v0 std after [µm]" in html and f"<td>{after:.2f}</td>" in html
-    # without a grid: the one recommend() uses by default
+    # without a grid: the one recommend() chose from, the bearing's default cut to its limits
+    rec = design.recommend(data, n_steps=2, result=ls)
     text = plain(section(DATA, "design", dataset.design(rec, max_radius_um=45.0)))
-    assert "set-points ±50 µm" in text and "kept within 45 µm of the sensor origin" in text
+    assert "set-points ±50 µm" in text and "kept within 45 µm of it" in text
     assert "biases 0.8-1.8 A" in text
+    text = plain(section(DATA, "design", dataset.design(rec)))
+    assert f"kept within {rec.radius_um:.3g} µm of it" in text and 55 < rec.radius_um < 60
 
 
 @pytest.fixture(scope="module")
@@ -242,7 +246,8 @@ def test_data_report_skips_sections_on_request(tmp_path):
                                     do_diagnosis=False)
     page = path.read_text()
     assert expanded(page) and _self_contained(page)
-    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "design"}
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "solution_space", "design"}
+    assert {ax: m["on_edge"] for ax, m in rec["solution_space"].items()} == {"v": False, "w": False}
     assert json.loads((tmp_path / "r" / "report.json").read_text())["n_rows"] == rec["n_rows"] == 80
     assert "Skipped (--no-posterior)." in page and "Skipped (--no-diagnosis)." in page
     assert f"reduced χ² {rec['least_squares']['reduced_chi2']:.3f}" in page
@@ -263,7 +268,8 @@ def test_data_report_cli_writes_all_sections(tmp_path):
     assert page.count("<img") >= 3
     assert expanded(page)
     rec = json.loads((out / "report.json").read_text())
-    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "design", "diagnosis"}
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "solution_space", "design",
+                        "diagnosis"}
     assert f"Verdict: <b>{rec['diagnosis']['verdict']}</b>" in page
     assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
 

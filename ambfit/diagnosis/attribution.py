@@ -33,9 +33,9 @@ def default_candidates(data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> 
     """Every contract effect; plus the magnetic circuit of the whole bearing when the bearing description gives
     the lamination's B-H curve and every row has the other axis' currents read at the same moment."""
     from ambfit.data import other_axis_currents
-    from ambfit.physics.effects import EFFECTS, MagneticCircuit
+    from ambfit.physics.effects import EFFECTS, MagneticCircuit, effect_by_name
 
-    cands = [cls() for cls in EFFECTS.values()]
+    cands = [effect_by_name(name, bearing=bearing) for name in EFFECTS]
     if bearing.b_curve and np.isfinite(other_axis_currents(data)[0]).all():
         cands.append(MagneticCircuit())
     return cands

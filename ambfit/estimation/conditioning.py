@@ -48,19 +48,38 @@ class SolutionSpace:
     chi2: np.ndarray
     rms: np.ndarray
     n_rows: int
+    widened: int = 0
 
     @property
     def minimum(self) -> tuple[float, float]:
         i, j = np.unravel_index(np.nanargmin(self.chi2), self.chi2.shape)
         return float(self.gap[i]), float(self.origin[j])
 
+    @property
+    def on_edge(self) -> bool:
+        """The minimum lies on the grid's boundary: the valley runs beyond the grid and the true minimum may
+        lie outside it (widen the ranges)."""
+        i, j = np.unravel_index(np.nanargmin(self.chi2), self.chi2.shape)
+        return bool(i in (0, len(self.gap) - 1) or j in (0, len(self.origin) - 1))
+
+    def edge_text(self) -> str:
+        """What the minimum on the edge means and what to do; empty when it is inside."""
+        if not self.on_edge:
+            return ""
+        tried = f" (after widening the grid {self.widened} times)" if self.widened else ""
+        return (f"axis {self.axis}: the minimum lies on the edge of the grid (gap {self.gap[0] * 1e6:.0f}-"
+                f"{self.gap[-1] * 1e6:.0f} µm, origin {self.origin[0] * 1e6:.0f}-{self.origin[-1] * 1e6:.0f} µm)"
+                f"{tried}: the valley runs beyond it, so the map does not show the best fit; give wider ranges")
+
     def delta_chi2(self) -> np.ndarray:
         return self.chi2 - np.nanmin(self.chi2)
 
     def summary(self) -> str:
         gm, xm = self.minimum
-        return (f"grid {self.chi2.shape[0]} x {self.chi2.shape[1]} (axis {self.axis}, {self.n_rows} rows); minimum at "
-                f"gap {gm * 1e6:.1f} µm, origin {xm * 1e6:.1f} µm")
+        text = (f"grid {self.chi2.shape[0]} x {self.chi2.shape[1]} (axis {self.axis}, {self.n_rows} rows, gap "
+                f"{self.gap[0] * 1e6:.0f}-{self.gap[-1] * 1e6:.0f} µm, origin {self.origin[0] * 1e6:.0f}-"
+                f"{self.origin[-1] * 1e6:.0f} µm); minimum at gap {gm * 1e6:.1f} µm, origin {xm * 1e6:.1f} µm")
+        return text + ("; ON THE GRID'S EDGE" if self.on_edge else "")
 
     __str__ = summary
 
@@ -87,12 +106,47 @@ def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, cos_alpha):
     return chi2, ms
 
 
-def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6, 1000e-6), origin=(-100e-6, 100e-6),
-                   step: float = 1e-6, weights_at=None, bearing: Bearing = PAPER_BEARING, **noise) -> SolutionSpace:
-    """χ² map of one axis over a (gap, origin) grid (defaults: the paper's Fig. 2 axes, 1 µm steps).
+PAPER_FIG2 = {"gap": (600e-6, 1000e-6), "origin": (-100e-6, 100e-6)}
+"""The axes of the paper's Fig. 2 [m] (its 762 µm rig): ``solution_space(data, **PAPER_FIG2)``."""
+
+GRID_SIGMAS = 10.0
+"""The default grid reaches at least this many standard errors of the fit on each side."""
+
+GRID_GAP_FRACTIONS = (0.25, 0.125)
+"""...and at least these fractions of the gap on each side, for the gap and the origin: the paper's Fig. 2
+(±200 µm of gap, ±100 µm of origin about a 775 µm gap), so that the valley shows."""
+
+GRID_POINTS = 401
+"""Largest number of grid points along an axis by default (the step grows beyond 1 µm on wide grids)."""
+
+MAX_WIDENINGS = 3
+"""How often the default grid is doubled about its minimum while that minimum lies on its edge."""
+
+
+def _default_ranges(g_hat: float, x_hat: float, sd_g: float, sd_x: float) -> tuple[tuple, tuple]:
+    """Gap and origin ranges [m] centred on ``(g_hat, x_hat)``: ``GRID_SIGMAS`` standard errors or
+    ``GRID_GAP_FRACTIONS`` of the gap on each side, whichever is wider."""
+    half = [max(GRID_SIGMAS * sd if np.isfinite(sd) else 0.0, f * g_hat) for sd, f in zip((sd_g, sd_x),
+                                                                                          GRID_GAP_FRACTIONS)]
+    return (g_hat - half[0], g_hat + half[0]), (x_hat - half[1], x_hat + half[1])
+
+
+def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=None, origin=None,
+                   step: float | None = None, weights_at=None, bearing: Bearing = PAPER_BEARING,
+                   **noise) -> SolutionSpace:
+    """χ² map of one axis over a (gap, origin) grid.
+
+    ``gap`` and ``origin``: ranges ``(low, high)`` [m]; by default centred on the least-squares estimate (the
+    bearing's nominal gap and origin 0 when the fit fails), ``GRID_SIGMAS`` standard errors or
+    ``GRID_GAP_FRACTIONS`` of the gap to each side, whichever is wider, and doubled about the minimum (up to
+    ``MAX_WIDENINGS`` times) while the minimum lies on the grid's edge.  Given ranges are mapped as they are.
+    Either way :attr:`SolutionSpace.on_edge` says whether the minimum lies on the edge.  ``step`` [m]: the grid
+    step (default 1 µm, coarser when an axis would have more than ``GRID_POINTS`` points).  The paper's
+    Fig. 2 axes: ``**PAPER_FIG2``.
 
     ``weights_at``: a :class:`ambfit.FitResult` whose optimum fixes the
-    effective-variance weights; default: fit the data first.
+    effective-variance weights and centres the default grid; default: fit the data first.
+    ``noise``: ``sigma_i`` [A] and ``sigma_x`` [m], as in :func:`ambfit.estimation.fit.fit`.
     """
     from ambfit.estimation.fit import FitError, fit
 
@@ -109,10 +163,13 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
             res = fit(sub, bearing=bearing, **noise)
         except FitError:  # unidentifiable designs still have a map: weight at the nominal point
             res = None
+    sd_g = sd_x = np.nan
     if res is not None:
         vals = dict(zip(res.names, res.values))
         g_hat, x_hat = vals.get(f"g_{axis}0", bearing.nominal_gap), vals.get(f"{axis}0", 0.0)
         k_hat = vals.get(f"k_{axis}", K_REFERENCE)
+        if f"g_{axis}0" in res.names and f"{axis}0" in res.names:
+            sd_g, sd_x = res.error(f"g_{axis}0"), res.error(f"{axis}0")
     else:
         g_hat, x_hat, k_hat = bearing.nominal_gap, 0.0, K_REFERENCE
     g_pair, x_pair, k_pair = np.full(2, g_hat), np.full(2, x_hat), np.full(2, k_hat)
@@ -124,16 +181,36 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
         th = to_theta(g_pair, x_pair, k_pair, loads)
     s = np.asarray(misfit(jnp.asarray(th), prob, model)[1])
     w = 1.0 / s**2
-    gs = np.arange(gap[0], gap[1] + step / 2, step)
-    xs = np.arange(origin[0], origin[1] + step / 2, step)
     gidx = np.asarray(prob.gidx)
     onehot = np.zeros((len(sub), max(prob.n_loads, 1)))
     if prob.n_loads:
         onehot[gidx >= 0, gidx[gidx >= 0]] = 1.0
-    chi2, ms = _grid_chi2(jnp.asarray(gs), jnp.asarray(xs), prob.x, prob.i_top, prob.i_bottom, jnp.asarray(w),
-                          prob.load, prob.known.astype(float), jnp.asarray(onehot), K_REFERENCE, bearing.cos_alpha)
-    return SolutionSpace(axis=axis, gap=gs, origin=xs, chi2=np.asarray(chi2), rms=np.sqrt(np.asarray(ms)),
-                         n_rows=len(sub))
+
+    def grid(gap, origin):
+        d = step if step is not None else max(1e-6, (gap[1] - gap[0]) / (GRID_POINTS - 1),
+                                              (origin[1] - origin[0]) / (GRID_POINTS - 1))
+        gs = np.arange(max(gap[0], d), gap[1] + d / 2, d)      # a gap is positive
+        xs = np.arange(origin[0], origin[1] + d / 2, d)
+        chi2, ms = _grid_chi2(jnp.asarray(gs), jnp.asarray(xs), prob.x, prob.i_top, prob.i_bottom, jnp.asarray(w),
+                              prob.load, prob.known.astype(float), jnp.asarray(onehot), K_REFERENCE,
+                              bearing.cos_alpha)
+        if not np.isfinite(np.asarray(chi2)).any():
+            raise ValueError(f"axis {axis}: no point of the grid (gap {gap[0] * 1e6:.0f}-{gap[1] * 1e6:.0f} µm, "
+                             f"origin {origin[0] * 1e6:.0f}-{origin[1] * 1e6:.0f} µm) keeps the readings' "
+                             "positions inside the gap")
+        return gs, xs, np.asarray(chi2), np.sqrt(np.asarray(ms))
+
+    fixed = gap is not None or origin is not None
+    auto_gap, auto_origin = _default_ranges(g_hat, x_hat, sd_g, sd_x)
+    gap, origin = gap or auto_gap, origin or auto_origin
+    widened = 0
+    while True:
+        space = SolutionSpace(axis, *grid(gap, origin), n_rows=len(sub), widened=widened)
+        if fixed or not space.on_edge or widened == MAX_WIDENINGS:
+            return space
+        (gm, xm), widened = space.minimum, widened + 1
+        gap = (gm - (gap[1] - gap[0]), gm + (gap[1] - gap[0]))
+        origin = (xm - (origin[1] - origin[0]), xm + (origin[1] - origin[0]))
 
 
 def weakest_direction(result, axis: str = "v") -> np.ndarray:

@@ -39,12 +39,19 @@ from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
 @dataclasses.dataclass(frozen=True)
 class Recommendation:
-    """Steps to run next, in order, with the predicted standard error of the target after each."""
+    """Steps to run next, in order, with the predicted standard error of the target after each.
+
+    ``candidates``: the steps chosen from (within the bearing's limits); ``centre_um``: the estimated bearing
+    centre in sensor coordinates [µm]; ``radius_um``: how far from it a set-point may lie [µm].
+    """
 
     steps: pd.DataFrame
     target: str
     std_now: float
     criterion: str
+    candidates: pd.DataFrame | None = None
+    centre_um: tuple[float, float] | None = None
+    radius_um: float | None = None
 
     def _unit(self) -> tuple[float, str]:
         return (1e6, "µm") if self.target[0] in "gvw" else (1.0, "N·m²/A²")
@@ -57,13 +64,16 @@ class Recommendation:
     def display_rows(self) -> list[dict]:
         """One ``{column: text}`` row per recommended step."""
         f, unit = self._unit()
-        return [{"#": str(i), "v set [µm]": f"{r.v_set_um:.0f}", "w set [µm]": f"{r.w_set_um:.0f}",
+        return [{"#": str(i), "v set [µm]": f"{r.v_set_um:.1f}", "w set [µm]": f"{r.w_set_um:.1f}",
                  "bias [A]": f"{r.bias_A:.2f}", f"{self.target} std after [{unit}]": f"{r.predicted_std_after * f:.3g}"}
                 for i, r in enumerate(self.steps.itertuples(), 1)]
 
     def to_json(self) -> dict:
-        return {"target": self.target, "criterion": self.criterion, "std_now": self.std_now,
-                "steps": self.steps.to_dict(orient="records")}
+        out = {"target": self.target, "criterion": self.criterion, "std_now": self.std_now,
+               "steps": self.steps.to_dict(orient="records")}
+        if self.centre_um is not None:      # where the limits were measured from, and how far a set-point may go
+            out |= {"bearing_centre_um": list(self.centre_um), "max_distance_um": self.radius_um}
+        return out
 
     def to_dataframe(self) -> pd.DataFrame:
         return self.steps.copy()
@@ -75,9 +85,31 @@ class Recommendation:
     __str__ = summary
 
 
-def candidate_steps(center_um=(0.0, 0.0), offsets_um: Sequence[float] = tuple(range(-50, 51, 10)),
-                    biases_A: Sequence[float] = (0.8, 1.0, 1.2, 1.4, 1.6, 1.8)) -> pd.DataFrame:
-    """Candidate steps: set-points ``center + (dv, dw)`` for every pair of offsets [µm], at every bias [A]."""
+OFFSET_FRACTIONS = tuple(k / 6 for k in range(-5, 6))
+"""Candidate set-point offsets on each axis as fractions of the back-up clearance: on the paper's rig (60 µm)
+the ±50 µm grid in 10 µm steps."""
+
+BIAS_FRACTIONS = tuple(k / 15 for k in range(4, 10))
+"""Candidate biases as fractions of the coil current limit: 0.8-1.8 A in 0.2 A steps on the paper's 3 A rig,
+leaving the control current 40 % of the limit."""
+
+ORIGIN_MARGIN_SIGMAS = 3.0
+"""Candidates keep this many standard errors of the estimated origin (in its worst direction) inside the
+back-up clearance: the clearance is measured from the bearing centre, which the design knows only through the
+estimated origin, the rig through the true one."""
+
+
+def candidate_steps(center_um=(0.0, 0.0), offsets_um: Sequence[float] | None = None,
+                    biases_A: Sequence[float] | None = None, *, bearing: Bearing = PAPER_BEARING) -> pd.DataFrame:
+    """Candidate steps: set-points ``center + (dv, dw)`` for every pair of offsets [µm], at every bias [A].
+
+    Defaults scale with the bearing: offsets :data:`OFFSET_FRACTIONS` of its back-up clearance (rounded to
+    0.1 µm), biases :data:`BIAS_FRACTIONS` of its coil current limit (rounded to 0.01 A).
+    """
+    if offsets_um is None:
+        offsets_um = [round(bearing.backup_clearance * 1e6 * f, 1) for f in OFFSET_FRACTIONS]
+    if biases_A is None:
+        biases_A = [round(bearing.max_current * f, 2) for f in BIAS_FRACTIONS]
     rows = [{"v_set_um": center_um[0] + dv, "w_set_um": center_um[1] + dw, "bias_A": b}
             for dv in offsets_um for dw in offsets_um for b in biases_A]
     return pd.DataFrame(rows)
@@ -96,11 +128,12 @@ def _rows_for(steps: pd.DataFrame, template: pd.Series, load_by_axis: dict, std:
     return pd.DataFrame(out)
 
 
-def _information_rows(res: FitResult, df: pd.DataFrame) -> tuple[np.ndarray, list]:
-    """Per-row Jacobian (SI parameter units) of the standardized residuals at the estimate, for ``df``."""
+def _information_rows(res: FitResult, df: pd.DataFrame, **noise) -> tuple[np.ndarray, list, np.ndarray]:
+    """Per-row Jacobian (SI parameter units) of the standardized residuals at the estimate, for ``df``, and the
+    model's coil currents there, array[n, 2] (top, bottom) [A]."""
     from ambfit.estimation.debias import model_currents
 
-    prob, meta = build_problem(df)
+    prob, meta = build_problem(df, **noise)
     model = Model.of((), res.bearing)
     vals = dict(zip(res.names, res.values))
     nominal = res.bearing.nominal_gap
@@ -113,39 +146,51 @@ def _information_rows(res: FitResult, df: pd.DataFrame) -> tuple[np.ndarray, lis
     prob = prob.with_readings(it, ib, prob.x)
     free = free_mask(prob, meta)
     j = np.asarray(jacobian(th, prob, model))[:, free] / param_scale(prob.n_loads)[free]
-    return j, free_names(meta, free)
+    return j, free_names(meta, free), np.stack([np.asarray(it), np.asarray(ib)], axis=-1)
 
 
 def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.DataFrame | None = None,
               target: str = "g_v0", criterion: str = "A", result: FitResult | None = None,
-              max_radius_um: float | None = None, bearing: Bearing = PAPER_BEARING) -> Recommendation:
+              max_radius_um: float | None = None, bearing: Bearing = PAPER_BEARING, sigma_i: float | None = None,
+              sigma_x: float | None = None) -> Recommendation:
     """Greedy A- (variance of ``target``) or D-optimal (log det of gap/origin information) next steps.
 
-    ``candidates`` has columns ``v_set_um``, ``w_set_um``, ``bias_A``; default: a grid of
-    ±50 µm around the estimated effective origin at biases 0.8-1.8 A.  Candidate rows
-    carry the data's most common load group (its known value, or its fitted value).
-    ``max_radius_um`` drops candidates farther than that from the sensor origin; by default the
-    bearing's back-up clearance (60 µm on the paper's rig): a set-point beyond it would put the rotor
-    on the back-up bearing.  Candidate biases at or above the bearing's coil current limit are
-    dropped too.  The bearing is the fit's (``result``) when one is given.
+    ``candidates`` has columns ``v_set_um``, ``w_set_um``, ``bias_A``; default: :func:`candidate_steps` of the
+    bearing (offsets a fraction of its back-up clearance, biases a fraction of its coil current limit) around
+    the estimated bearing centre ``(-v0, -w0)``.  Candidate rows carry the data's most common load group (its
+    known value, or its fitted value).  Only candidates within the bearing's limits are chosen from
+    (:func:`ambfit.rig.limits.step_limits`, the rule ``ambfit simulate`` applies): the rotor within the back-up
+    clearance of the bearing centre (the estimated one, less :data:`ORIGIN_MARGIN_SIGMAS` standard errors of the
+    origin; ``max_radius_um`` [µm] tightens the clearance), the bias and the coil currents the model predicts
+    at the estimate within the coil current limit.  The bearing is the fit's (``result``) when one is given.
+    ``sigma_i`` [A] and ``sigma_x`` [m] declare the readings' noise (as in :func:`ambfit.estimation.fit.fit`)
+    for the fit and the candidates.
     """
+    from ambfit.rig.limits import step_limits
+
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
-    res = result or fit(df, bearing=bearing)
+    res = result or fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x)
     bearing = res.bearing
-    if max_radius_um is None:
-        max_radius_um = bearing.backup_clearance * 1e6
     if target not in res.names:
         raise ValueError(f"target {target!r} is not estimated here; choose one of {res.names}")
+    origin = np.array([res.value(n) if n in res.names else 0.0 for n in ("v0", "w0")])
+    idx = [res.names.index(n) for n in ("v0", "w0") if n in res.names]
+    cov = np.asarray(res.cov)[np.ix_(idx, idx)]
+    margin = ORIGIN_MARGIN_SIGMAS * float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if idx else 0.0
+    if max_radius_um is not None:
+        bearing = bearing.with_(backup_clearance=min(bearing.backup_clearance, max_radius_um * 1e-6))
     if candidates is None:
-        centre = (-res.value("v0") * 1e6 if "v0" in res.names else 0.0,
-                  -res.value("w0") * 1e6 if "w0" in res.names else 0.0)
-        candidates = candidate_steps(tuple(round(c) for c in centre))
+        candidates = candidate_steps(tuple(round(-c * 1e6) for c in origin), bearing=bearing)
     # keep the rotor off the back-up bearing and the coils below their current limit
-    r = np.hypot(candidates["v_set_um"], candidates["w_set_um"])
-    candidates = candidates[(r <= max_radius_um) & (candidates["bias_A"] < bearing.max_current)].reset_index(drop=True)
+    limits = step_limits(candidates[["v_set_um", "w_set_um"]].to_numpy(float) * 1e-6,
+                         candidates["bias_A"].to_numpy(float), origin, bearing, margin=margin)
+    candidates = candidates[limits.ok].reset_index(drop=True)
+    within = (f"within {(bearing.backup_clearance - margin) * 1e6:.3g} µm of the estimated bearing centre "
+              f"({-origin[0] * 1e6:.1f}, {-origin[1] * 1e6:.1f}) µm (the back-up clearance of "
+              f"{bearing.backup_clearance * 1e6:.3g} µm less {margin * 1e6:.2g} µm for the origin's uncertainty) "
+              f"with a bias within the {bearing.max_current:g} A coil current limit")
     if candidates.empty:
-        raise ValueError(f"no candidate set-point lies within {max_radius_um:g} µm of the sensor origin with a bias "
-                         f"below the {bearing.max_current:g} A current limit")
+        raise ValueError(f"no candidate set-point lies {within}")
     groups = load_groups(df)
     main = groups.str.rsplit("|", n=1).str[0].mode().iloc[0]
     template = df[groups.str.startswith(main + "|")].iloc[0].copy()
@@ -157,12 +202,23 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
         sel = (groups == f"{main}|{ax}") if "load_id" in df.columns else (df["axis"] == ax)
         known = df.loc[sel, "load_N"].dropna() if "load_N" in df.columns else pd.Series(dtype=float)
         load_by_axis[ax] = (float(known.iloc[0]) if len(known) else np.nan, len(known) > 0)
-    std = {"i": float(np.nanmedian(df["i_top_std_A"])) if "i_top_std_A" in df else 1e-3,
-           "x_um": float(np.nanmedian(df["v_std_um"])) if "v_std_um" in df else 0.1}
+    std = {"i": sigma_i if sigma_i is not None else
+           float(np.nanmedian(df["i_top_std_A"])) if "i_top_std_A" in df else 1e-3,
+           "x_um": sigma_x * 1e6 if sigma_x is not None else
+           float(np.nanmedian(df["v_std_um"])) if "v_std_um" in df else 0.1}
     cand_rows = _rows_for(candidates, template, load_by_axis, std)
     both = pd.concat([df, cand_rows], ignore_index=True)
-    j, names = _information_rows(res, both)
+    j, names, currents = _information_rows(res, both, sigma_i=sigma_i, sigma_x=sigma_x)
     n0 = len(df)
+    # the coil currents the model predicts for each candidate step, array[c, 2 axes, 2 coils]
+    predicted = step_limits(candidates[["v_set_um", "w_set_um"]].to_numpy(float) * 1e-6,
+                            candidates["bias_A"].to_numpy(float), origin, bearing,
+                            currents[n0:].reshape(len(candidates), 2, 2), margin=margin)
+    keep = np.flatnonzero(predicted.ok)
+    if keep.size == 0:
+        raise ValueError(f"no candidate step keeps the predicted coil currents {within}")
+    candidates = candidates.iloc[keep].reset_index(drop=True)
+    j = np.concatenate([j[:n0], j[n0:].reshape(-1, 2, j.shape[1])[keep].reshape(-1, j.shape[1])])
     info = j[:n0].T @ j[:n0]
     jc = j[n0:].reshape(len(candidates), 2, -1)          # one step = two rows (v, w)
     step_info = np.einsum("cri,crj->cij", jc, jc)
@@ -183,4 +239,6 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
         info = info + step_info[c]
         chosen.append(c)
         out.append({**candidates.iloc[c].to_dict(), "predicted_std_after": float(np.sqrt(np.linalg.pinv(info)[t, t]))})
-    return Recommendation(steps=pd.DataFrame(out), target=target, std_now=std_now, criterion=criterion)
+    return Recommendation(steps=pd.DataFrame(out), target=target, std_now=std_now, criterion=criterion,
+                          candidates=candidates, centre_um=(-origin[0] * 1e6, -origin[1] * 1e6),
+                          radius_um=(bearing.backup_clearance - margin) * 1e6)

@@ -68,6 +68,9 @@ class Bearing:
         Relative calibration tolerances of the position sensors and current channels.
     bore_diameter : float
         Stator bore [m].
+    rotor_mass : float
+        Share of the rotor's weight this bearing carries [kg] (the virtual rig's static load, carried by
+        axes at ±45° from vertical; 1 kg on the paper's rig, an assumption: the paper does not print it).
     b_curve, h_curve : tuple of float
         Lamination B-H curve, B ascending [T] and H [A/m]; empty when unknown.
     extra_keys : tuple of str
@@ -97,6 +100,7 @@ class Bearing:
     position_gain_tolerance: float = 0.0025
     current_gain_tolerance: float = 0.001
     bore_diameter: float = 35e-3
+    rotor_mass: float = 1.0
     b_curve: tuple = ()
     h_curve: tuple = ()
     extra_keys: tuple = ()
@@ -109,6 +113,8 @@ class Bearing:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise BearingError(f"{name} must be a positive number, got {value!r}")
+        if not (isinstance(self.rotor_mass, (int, float)) and math.isfinite(self.rotor_mass) and self.rotor_mass >= 0):
+            raise BearingError(f"rotor_mass must be a number >= 0 [kg], got {self.rotor_mass!r}")
 
     # --- derived quantities -------------------------------------------------------------------------------
 
@@ -201,7 +207,8 @@ class Bearing:
                  "max_current_A": ("max_current", float), "iron_path_mm": ("iron_path", lambda v: v * 1e-3),
                  "lamination": ("lamination", float), "position_gain_tolerance": ("position_gain_tolerance", float),
                  "current_gain_tolerance": ("current_gain_tolerance", float),
-                 "bore_diameter_mm": ("bore_diameter", lambda v: v * 1e-3)}
+                 "bore_diameter_mm": ("bore_diameter", lambda v: v * 1e-3),
+                 "rotor_mass_kg": ("rotor_mass", float)}
         kw = {}
         if "name" in d:
             kw["name"] = str(d.pop("name"))

@@ -89,6 +89,9 @@ class Effect(eqx.Module):
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {}
     SIGNED: ClassVar[tuple[str, ...]] = ()
     UNITS: ClassVar[dict[str, str]] = {}
+    FROM_BEARING: ClassVar[dict[str, str]] = {}
+    """Fields whose default is a fact of the bearing description: ``{field: Bearing attribute}``
+    (:func:`ambfit.physics.effects.effect_by_name` fills them from the bearing it is given)."""
     stateful: ClassVar[bool] = False
 
     def ranges(self) -> dict[str, tuple[float, float]]:

@@ -19,6 +19,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from ambfit.physics.bearing import PAPER_BEARING
+
 G_STANDARD = 9.80665
 """Standard gravity [m/s^2]."""
 
@@ -124,8 +126,15 @@ def _build(parts: Sequence[dict], loads, assemblies=None, dwell_s=5.0) -> Protoc
     return Protocol(**cat, loads=dict(loads), assemblies=dict(assemblies or {0: (0.0, 0.0)}), dwell_s=dwell_s)
 
 
-DEFAULT_LOADS = {"rotor": Load.gravity(1.0, known=True)}
-"""The default static load: a 1 kg rotor share, known, supported by axes at ±45° from vertical (about 6.9 N each)."""
+def rotor_loads(mass_kg: float = PAPER_BEARING.rotor_mass) -> dict[str, Load]:
+    """The static load ``"rotor"``: a known rotor weight share ``mass_kg`` [kg] (a bearing description's
+    ``rotor_mass``), supported by axes at ±45° from vertical."""
+    return {"rotor": Load.gravity(mass_kg, known=True)}
+
+
+DEFAULT_LOADS = rotor_loads()
+"""The default static load: the paper rig's 1 kg rotor share, known, supported by axes at ±45° from vertical
+(about 6.9 N each)."""
 
 
 def perturbation(
@@ -201,9 +210,10 @@ def with_assembly(protocol: Protocol, assembly: int, origin_shift: tuple[float, 
     )
 
 
-def paper_table2(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
-    """Table 2: bias 1.4/1.6 A, ±20 µm on both axes, ``iterations`` repetitions."""
-    return perturbation((1.4, 1.6), (20e-6,), center=center, iterations=iterations, experiment="table2")
+def paper_table2(iterations: int = 10, center=(0.0, 0.0), loads: dict | None = None) -> Protocol:
+    """Table 2: bias 1.4/1.6 A, ±20 µm on both axes, ``iterations`` repetitions (under ``loads["rotor"]``,
+    default :data:`DEFAULT_LOADS`)."""
+    return perturbation((1.4, 1.6), (20e-6,), center=center, iterations=iterations, experiment="table2", loads=loads)
 
 
 def paper_table1(iterations: int = 10, center=(0.0, 0.0)) -> Protocol:
@@ -256,7 +266,7 @@ def rich(
     return concat(*parts, dwell_s=dwell_s)
 
 
-def from_dict(spec: dict) -> Protocol:
+def from_dict(spec: dict, *, rotor_kg: float = PAPER_BEARING.rotor_mass) -> Protocol:
     """A protocol from a plain description (as read from TOML by ``ambfit simulate``).
 
     Units in the keys: ``*_um`` micrometres, ``*_A`` amperes, ``*_N`` newtons.
@@ -265,9 +275,12 @@ def from_dict(spec: dict) -> Protocol:
     ``force_v_N``/``force_w_N`` with ``known = true|false``; ``[[block]]`` entries
     have ``kind`` = ``perturbation`` | ``grid`` | ``bias_sweep`` | ``paper_table2`` |
     ``rich`` and the keyword arguments of that builder (positions in µm; ``center_um`` for
-    ``perturbation``, ``paper_table2`` and ``rich``).
+    ``perturbation``, ``paper_table2`` and ``rich``).  ``rotor_kg``: the rotor weight share [kg]
+    of the load ``"rotor"`` (:func:`rotor_loads`) and of the ``rich`` blocks (``ambfit simulate`` passes its
+    bearing's ``rotor_mass``).
     """
-    loads = dict(DEFAULT_LOADS)
+    base = rotor_loads(rotor_kg)
+    loads = dict(base)
     for name, d in spec.get("loads", {}).items():
         if "mass_kg" in d:
             loads[name] = Load.gravity(float(d["mass_kg"]), known=bool(d.get("known", True)))
@@ -292,10 +305,11 @@ def from_dict(spec: dict) -> Protocol:
             p = bias_sweep(b.pop("biases_A"), [(v * um, w * um) for v, w in b.pop("points_um", [(0, 0)])],
                            up_down=b.pop("up_down", True), loads=loads, **common)
         elif kind == "paper_table2":
-            p = paper_table2(common.get("iterations", 10), center=tuple(c * um for c in b.pop("center_um", (0, 0))))
+            p = paper_table2(common.get("iterations", 10), center=tuple(c * um for c in b.pop("center_um", (0, 0))),
+                             loads=loads)
         elif kind == "rich":
             p = rich(span=b.pop("span_um", 40) * um, biases=b.pop("biases_A", (1.0, 1.2, 1.4, 1.6)),
-                     masses_kg=b.pop("masses_kg", (0.0, 0.5, 1.0, 1.5)),
+                     masses_kg=b.pop("masses_kg", (0.0, 0.5, 1.0, 1.5)), rotor_kg=rotor_kg,
                      center=tuple(c * um for c in b.pop("center_um", (0, 0))))
         else:
             raise ValueError(f"block {i}: unknown kind {kind!r}; valid: perturbation, grid, bias_sweep, "

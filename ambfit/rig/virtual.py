@@ -93,6 +93,29 @@ class RigSpec:
         k = self.k if self.k is not None else (self.force_constant,) * 2
         return BearingParams.from_values(self.g0, np.asarray(self.x0) + np.asarray(origin_shift), k)
 
+    @classmethod
+    def for_bearing(cls, bearing: Bearing) -> RigSpec:
+        """The default rig built around ``bearing`` as drawn (:data:`PAPER_RIG` for the paper's bearing).
+
+        The true gaps keep the paper rig's excess over its drawing as a fraction of the nominal gap (775/762
+        and 763/762 of ``bearing.nominal_gap``: an effective gap a little above the air gap, as the paper
+        found), the true lamination is the bearing's nominal one and the amplifier keeps the paper rig's
+        headroom over the coil current limit (5 A for its 3 A).  The origins stay the paper's (33.3, -11.3) µm:
+        a sensor offset, not a property of the gap.  The static load (the bearing's ``rotor_mass``) is the
+        protocol's: :func:`ambfit.rig.protocol.rotor_loads`.
+        """
+        scale = bearing.nominal_gap / PAPER_RIG.nominal_gap
+        return dataclasses.replace(
+            PAPER_RIG, bearing=bearing, lamination=bearing.lamination, g0=tuple(g * scale for g in PAPER_RIG.g0),
+            amplifier_limit=PAPER_RIG.amplifier_limit * bearing.max_current / PAPER_RIG.bearing.max_current)
+
+    @property
+    def loads(self) -> dict:
+        """The protocol loads of this rig's rotor: ``{"rotor": Load}``, the bearing's ``rotor_mass``."""
+        from ambfit.rig.protocol import rotor_loads
+
+        return rotor_loads(self.bearing.rotor_mass)
+
     def with_truth(self, g0=None, x0=None, k=None) -> RigSpec:
         """A copy with other true parameters (pairs ``(v, w)``, SI units)."""
         kw = {}

@@ -118,6 +118,8 @@ def search(
         report 10 iterations); otherwise stop at convergence.
     effects, noise, seed, state :
         Passed to :func:`ambfit.rig.simulate`.
+    load, loads :
+        The static load of every step, a key of ``loads`` (default: the rig's rotor, ``spec.loads``).
     progress : callable, optional
         Called as ``progress("origin search", done, iterations)`` after each iteration
         (:mod:`ambfit.faces.cli.progress`).
@@ -129,7 +131,7 @@ def search(
     truth = None
     for it in range(1, iterations + 1):
         proto = perturbation(biases, (offset,), center=tuple(center), iterations=1, first_iteration=it,
-                             experiment=experiment, load=load, loads=loads)
+                             experiment=experiment, load=load, loads=spec.loads if loads is None else loads)
         sim = simulate(spec, proto, effects, noise, seed=rng, state=state)
         state, truth = sim.state, sim.truth
         frame = sim.data

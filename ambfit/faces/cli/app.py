@@ -168,8 +168,9 @@ def show_table(rows: list[dict], title: str, left: tuple[str, ...] = ()):
     console.print(t)
 
 
-def parse_effect(text: str):
-    """``NAME`` or ``NAME:param=value,param=value`` (SI units) -> Effect."""
+def parse_effect(text: str, bearing=None):
+    """``NAME`` or ``NAME:param=value,param=value`` (SI units) -> Effect; facts of the bearing (the iron path)
+    default to ``bearing``'s."""
     from ambfit.physics.effects import effect_by_name
 
     name, _, rest = text.partition(":")
@@ -179,7 +180,7 @@ def parse_effect(text: str):
         if not sep:
             raise ValueError(f"effect option {text!r}: expected param=value, got {item!r}")
         params[key.strip()] = float(val)
-    return effect_by_name(name.strip(), **params)
+    return effect_by_name(name.strip(), bearing=bearing, **params)
 
 
 def pair(text: str | None, scale: float):

@@ -24,6 +24,7 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
+from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 
 
 class Axis(str, Enum):
@@ -50,14 +51,26 @@ def solution_space_cmd(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     png: Annotated[Path, typer.Option(help="Write the map here (PNG).")],
     axis: Annotated[Axis, typer.Option(help="Axis: v or w.")] = Axis.v,
-    gap_um: Annotated[str, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
-    origin_um: Annotated[str, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
-    step_um: Annotated[float, typer.Option(help="Grid step [µm].")] = 1.0,
+    gap_um: Annotated[str | None, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000; "
+                                               "default: centred on the fit, 10 standard errors or a quarter "
+                                               "of the gap to each side, widened while the minimum is on the "
+                                               "edge).")] = None,
+    origin_um: Annotated[str | None, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100; default: "
+                                                  "centred on the fit, 10 standard errors or an eighth of the "
+                                                  "gap to each side).")] = None,
+    step_um: Annotated[float | None, typer.Option(help="Grid step [µm] (default: 1, coarser beyond 401 points "
+                                                  "per axis).")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Map the misfit over a (gap, origin) grid (the paper's Fig. 2), with the least-squares ellipse
-    and the weakest Fisher direction drawn on it."""
+    and the weakest Fisher direction drawn on it.
+
+    Exits 3 (after drawing the map) when the minimum lies on the grid's edge: the valley runs beyond the
+    grid and the map does not show the best fit.
+    """
     from ambfit.data import DataError
     from ambfit.estimation import conditioning, fit
     from ambfit.faces import plots
@@ -66,25 +79,29 @@ def solution_space_cmd(
     check_output(png)
     enable_compilation_cache()
     desc = bearing_of(bearing)
+    noise = declared_noise(current_noise_ma, position_noise_um)
     ds = read_data(data, desc, accept_implausible)
     with progress_bar(3) as bar:
         try:
             sub = ds.frame[ds.frame["axis"] == axis.value]
             bar.step("least squares")
             try:
-                res = fit.fit(sub, bearing=desc)
+                res = fit.fit(sub, bearing=desc, **noise)
             except fit.FitError as exc:
                 warn(f"least squares not shown: {exc}")
                 res = None
             bar.step("χ² map")
             space = conditioning.solution_space(ds, axis.value, gap=pair(gap_um, 1e-6),
-                                                origin=pair(origin_um, 1e-6), step=step_um * 1e-6, weights_at=res,
-                                                bearing=desc)
+                                                origin=pair(origin_um, 1e-6),
+                                                step=None if step_um is None else step_um * 1e-6, weights_at=res,
+                                                bearing=desc, **noise)
         except (DataError, ValueError) as exc:
             fail(str(exc))
         bar.step("drawing")
         plots.save(plots.plot_solution_space(space, result=res), png)
     note(f"{space.summary()}; wrote {png}")
+    if space.on_edge:
+        fail(space.edge_text() + " (--gap-um, --origin-um)", 3)
 
 
 @app.command()
@@ -96,8 +113,10 @@ def design(
                                                  "origin covariance).")] = Criterion.A,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
     max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
-                                                        "sensor origin [µm] (default: the bearing's back-up "
-                                                        "clearance, 60 µm on the paper's rig).")] = None,
+                                                        "estimated bearing centre [µm] (default: the bearing's "
+                                                        "back-up clearance, less the origin's uncertainty).")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -114,10 +133,11 @@ def design(
     try:
         with progress_bar(2) as bar:
             bar.step("least squares")
-            res = fit.fit(ds, bearing=desc)
+            noise = declared_noise(current_noise_ma, position_noise_um)
+            res = fit.fit(ds, bearing=desc, **noise)
             bar.step("choosing steps")
             rec = design_mod.recommend(ds, n_steps=steps, target=target.value, criterion=criterion.value,
-                                       max_radius_um=max_radius_um, bearing=desc, result=res)
+                                       max_radius_um=max_radius_um, bearing=desc, result=res, **noise)
     except DataError as exc:
         fail(str(exc))
     except (fit.FitError, ValueError) as exc:
@@ -131,6 +151,8 @@ def design(
 def diagnose(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract section 3 JSON here.")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     bearing: BearingOption = None,
     accept_implausible: AcceptOption = False,
     pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
@@ -153,7 +175,8 @@ def diagnose(
     ds = read_data(data, desc, accept_implausible)
     try:
         with progress_bar() as bar:
-            dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict, progress=bar)
+            dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict, progress=bar,
+                               **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, ValueError, OSError) as exc:
         fail(str(exc))
     except FitError as exc:

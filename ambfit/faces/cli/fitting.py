@@ -6,8 +6,26 @@ from __future__ import annotations
 import dataclasses
 from enum import Enum
 from pathlib import Path
+from typing import Annotated
+
+import typer
 
 from ambfit.faces.cli.app import console, err, note, warn
+
+CurrentNoiseOption = Annotated[float | None, typer.Option(
+    "--current-noise-ma", help="Declared current noise std [mA] (default: the std columns, else estimated from "
+                               "the residuals).")]
+PositionNoiseOption = Annotated[float | None, typer.Option(
+    "--position-noise-um", help="Declared position noise std [µm] (default: the std columns, else 0).")]
+"""The readings' noise as every command that fits data takes it (identify, diagnose, sample, solution-space,
+design, report); :func:`declared_noise` turns them into the library's ``sigma_i``/``sigma_x``."""
+
+
+def declared_noise(current_noise_ma: float | None, position_noise_um: float | None) -> dict:
+    """``--current-noise-ma`` and ``--position-noise-um`` as the library's ``sigma_i`` [A] and ``sigma_x`` [m]
+    (None: not declared)."""
+    return dict(sigma_i=None if current_noise_ma is None else current_noise_ma * 1e-3,
+                sigma_x=None if position_noise_um is None else position_noise_um * 1e-6)
 
 
 class Method(str, Enum):
@@ -97,9 +115,8 @@ class _Options:
     discrepancy: bool = False
 
     def fit_kw(self) -> dict:
-        return dict(sigma_i=None if self.current_noise_ma is None else self.current_noise_ma * 1e-3,
-                    sigma_x=None if self.position_noise_um is None else self.position_noise_um * 1e-6,
-                    require_k=self.require_k, debias=self.debias, bearing=self.bearing, loss=self.loss)
+        return dict(**declared_noise(self.current_noise_ma, self.position_noise_um), require_k=self.require_k,
+                    debias=self.debias, bearing=self.bearing, loss=self.loss)
 
 
 def _closed_form_record(result, bearing, name: str, say=say) -> dict:

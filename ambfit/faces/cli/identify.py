@@ -27,8 +27,10 @@ from ambfit.faces.cli.app import (
     write_json,
 )
 from ambfit.faces.cli.fitting import (
+    CurrentNoiseOption,
     Loss,
     Method,
+    PositionNoiseOption,
     _closed_form_record,
     _duplicate_effect,
     _Options,
@@ -101,11 +103,8 @@ def identify(
     pooled: Annotated[bool, typer.Option("--pooled", help="With several files or --by: also fit all rows together "
                                          "(the 'pooled' entry; a file's unknown loads stay its own). Off by "
                                          "default: a pooled fit of different bearings or runs is neither.")] = False,
-    current_noise_ma: Annotated[float | None, typer.Option(
-        "--current-noise-ma", help="Declared current noise std [mA] (default: the std columns, else "
-                                   "estimated from the residuals).")] = None,
-    position_noise_um: Annotated[float | None, typer.Option(
-        help="Declared position noise std [µm] (default: the std columns, else 0).")] = None,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
                                             "(needs known loads).")] = False,
     debias: Annotated[int, typer.Option(help="Subtract the estimator's second-order bias, estimated from this "
@@ -231,7 +230,7 @@ def _effects(names: list[str], bearing) -> tuple:
     out = []
     for text in names:
         try:
-            e = effect_by_name(text.strip())
+            e = effect_by_name(text.strip(), bearing=bearing)
         except ValueError as exc:
             fail(f"--effect: {exc}")
         if getattr(e, "needs_other_axis", False) and not bearing.b_curve:

@@ -19,6 +19,7 @@ from ambfit.faces.cli.app import (
     fail,
     read_data,
 )
+from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 
 
 @app.command()
@@ -32,12 +33,15 @@ def report(
     ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat across them).")] = 4,
     design_steps: Annotated[int, typer.Option(help="How many next perturbations to recommend.")] = 8,
     max_radius_um: Annotated[float | None, typer.Option(help="Recommend only set-points within this distance "
-                                                        "of the sensor origin [µm] (back-up bearing clearance "
-                                                        "less a margin).")] = 50.0,
+                                                        "of the estimated bearing centre [µm] (default: the "
+                                                        "bearing's back-up clearance less the origin's "
+                                                        "uncertainty).")] = None,
     bearing: BearingOption = None,
     posterior: Annotated[bool, typer.Option(help="Sample the posterior (the slowest section).")] = True,
     diagnosis: Annotated[bool, typer.Option(help="Run the sim-to-real gap diagnosis.")] = True,
     seed: Annotated[int, typer.Option(help="Sampler seed.")] = 0,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
 ):
     """One self-contained HTML page: identification table, posterior summary and pair plot, solution-space
@@ -55,7 +59,8 @@ def report(
             path, rec = report_mod.data_report(
                 data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                 bearing=desc, max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
-                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar)
+                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar,
+                **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, OSError) as exc:
         fail(str(exc))
     console.print(f"wrote {path}")

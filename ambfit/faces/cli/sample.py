@@ -20,6 +20,7 @@ from ambfit.faces.cli.app import (
     read_data,
     write_json,
 )
+from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 
 
 @app.command()
@@ -42,6 +43,8 @@ def sample(
     seed: Annotated[int, typer.Option(help="Seed.")] = 0,
     progress: Annotated[bool, typer.Option(help="Show a progress bar (on a terminal): steps of every ensemble, "
                                            "and the extension to 50 autocorrelation times.")] = True,
+    current_noise_ma: CurrentNoiseOption = None,
+    position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -64,7 +67,8 @@ def sample(
                                          gap_log_sd=gap_prior_log_sd)
         with progress_bar(enabled=None if progress else False) as bar:
             res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
-                               max_steps=max_steps, seed=seed, progress=bar, bearing=desc)
+                               max_steps=max_steps, seed=seed, progress=bar, bearing=desc,
+                               **declared_noise(current_noise_ma, position_noise_um))
     except DataError as exc:
         fail(str(exc))
     except fit.FitError as exc:

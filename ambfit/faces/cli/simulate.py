@@ -35,7 +35,8 @@ def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="CSV file to write (contract format).")],
     preset: Annotated[Preset, typer.Option(help="Protocol: 'table2' (paper's Table 2: 1.4/1.6 A, ±20 µm, "
                                            "10 iterations), 'rich' (biases 1.0-1.6 A up and down, "
-                                           "±40 µm, four known loads), or 'perturbation' (built from "
+                                           "± two thirds of the back-up clearance (40 µm on the paper's rig), "
+                                           "four known loads), or 'perturbation' (built from "
                                            "--biases-a/--offsets-um/--iterations); each centred on "
                                            "--center-um.")] = Preset.table2,
     protocol: Annotated[Path | None, typer.Option(help="TOML protocol description (overrides --preset): "
@@ -56,7 +57,9 @@ def simulate(
     current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Std of each recorded "
                                                     "current [mA].")] = 0.6,
     position_noise_um: Annotated[float, typer.Option(help="Std of each recorded position [µm].")] = 0.1,
-    gap_um: Annotated[str | None, typer.Option(help="True effective gaps 'v,w' [µm] (default: 775,763).")] = None,
+    gap_um: Annotated[str | None, typer.Option(help="True effective gaps 'v,w' [µm] (default: the paper rig's "
+                                               "775,763 on its 762 µm drawing, scaled to the bearing's nominal "
+                                               "gap).")] = None,
     origin_um: Annotated[str | None, typer.Option(help="True origins 'v,w' [µm] (default: 33.3,-11.3).")] = None,
     seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
     truth: Annotated[Path | None, typer.Option(help="Also write the truth (parameters, effects, noise) "
@@ -80,24 +83,26 @@ def simulate(
     check_output(out, truth)
 
     try:
-        effects = [parse_effect(e) for e in (effect or [])]
-        spec = rig.RigSpec(bearing=bearing_of(bearing)).with_truth(g0=pair(gap_um, 1e-6), x0=pair(origin_um, 1e-6))
+        desc = bearing_of(bearing)
+        effects = [parse_effect(e, desc) for e in (effect or [])]
+        spec = rig.RigSpec.for_bearing(desc).with_truth(g0=pair(gap_um, 1e-6), x0=pair(origin_um, 1e-6))
         center = ((-spec.x0[0], -spec.x0[1]) if center_um.strip().lower() == "origin" else pair(center_um, 1e-6))
         if protocol is not None:
             with open(protocol, "rb") as f:
-                desc = tomllib.load(f)
-            for e in desc.pop("effect", []):
+                plan = tomllib.load(f)
+            for e in plan.pop("effect", []):
                 e = dict(e)
-                effects.append(effect_by_name(e.pop("name", ""), **e))
-            proto = proto_mod.from_dict(desc)
+                effects.append(effect_by_name(e.pop("name", ""), bearing=desc, **e))
+            proto = proto_mod.from_dict(plan, rotor_kg=desc.rotor_mass)
         elif preset is Preset.table2:
-            proto = proto_mod.paper_table2(iterations, center=center)
+            proto = proto_mod.paper_table2(iterations, center=center, loads=spec.loads)
         elif preset is Preset.rich:
-            proto = proto_mod.rich(center=center)
+            # ±40 µm on the paper's 60 µm clearance: two thirds of the bearing's, so the sweep stays within it
+            proto = proto_mod.rich(center=center, rotor_kg=desc.rotor_mass, span=desc.backup_clearance * 2 / 3)
         else:
             proto = proto_mod.perturbation(
                 [float(b) for b in biases_a.split(",")], [float(o) * 1e-6 for o in offsets_um.split(",")],
-                center=center, iterations=iterations)
+                center=center, iterations=iterations, loads=spec.loads)
         within_limits(spec, proto, effects, allow_beyond_limits)
         sim = rig.simulate(spec, proto, effects, rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6),
                            seed=seed)
@@ -173,9 +178,9 @@ def origin_search(
 
     check_output(out, truth, json_out)
     try:
-        spec = rig.RigSpec(bearing=bearing_of(bearing))
+        spec = rig.RigSpec.for_bearing(bearing_of(bearing))
         biases = tuple(float(b) for b in biases_a.split(","))
-        effects = [parse_effect(e) for e in (effect or [])]
+        effects = [parse_effect(e, spec.bearing) for e in (effect or [])]
         first = proto_mod.perturbation(biases, (offset_um * 1e-6,), center=pair(start_um, 1e-6))
         within_limits(spec, first, effects, allow_beyond_limits)
         with progress_bar() as bar:

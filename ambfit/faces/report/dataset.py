@@ -103,15 +103,18 @@ def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 
             ax.text(0.5, 0.5, f"axis {axis}: {space}", ha="center", wrap=True)
         else:
             plots.plot_solution_space(space, result=result, ax=ax, levels=(*levels, *outer_levels))
-    return {"figure": figure(fig), "levels": levels, "coverage_percent": [c * 100 for c in coverage]}
+    edges = [space.edge_text() for space in spaces.values() if not isinstance(space, Exception) and space.on_edge]
+    return {"figure": figure(fig), "levels": levels, "coverage_percent": [c * 100 for c in coverage], "edges": edges}
 
 
 def design(recommendation, *, max_radius_um: float | None = None, candidates: pd.DataFrame | None = None) -> dict:
     """The recommended next steps with the target's predicted standard error after each.
 
     ``recommendation``: :class:`~ambfit.estimation.design.Recommendation`; ``candidates``: the grid it chose
-    from (default: :func:`ambfit.estimation.design.candidate_steps`, which
-    :func:`~ambfit.estimation.design.recommend` centres on the estimated effective origin).
+    from (default: the recommendation's own, :func:`ambfit.estimation.design.candidate_steps` of the bearing
+    centred on the estimated bearing centre and cut to the bearing's limits).  ``max_radius_um``: the
+    distance from the estimated bearing centre the set-points were kept within [µm] (default: the
+    recommendation's, the back-up clearance less the origin's uncertainty).
     """
     from ambfit.estimation import design as design_mod
     from ambfit.estimation.units import display
@@ -122,9 +125,11 @@ def design(recommendation, *, max_radius_um: float | None = None, candidates: pd
     steps.insert(0, "step", np.arange(1, len(steps) + 1))
     if "predicted_std_after" in steps:
         steps[f"{rec.target} std after [{unit}]"] = steps.pop("predicted_std_after") * factor
-    grid = design_mod.candidate_steps() if candidates is None else candidates
+    grid = candidates if candidates is not None else rec.candidates
+    grid = design_mod.candidate_steps() if grid is None else grid
+    radius = max_radius_um if max_radius_um is not None else rec.radius_um
     return {"table": table(steps, 2), "target": rec.target, "criterion": rec.criterion, "std_now": rec.std_now * factor,
-            "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": max_radius_um,
+            "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": radius,
             "bias_A": (float(grid["bias_A"].min()), float(grid["bias_A"].max()))}
 
 
@@ -198,8 +203,10 @@ def _step(progress, name: str) -> None:
 
 
 def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
-              do_diagnosis, seed, progress=None) -> dict:
-    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON."""
+              do_diagnosis, seed, progress=None, noise=None) -> dict:
+    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON.
+    ``noise``: the declared ``sigma_i``/``sigma_x`` (:func:`data_report`)."""
+    noise = noise or {}
     from ambfit.estimation import bayes, closed_form, conditioning
     from ambfit.estimation import design as design_mod
 
@@ -213,7 +220,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
     def sample():
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
-                          bearing=bearing, progress=progress)
+                          bearing=bearing, progress=progress, **noise)
         record["bayes"] = sr.to_json()
         return posterior(sr)
 
@@ -223,14 +230,18 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
     spaces = {}
     for axis in ("v", "w"):
         try:
-            spaces[axis] = conditioning.solution_space(ds, axis, weights_at=res, bearing=bearing)
+            spaces[axis] = conditioning.solution_space(ds, axis, weights_at=res, bearing=bearing, **noise)
         except Exception as exc:  # noqa: BLE001 - the panel says why, the other axis still stands
             spaces[axis] = exc
+    record["solution_space"] = {
+        axis: {"gap_um": [sp.gap[0] * 1e6, sp.gap[-1] * 1e6], "origin_um": [sp.origin[0] * 1e6, sp.origin[-1] * 1e6],
+               "minimum_um": [m * 1e6 for m in sp.minimum], "on_edge": sp.on_edge}
+        for axis, sp in spaces.items() if not isinstance(sp, Exception)}
     out["solution_space"] = _attempt("Solution space", lambda: solution_space(spaces, res))
 
     def recommend():
         rec = design_mod.recommend(ds, n_steps=design_steps, target="g_v0", result=res, max_radius_um=max_radius_um,
-                                   bearing=bearing)
+                                   bearing=bearing, **noise)
         record["design"] = {k: v for k, v in rec.to_json().items() if k in ("std_now", "steps")}
         return design(rec, max_radius_um=max_radius_um)
 
@@ -240,7 +251,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
     def diagnose():
         from ambfit import diagnosis as gap
 
-        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress)
+        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress, **noise)
         record["diagnosis"] = dg.to_json()
         return diagnosis(dg)
 
@@ -250,14 +261,17 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
 
 def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
-                bearing=PAPER_BEARING, max_radius_um: float | None = 50.0, do_posterior: bool = True,
-                do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None) -> tuple[Path, dict]:
+                bearing=PAPER_BEARING, max_radius_um: float | None = None, do_posterior: bool = True,
+                do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None, sigma_i: float | None = None,
+                sigma_x: float | None = None) -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
     and ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the
     closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
     the page says why and the record's ``least_squares`` holds the ``error``.  ``progress``, if given, is
     called as ``progress("report: <section>", done, total)`` as each section starts (and by the diagnosis as
     ``progress("candidate effects", done, total)``, and by the sampler, :func:`ambfit.estimation.bayes.sample`).
+    ``sigma_i`` [A] and ``sigma_x`` [m] declare the readings' noise for every fit of the report (as in
+    :func:`ambfit.estimation.fit.fit`; default: the std columns, else estimated).
 
     Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
     """
@@ -272,7 +286,7 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
     sections = {"overview": overview(data_path, ds)}
     _step(progress, "least squares")
     try:
-        res = fit(ds, bearing=bearing)
+        res = fit(ds, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x)
     except FitError as exc:
         record["least_squares"] = {"error": str(exc)}
         sections["identification"] = failed("Least squares", exc)
@@ -280,7 +294,8 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
         record["least_squares"] = res.to_json()
         sections |= _sections(ds, res, record, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                               bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
-                              do_diagnosis=do_diagnosis, seed=seed, progress=progress)
+                              do_diagnosis=do_diagnosis, seed=seed, progress=progress,
+                              noise=dict(sigma_i=sigma_i, sigma_x=sigma_x))
     _step(progress, "writing")
     (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
     html_path = out / "index.html"

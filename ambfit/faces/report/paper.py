@@ -118,7 +118,7 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
 
     step("Fig. 2")
     f2 = study.fig2_data()
-    space = conditioning.solution_space(f2, "v")
+    space = conditioning.solution_space(f2, "v", **conditioning.PAPER_FIG2)
     try:
         fig2_fit = fit(f2)
     except FitError as exc:

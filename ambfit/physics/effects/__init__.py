@@ -62,8 +62,13 @@ CIRCUITS: dict[str, type[Effect]] = {MagneticCircuit.name: MagneticCircuit}
 """Models that replace Eq. 4 by a magnetic circuit of the whole bearing (they need both axes' currents)."""
 
 
-def effect_by_name(name: str, **params) -> Effect:
-    """An effect from its contract name and parameters (SI units; defaults otherwise)."""
+def effect_by_name(name: str, *, bearing=None, **params) -> Effect:
+    """An effect from its contract name and parameters (SI units; defaults otherwise).
+
+    With a :class:`~ambfit.physics.bearing.Bearing`, parameters that are facts of the bearing
+    (``FROM_BEARING``, e.g. the iron reluctance's ``l_fe``, the bearing's ``iron_path``) default to its values
+    instead of the paper rig's.
+    """
     known = {**EFFECTS, **CIRCUITS}
     try:
         cls = known[name]
@@ -73,5 +78,7 @@ def effect_by_name(name: str, **params) -> Effect:
     bad = set(params) - fields
     if bad:
         raise ValueError(f"effect {name!r} has no parameter(s) {sorted(bad)}; valid: {sorted(fields)}")
+    if bearing is not None:
+        params = {field: getattr(bearing, fact) for field, fact in cls.FROM_BEARING.items()} | params
     conv = {k: (jnp.asarray(v, dtype=float) if k in cls.RANGES else v) for k, v in params.items()}
     return cls(**conv)

@@ -61,6 +61,7 @@ class IronReluctance(Effect):
     name: ClassVar[str] = "iron_reluctance"
     RANGES: ClassVar = {"l_fe": (0.06, 0.12), "mu_r": (1500.0, 5000.0), "b_knee": (1.0, 1.3)}
     UNITS: ClassVar = {"l_fe": "m", "mu_r": "-", "b_knee": "T"}
+    FROM_BEARING: ClassVar = {"l_fe": "iron_path"}
 
     def ranges(self) -> dict[str, tuple[float, float]]:
         """``mu_r`` and ``b_knee``; ``l_fe`` is held at this instance's value (the paper bearing's iron path by
