@@ -252,6 +252,15 @@ TAU_TOLERANCE = 0.1
 than this fraction.  An integrated autocorrelation time estimated from 50 tau of chain scatters by about 10 %
 (emcee's documentation, "Autocorrelation analysis"), so a tighter test would chase that noise."""
 
+MAX_CHAIN_BYTES = 2**32
+"""Memory the chains may take (4 GiB, float64); the defaults on the paper's data take about 50 MB."""
+
+class SettingError(ValueError):
+    """A sampler setting that cannot work on these data; ``setting`` names the argument (``"n_walkers"``, ...)."""
+    def __init__(self, setting: str, value, problem: str):
+        super().__init__(f"{setting}={value}: {problem}")
+        self.setting, self.value, self.problem = setting, value, problem
+
 
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
            n_steps: int = 3000, max_steps: int = 30000, min_tau_multiple: float = 50.0, seed: int = 0,
@@ -266,10 +275,15 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     to what the current tau asks for, up to ``max_steps``.  The draws are burned in by
     ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
     :meth:`Prior.from_bearing` of ``bearing``.  A run that hits ``max_steps`` is marked
-    ``too_short`` and its message says how long it should be.
+    ``too_short`` and its message says how long it should be.  Raises :class:`SettingError` for settings that
+    cannot work (``max_steps < n_steps``, fewer walkers than twice the parameters, chains over the memory bound).
     """
     import emcee
 
+    for setting, value, least in (("n_ensembles", n_ensembles, 1), ("n_steps", n_steps, 1),
+                                  ("max_steps", max_steps, max(n_steps, 1))):
+        if value < least:
+            raise SettingError(setting, value, f"must be at least {least}")
     prior = prior if prior is not None else Prior.from_bearing(bearing)
     df = data.frame if isinstance(data, Dataset) else data
     ls = ls or fit(df, bearing=bearing, **fit_kw)
@@ -284,6 +298,11 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
                       prior=prior, model=Model.of((), bearing))
     ndim = int(free.sum())
     n_walkers = n_walkers or max(32, 4 * ndim)
+    if n_walkers < 2 * ndim:           # (emcee's ensemble moves need them)
+        raise SettingError("n_walkers", n_walkers, f"must be at least {2 * ndim}, twice the parameters {names}")
+    if (size := n_ensembles * n_walkers * max_steps * (ndim + 1) * 8) > MAX_CHAIN_BYTES:
+        raise SettingError("max_steps", max_steps, f"{n_ensembles} ensembles x {n_walkers} walkers x {max_steps} "
+                           f"steps would take {size / 2**30:.1f} GiB of chains, over {MAX_CHAIN_BYTES / 2**30:g} GiB")
     cov_z = ls.cov / np.outer(scale[free], scale[free])
     chol = np.linalg.cholesky(cov_z + 1e-300 * np.eye(ndim))
     rng = np.random.default_rng(seed)

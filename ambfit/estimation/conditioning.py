@@ -87,6 +87,32 @@ def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, cos_alpha):
     return chi2, ms
 
 
+MAX_GRID_CELLS = 2**25
+"""Most grid points x rows the χ² map evaluates at once: each [gap, origin, row] array of float64 then takes
+256 MiB, and the evaluation holds several.  The paper's Fig. 2 grid (401 x 201) over 40 rows is 3.2e6."""
+
+
+def grid_shape(gap, origin, step: float, n_rows: int) -> tuple[int, int]:
+    """Points of the χ² map along gap and origin (SI ranges ``(low, high)``, ``step`` [m]) for ``n_rows`` readings.
+
+    Raises ValueError for a step that is not positive, a range with ``low >= high``, or a map beyond
+    :data:`MAX_GRID_CELLS` (the message gives its size and the smallest step that fits).
+    """
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"the grid step must be a positive number, got {step:g} m")
+    for what, (lo, hi) in (("gap", gap), ("origin", origin)):
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"the {what} range must be finite with low < high, got ({lo:g}, {hi:g}) m")
+    n_g, n_x = (int(np.ceil((hi + step / 2 - lo) / step)) for lo, hi in (gap, origin))
+    cells = float(n_g) * n_x * max(n_rows, 1)
+    if cells > MAX_GRID_CELLS:
+        least = np.sqrt((gap[1] - gap[0]) * (origin[1] - origin[0]) * max(n_rows, 1) / MAX_GRID_CELLS)
+        raise ValueError(f"a grid of {n_g} gap x {n_x} origin points over {n_rows} rows is {cells:.3g} cells, more "
+                         f"than the {MAX_GRID_CELLS:.3g} the map computes at once; use a step of at least "
+                         f"{least * 1.01e6:.3g} µm or narrower ranges")
+    return n_g, n_x
+
+
 def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6, 1000e-6), origin=(-100e-6, 100e-6),
                    step: float = 1e-6, weights_at=None, bearing: Bearing = PAPER_BEARING, **noise) -> SolutionSpace:
     """χ² map of one axis over a (gap, origin) grid (defaults: the paper's Fig. 2 axes, 1 µm steps).
@@ -102,6 +128,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=(600e-6
     sub = df[df["axis"] == axis].reset_index(drop=True)
     if sub.empty:
         raise ValueError(f"no rows of axis {axis!r}")
+    grid_shape(gap, origin, step, len(sub))
     prob, meta = build_problem(sub, **noise)
     res = weights_at
     if res is None:

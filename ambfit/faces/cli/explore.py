@@ -24,6 +24,10 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
+from ambfit.faces.cli.options import number, span
+
+MAX_DESIGN_STEPS = 1_000
+"""Most next steps design recommends (each is a search over the candidate set-points)."""
 
 
 class Axis(str, Enum):
@@ -50,9 +54,10 @@ def solution_space_cmd(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     png: Annotated[Path, typer.Option(help="Write the map here (PNG).")],
     axis: Annotated[Axis, typer.Option(help="Axis: v or w.")] = Axis.v,
-    gap_um: Annotated[str, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
-    origin_um: Annotated[str, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
-    step_um: Annotated[float, typer.Option(help="Grid step [µm].")] = 1.0,
+    gap_um: Annotated[str, typer.Option(callback=span(0, low_open=True), help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000).")] = "600,1000",
+    origin_um: Annotated[str, typer.Option(callback=span(), help="Origin range 'low,high' [µm] (Fig. 2: -100,100).")] = "-100,100",
+    step_um: Annotated[float, typer.Option(callback=number(0, low_open=True), help="Grid step [µm]; a grid too "
+                                           "large to compute is refused with its size.")] = 1.0,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -63,10 +68,15 @@ def solution_space_cmd(
     from ambfit.faces import plots
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(png)
+    check_output(png, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
+    try:
+        conditioning.grid_shape(pair(gap_um, 1e-6), pair(origin_um, 1e-6), step_um * 1e-6,
+                                int((ds.frame["axis"] == axis.value).sum()))
+    except ValueError as exc:
+        fail(f"--step-um {step_um:g}: {exc}")
     with progress_bar(3) as bar:
         try:
             sub = ds.frame[ds.frame["axis"] == axis.value]
@@ -90,12 +100,13 @@ def solution_space_cmd(
 @app.command()
 def design(
     data: Annotated[Path, typer.Argument(help="Perturbation data so far, contract CSV.")],
-    steps: Annotated[int, typer.Option(help="How many next steps to recommend.")] = 8,
+    steps: Annotated[int, typer.Option(callback=number(1, MAX_DESIGN_STEPS),
+                                       help="How many next steps to recommend.")] = 8,
     target: Annotated[Target, typer.Option(help="Parameter whose variance to minimise (A-optimal).")] = Target.g_v0,
     criterion: Annotated[Criterion, typer.Option(help="'A' (variance of the target) or 'D' (log det of gap and "
                                                  "origin covariance).")] = Criterion.A,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
-    max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
+    max_radius_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True), help="Only set-points within this distance of the "
                                                         "sensor origin [µm] (default: the bearing's back-up "
                                                         "clearance, 60 µm on the paper's rig).")] = None,
     accept_implausible: AcceptOption = False,
@@ -107,7 +118,7 @@ def design(
     from ambfit.estimation import fit
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(json_out)
+    check_output(json_out, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
@@ -146,8 +157,10 @@ def diagnose(
     from ambfit.estimation.core import FitError
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(json_out)
+    check_output(json_out, inputs=(data, bearing))
     check_output(report, folder=True)
+    if report is not None:
+        check_output(report / "ranking.png", report / "residuals.png", json_out, parents=True, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
