@@ -300,9 +300,12 @@ def load_groups(df: pd.DataFrame) -> pd.Series:
 
 
 def write_csv(data: Dataset | pd.DataFrame, path: str | os.PathLike) -> None:
-    """Write a table in the contract format (floats at full precision, NaN as empty)."""
+    """Write a table in the contract format (floats at full precision, NaN as empty); atomically, through links,
+    into devices (:mod:`ambfit._output`)."""
+    from ambfit._output import write_text
+
     frame = data.frame if isinstance(data, Dataset) else data
-    frame.to_csv(path, index=False, na_rep="", float_format=None)
+    write_text(path, frame.to_csv(index=False, na_rep="", float_format=None))
 
 
 def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -> np.ndarray:

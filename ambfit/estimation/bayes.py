@@ -43,7 +43,8 @@ from ambfit.estimation.core import (
     to_theta,
     unpack,
 )
-from ambfit.estimation.ensembles import PHASE, Tally, advance, run_until_settled
+from ambfit.estimation.ensembles import PHASE, Tally, advance, check_settings, run_until_settled
+from ambfit.estimation.ensembles import SettingError as SettingError  # (what sample raises on bad settings)
 from ambfit.estimation.fit import FitResult, fit
 from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, like, pm, si_unit
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
@@ -272,7 +273,8 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     to what the current tau asks for, up to ``max_steps``.  The draws are burned in by
     ``2 max(tau)`` and thinned by ``max(tau) / 2``.  ``prior`` defaults to
     :meth:`Prior.from_bearing` of ``bearing``.  A run that hits ``max_steps`` is marked
-    ``too_short`` and its message says how long it should be.
+    ``too_short`` and its message says how long it should be.  Raises :class:`SettingError` for settings that
+    cannot work (``max_steps < n_steps``, fewer walkers than twice the parameters, chains over the memory bound).
 
     ``progress``, if given, is called as ``progress(f"{PHASE}: <what runs>", done, total)`` with the steps done
     and planned over all ensembles (``total`` grows when the run is extended); nothing is drawn otherwise (the
@@ -282,6 +284,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
 
     if progress is not None and not callable(progress):
         raise TypeError(f"progress must be a callback progress(what, done, total) or None, not {progress!r}")
+    check_settings(n_ensembles=n_ensembles, n_steps=n_steps, max_steps=max_steps)
 
     prior = prior if prior is not None else Prior.from_bearing(bearing)
     df = data.frame if isinstance(data, Dataset) else data
@@ -297,6 +300,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
                       prior=prior, model=Model.of((), bearing))
     ndim = int(free.sum())
     n_walkers = n_walkers or max(32, 4 * ndim)
+    check_settings(n_ensembles=n_ensembles, n_steps=n_steps, max_steps=max_steps, n_walkers=n_walkers, names=names)
     cov_z = ls.cov / np.outer(scale[free], scale[free])
     chol = np.linalg.cholesky(cov_z + 1e-300 * np.eye(ndim))
     rng = np.random.default_rng(seed)

@@ -106,6 +106,36 @@ def _grid_chi2(g, x0, x, it, ib, w, load, known, gidx_onehot, k_ref, cos_alpha):
     return chi2, ms
 
 
+class GridSizeError(ValueError):
+    """A χ² map with a step or ranges it cannot be made with (see :func:`grid_shape`)."""
+
+
+MAX_GRID_CELLS = 2**25
+"""Most grid points x rows the χ² map evaluates at once: each [gap, origin, row] array of float64 then takes
+256 MiB, and the evaluation holds several.  The paper's Fig. 2 grid (401 x 201) over 40 rows is 3.2e6."""
+
+
+def grid_shape(gap, origin, step: float, n_rows: int) -> tuple[int, int]:
+    """Points of the χ² map along gap and origin (SI ranges ``(low, high)``, ``step`` [m]) for ``n_rows`` readings.
+
+    Raises GridSizeError for a step that is not positive, a range with ``low >= high``, or a map beyond
+    :data:`MAX_GRID_CELLS` (the message gives its size and the smallest step that fits).
+    """
+    if not (np.isfinite(step) and step > 0):
+        raise GridSizeError(f"the grid step must be a positive number, got {step:g} m")
+    for what, (lo, hi) in (("gap", gap), ("origin", origin)):
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise GridSizeError(f"the {what} range must be finite with low < high, got ({lo:g}, {hi:g}) m")
+    n_g, n_x = (int(np.ceil((hi + step / 2 - lo) / step)) for lo, hi in (gap, origin))
+    cells = float(n_g) * n_x * max(n_rows, 1)
+    if cells > MAX_GRID_CELLS:
+        least = np.sqrt((gap[1] - gap[0]) * (origin[1] - origin[0]) * max(n_rows, 1) / MAX_GRID_CELLS)
+        raise GridSizeError(f"a grid of {n_g} gap x {n_x} origin points over {n_rows} rows is {cells:.3g} cells, more "
+                         f"than the {MAX_GRID_CELLS:.3g} the map computes at once; use a step of at least "
+                         f"{least * 1.01e6:.3g} µm or narrower ranges")
+    return n_g, n_x
+
+
 PAPER_FIG2 = {"gap": (600e-6, 1000e-6), "origin": (-100e-6, 100e-6)}
 """The axes of the paper's Fig. 2 [m] (its 762 µm rig): ``solution_space(data, **PAPER_FIG2)``."""
 
@@ -156,6 +186,8 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=None, o
     sub = df[df["axis"] == axis].reset_index(drop=True)
     if sub.empty:
         raise ValueError(f"no rows of axis {axis!r}")
+    if gap is not None and origin is not None and step is not None:
+        grid_shape(gap, origin, step, len(sub))                 # (before the fit: a map that cannot be made)
     prob, meta = build_problem(sub, **noise)
     res = weights_at
     if res is None:
@@ -189,6 +221,9 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=None, o
     def grid(gap, origin):
         d = step if step is not None else max(1e-6, (gap[1] - gap[0]) / (GRID_POINTS - 1),
                                               (origin[1] - origin[0]) / (GRID_POINTS - 1))
+        if step is None:        # (coarser still where the default map would exceed MAX_GRID_CELLS)
+            d = max(d, 1.01 * np.sqrt((gap[1] - gap[0]) * (origin[1] - origin[0]) * len(sub) / MAX_GRID_CELLS))
+        grid_shape(gap, origin, d, len(sub))
         gs = np.arange(max(gap[0], d), gap[1] + d / 2, d)      # a gap is positive
         xs = np.arange(origin[0], origin[1] + d / 2, d)
         chi2, ms = _grid_chi2(jnp.asarray(gs), jnp.asarray(xs), prob.x, prob.i_top, prob.i_bottom, jnp.asarray(w),

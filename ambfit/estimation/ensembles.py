@@ -16,6 +16,37 @@ than this fraction.  An integrated autocorrelation time estimated from 50 tau of
 (emcee's documentation, "Autocorrelation analysis"), so a tighter test would chase that noise."""
 
 
+MAX_CHAIN_BYTES = 2**32
+"""Memory the chains may take (4 GiB, float64); the defaults on the paper's data take about 50 MB."""
+
+
+class SettingError(ValueError):
+    """A sampler setting that cannot work on these data; ``setting`` names the argument (``"n_walkers"``, ...)."""
+
+    def __init__(self, setting: str, value, problem: str):
+        super().__init__(f"{setting}={value}: {problem}")
+        self.setting, self.value, self.problem = setting, value, problem
+
+
+def check_settings(*, n_ensembles: int, n_steps: int, max_steps: int, n_walkers: int | None = None,
+                   names: list | None = None) -> None:
+    """Raise :class:`SettingError` for settings that cannot work: fewer than one ensemble or step, a cap below the
+    first run, fewer walkers than twice the parameters ``names`` (emcee's ensemble moves need them), chains over
+    ``MAX_CHAIN_BYTES``."""
+    for setting, value, least in (("n_ensembles", n_ensembles, 1), ("n_steps", n_steps, 1),
+                                  ("max_steps", max_steps, max(n_steps, 1))):
+        if value < least:
+            raise SettingError(setting, value, f"must be at least {least}")
+    if n_walkers is None:
+        return
+    ndim = len(names)
+    if n_walkers < 2 * ndim:
+        raise SettingError("n_walkers", n_walkers, f"must be at least {2 * ndim}, twice the parameters {names}")
+    if (size := n_ensembles * n_walkers * max_steps * (ndim + 1) * 8) > MAX_CHAIN_BYTES:
+        raise SettingError("max_steps", max_steps, f"{n_ensembles} ensembles x {n_walkers} walkers x {max_steps} "
+                           f"steps would take {size / 2**30:.1f} GiB of chains, over {MAX_CHAIN_BYTES / 2**30:g} GiB")
+
+
 class Tally:
     """Steps done and planned over all ensembles, reported to a ``progress(what, done, total)`` callback."""
 

@@ -193,6 +193,8 @@ class Bearing:
             raise BearingError(f"{path}: cannot read the bearing description ({exc.strerror})") from None
         except tomllib.TOMLDecodeError as exc:
             raise BearingError(f"{path}: not valid TOML ({exc})") from None
+        except UnicodeDecodeError:             # a binary file: TOML is UTF-8 text
+            raise BearingError(f"{path}: not a TOML file (binary content, not UTF-8 text)") from None
         return cls.from_dict(d, source=str(path))
 
     @classmethod

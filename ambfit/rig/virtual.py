@@ -21,7 +21,6 @@ Example
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -323,8 +322,15 @@ def simulate(
     )
     res, it, ib = np.asarray(res), np.asarray(it), np.asarray(ib)
     worst = float(np.max(np.abs(res))) if n else 0.0
-    if not np.isfinite(worst) or worst > FORCE_TOLERANCE_N:
-        s = int(np.nanargmax(np.abs(res).max(axis=1)))
+    nonfinite = ~np.isfinite(res).all(axis=1)
+    if nonfinite.any():
+        s = int(np.argmax(nonfinite))
+        raise RigError(
+            f"step {s} (experiment {protocol.experiment[s]}, bias {bias[s].tolist()} A): the force law gives no "
+            f"finite force with the effects {_named(effects)}; an effect parameter is outside its physical range "
+            "(e.g. a saturation flux density that is not positive)")
+    if worst > FORCE_TOLERANCE_N:
+        s = int(np.argmax(np.abs(res).max(axis=1)))
         raise RigError(
             f"step {s} (experiment {protocol.experiment[s]}, load {protocol.load_id[s]!r}, "
             f"bias {bias[s].tolist()} A): the bearing cannot balance the load to {FORCE_TOLERANCE_N:g} N "
@@ -353,7 +359,18 @@ def simulate(
                       force_residual=res, physical_currents=np.stack([it, ib], axis=-1))
 
 
+def _named(effects) -> str:
+    """The effects with their parameters, as ``--effect`` takes them."""
+    def one(e):
+        params = ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in e.describe().items())
+        return f"{e.name or type(e).__name__}:{params}" if params else (e.name or type(e).__name__)
+
+    return "; ".join(map(one, effects)) or "(none)"
+
+
 def write_truth(truth: dict, path) -> None:
-    """Write the truth record of a simulation next to its CSV (JSON)."""
-    with open(path, "w") as f:
-        json.dump(truth, f, indent=2)
+    """Write the truth record of a simulation next to its CSV (JSON; :mod:`ambfit._output`: atomically, through
+    links, into devices)."""
+    from ambfit._output import write_json
+
+    write_json(path, truth)

@@ -9,28 +9,68 @@ Nothing heavy is imported at module level, so ``ambfit --help`` is fast.
 
 from __future__ import annotations
 
-import json
+import functools
 import os
-import sys
-import tempfile
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
+
+from ambfit._output import OutputError, unwritable
+from ambfit._output import write_json as _write_json
 
 # The command line draws into files: the headless backend, unless the user chose one.  (The library itself never
 # switches backends, so figures show in notebooks.)
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-app = typer.Typer(
+PIPE_WIDTH = 100_000
+"""Columns of the console when its stream is not a terminal (a pipe, a file, a test): wide enough that no table
+cell (a long file name) is cut and no line is wrapped."""
+
+
+class _Console(Console):
+    """A rich Console as wide as the terminal, or unbounded when its stream is not one (judged at each print, so
+    a stream redirected later is served too)."""
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        size = super().size
+        return size if self.is_terminal else ConsoleDimensions(PIPE_WIDTH, size.height)
+
+    @size.setter
+    def size(self, new_size) -> None:
+        Console.size.fset(self, new_size)
+
+
+class _App(typer.Typer):
+    """The Typer app whose commands end an output that cannot be written (a full disk, a file vanished after the
+    checks) in one line and exit 2, whichever command writes it."""
+
+    def command(self, *args, **kwargs):
+        register = super().command(*args, **kwargs)
+
+        def wrap(fn):
+            @functools.wraps(fn)
+            def run(*a, **kw):
+                try:
+                    return fn(*a, **kw)
+                except OutputError as exc:
+                    fail(str(exc))
+
+            register(run)
+            return fn
+
+        return wrap
+
+
+app = _App(
     help="Identify active magnetic bearing parameters (effective gap, origin, force constant) from "
     "current-position perturbation data, and simulate a virtual test rig.",
     no_args_is_help=True, add_completion=False, rich_markup_mode=None,  # keep "[mA]" literal in help texts
 )
-# Wide enough for the identification tables when output is piped (CI logs, files).
-console = Console(width=None if sys.stdout.isatty() else 140)
-err = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
+console = _Console()
+err = _Console(stderr=True)
 
 
 def _version(value: bool):
@@ -75,7 +115,7 @@ def bearing_of(path: Path | None):
     try:
         bearing = Bearing.from_toml(path)
     except BearingError as exc:
-        fail(str(exc))
+        fail(f"--bearing: {exc}")
     if bearing.extra_keys:
         warn(f"{path}: keys not used by ambfit: {', '.join(bearing.extra_keys)}")
     return bearing
@@ -113,45 +153,32 @@ def read_data(path: Path, bearing, accept: bool = False, max_position_um: float 
     return ds
 
 
-def check_output(*paths: Path | None, folder: bool = False):
-    """Fail before any work when an output cannot be written: missing or read-only folder, a directory
-    where a file should go."""
+def check_output(*paths: Path | None, folder: bool = False, parents: bool = False, inputs=()):
+    """Fail before any work when an output cannot be written (:func:`ambfit._output.unwritable`: a missing or
+    read-only folder, a file where a folder should be, a directory where a file should go), when two outputs are
+    one file, or when an output is one of the ``inputs`` (it would overwrite the data).  ``folder``: the paths are
+    folders, created when missing; ``parents``: files in such a folder."""
+    from ambfit._output import destination
+
+    read = {destination(p): Path(p) for p in inputs if p is not None}
+    written = {}
     for p in paths:
         if p is None:
             continue
-        p = Path(p)
-        if folder:
-            parent = p if p.exists() else p.parent
-            if p.exists() and not p.is_dir():
-                fail(f"{p}: exists and is not a folder")
-        else:
-            if p.is_dir():
-                fail(f"{p}: is a directory; give a file name")
-            parent = p.parent
-        parent = parent if str(parent) else Path(".")
-        if not parent.exists() and not folder:
-            fail(f"{p}: the folder {parent} does not exist")
-        probe = parent
-        while not probe.exists():
-            probe = probe.parent
-        if not os.access(probe, os.W_OK):
-            fail(f"{p}: the folder {probe} is not writable")
+        why = unwritable(p, folder=folder, parents=parents)
+        if why:
+            fail(why)
+        dest = destination(p)
+        if dest in read:
+            fail(f"{p}: is the input {read[dest]}; writing there would overwrite it")
+        if dest in written and not (dest.exists() and not dest.is_file()):     # (/dev/null twice is fine)
+            fail(f"{p}: given for two outputs ({written[dest]}); give each output its own file")
+        written[dest] = Path(p)
 
 
 def write_json(record: dict, path: Path):
-    """Write ``record`` atomically (a temporary file in the same folder, then a rename)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(record, f, indent=2)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)     # mkstemp makes 0600; an output file gets the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Write ``record`` as JSON (:mod:`ambfit._output`: atomically, through links, into devices)."""
+    _write_json(path, record)
     console.print(f"wrote {path}")
 
 
@@ -161,8 +188,8 @@ def show_table(rows: list[dict], title: str, left: tuple[str, ...] = ()):
 
     t = Table(title=title)
     columns = list(dict.fromkeys(c for r in rows for c in r))
-    for c in columns:
-        t.add_column(c, justify="left" if c in left else "right")
+    for c in columns:     # a cell too wide for a terminal folds onto the next line: a file name is never cut
+        t.add_column(c, justify="left" if c in left else "right", overflow="fold")
     for r in rows:
         t.add_row(*(str(r.get(c, "")) for c in columns))
     console.print(t)
@@ -171,6 +198,8 @@ def show_table(rows: list[dict], title: str, left: tuple[str, ...] = ()):
 def parse_effect(text: str, bearing=None):
     """``NAME`` or ``NAME:param=value,param=value`` (SI units) -> Effect; facts of the bearing (the iron path)
     default to ``bearing``'s."""
+    import math
+
     from ambfit.physics.effects import effect_by_name
 
     name, _, rest = text.partition(":")
@@ -179,7 +208,12 @@ def parse_effect(text: str, bearing=None):
         key, sep, val = item.partition("=")
         if not sep:
             raise ValueError(f"effect option {text!r}: expected param=value, got {item!r}")
-        params[key.strip()] = float(val)
+        try:
+            params[key.strip()] = float(val)
+        except ValueError:
+            raise ValueError(f"{key.strip()}={val!r} is not a number") from None
+        if not math.isfinite(params[key.strip()]):
+            raise ValueError(f"{key.strip()}={val} is not a finite number")
     return effect_by_name(name.strip(), bearing=bearing, **params)
 
 

@@ -22,6 +22,7 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
+from ambfit.faces.cli.options import number
 
 
 @app.command()
@@ -49,7 +50,7 @@ def campaign(
                                                  "origin, a re-levitation jump of the origin at E7), write it to "
                                                  "this CSV (truth next to it as .truth.json) and analyse "
                                                  "it.")] = None,
-    seed: Annotated[int, typer.Option(help="Seed of --example's noise.")] = 0,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Seed of --example's noise.")] = 0,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -62,14 +63,13 @@ def campaign(
     parameter).  Exit 2 on bad input (file, row, column), 3 when fewer than 3 windows can be identified (no
     drift); windows that cannot be identified are listed with the reason.
     """
-    import json
-
+    from ambfit._output import write_json as write_json_file
     from ambfit.data import DataError, write_csv
     from ambfit.faces.cli.progress import progress_bar
     from ambfit.studies import campaign as study
 
     truth_path = None if example is None else example.with_suffix(".truth.json")
-    check_output(json_out, table, example, truth_path)
+    check_output(json_out, table, example, truth_path, inputs=(data, bearing))
     if (data is None) == (example is None):
         fail("give a campaign data file, or --example FILE to simulate one (not both)")
     if window is not None and by is not None:
@@ -87,7 +87,7 @@ def campaign(
 
         sim = simulate_campaign(seed=seed)
         write_csv(sim.data, example)
-        truth_path.write_text(json.dumps(sim.truth, indent=2))
+        write_json_file(truth_path, sim.truth)
         console.print(f"wrote {example} and {truth_path}: {len(sim.data)} readings, jump at "
                       f"{sim.truth['jump']['experiment']}")
         data = example

@@ -25,6 +25,10 @@ from ambfit.faces.cli.app import (
     write_json,
 )
 from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
+from ambfit.faces.cli.options import number, span
+
+MAX_DESIGN_STEPS = 1_000
+"""Most next steps design recommends (each is a search over the candidate set-points)."""
 
 
 class Axis(str, Enum):
@@ -51,15 +55,19 @@ def solution_space_cmd(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     png: Annotated[Path, typer.Option(help="Write the map here (PNG).")],
     axis: Annotated[Axis, typer.Option(help="Axis: v or w.")] = Axis.v,
-    gap_um: Annotated[str | None, typer.Option(help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000; "
+    gap_um: Annotated[str | None, typer.Option(callback=span(0, low_open=True),
+                                               help="Gap range 'low,high' [µm] (the paper's Fig. 2: 600,1000; "
                                                "default: centred on the fit, 10 standard errors or a quarter "
                                                "of the gap to each side, widened while the minimum is on the "
                                                "edge).")] = None,
-    origin_um: Annotated[str | None, typer.Option(help="Origin range 'low,high' [µm] (Fig. 2: -100,100; default: "
+    origin_um: Annotated[str | None, typer.Option(callback=span(),
+                                                  help="Origin range 'low,high' [µm] (Fig. 2: -100,100; default: "
                                                   "centred on the fit, 10 standard errors or an eighth of the "
                                                   "gap to each side).")] = None,
-    step_um: Annotated[float | None, typer.Option(help="Grid step [µm] (default: 1, coarser beyond 401 points "
-                                                  "per axis).")] = None,
+    step_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
+                                                  help="Grid step [µm] (default: 1, coarser beyond 401 points "
+                                                  "per axis); a grid too large to compute is refused with its "
+                                                  "size.")] = None,
     current_noise_ma: CurrentNoiseOption = None,
     position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
@@ -76,11 +84,17 @@ def solution_space_cmd(
     from ambfit.faces import plots
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(png)
+    check_output(png, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     noise = declared_noise(current_noise_ma, position_noise_um)
     ds = read_data(data, desc, accept_implausible)
+    if None not in (gap_um, origin_um, step_um):      # (default ranges are known only after the fit)
+        try:
+            conditioning.grid_shape(pair(gap_um, 1e-6), pair(origin_um, 1e-6), step_um * 1e-6,
+                                    int((ds.frame["axis"] == axis.value).sum()))
+        except conditioning.GridSizeError as exc:
+            fail(f"--step-um {step_um:g}: {exc}")
     with progress_bar(3) as bar:
         try:
             sub = ds.frame[ds.frame["axis"] == axis.value]
@@ -95,6 +109,8 @@ def solution_space_cmd(
                                                 origin=pair(origin_um, 1e-6),
                                                 step=None if step_um is None else step_um * 1e-6, weights_at=res,
                                                 bearing=desc, **noise)
+        except conditioning.GridSizeError as exc:
+            fail(f"--step-um {step_um:g}: {exc}" if step_um is not None else str(exc))
         except (DataError, ValueError) as exc:
             fail(str(exc))
         bar.step("drawing")
@@ -107,12 +123,14 @@ def solution_space_cmd(
 @app.command()
 def design(
     data: Annotated[Path, typer.Argument(help="Perturbation data so far, contract CSV.")],
-    steps: Annotated[int, typer.Option(help="How many next steps to recommend.")] = 8,
+    steps: Annotated[int, typer.Option(callback=number(1, MAX_DESIGN_STEPS),
+                                       help="How many next steps to recommend.")] = 8,
     target: Annotated[Target, typer.Option(help="Parameter whose variance to minimise (A-optimal).")] = Target.g_v0,
     criterion: Annotated[Criterion, typer.Option(help="'A' (variance of the target) or 'D' (log det of gap and "
                                                  "origin covariance).")] = Criterion.A,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the recommendation as JSON.")] = None,
-    max_radius_um: Annotated[float | None, typer.Option(help="Only set-points within this distance of the "
+    max_radius_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
+                                                        help="Only set-points within this distance of the "
                                                         "estimated bearing centre [µm] (default: the bearing's "
                                                         "back-up clearance, less the origin's uncertainty).")] = None,
     current_noise_ma: CurrentNoiseOption = None,
@@ -126,7 +144,7 @@ def design(
     from ambfit.estimation import fit
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(json_out)
+    check_output(json_out, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
@@ -168,8 +186,10 @@ def diagnose(
     from ambfit.estimation.core import FitError
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(json_out)
+    check_output(json_out, inputs=(data, bearing))
     check_output(report, folder=True)
+    if report is not None:
+        check_output(report / "ranking.png", report / "residuals.png", json_out, parents=True, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)

@@ -11,12 +11,14 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import console, err, note, warn
+from ambfit.faces.cli.options import number
 
 CurrentNoiseOption = Annotated[float | None, typer.Option(
-    "--current-noise-ma", help="Declared current noise std [mA] (default: the std columns, else estimated from "
-                               "the residuals).")]
+    "--current-noise-ma", callback=number(0), help="Declared current noise std [mA] (default: the std columns, "
+                                                   "else estimated from the residuals).")]
 PositionNoiseOption = Annotated[float | None, typer.Option(
-    "--position-noise-um", help="Declared position noise std [µm] (default: the std columns, else 0).")]
+    "--position-noise-um", callback=number(0), help="Declared position noise std [µm] (default: the std "
+                                                    "columns, else 0).")]
 """The readings' noise as every command that fits data takes it (identify, diagnose, sample, solution-space,
 design, report); :func:`declared_noise` turns them into the library's ``sigma_i``/``sigma_x``."""
 
@@ -187,11 +189,10 @@ def _table_row(entry: dict) -> dict:
 
 
 def _write_table(rows: list[dict], column: str | None, path: Path):
-    """Write the groups table as CSV (atomically: a temporary file in the same folder, then a rename)."""
-    import os
-    import tempfile
-
+    """Write the groups table as CSV (:mod:`ambfit._output`: atomically, through links, into devices)."""
     import pandas as pd
+
+    from ambfit._output import write_text
 
     frame = pd.DataFrame(rows)
     value_name = column if column and column not in frame.columns else "by_value"
@@ -201,16 +202,5 @@ def _write_table(rows: list[dict], column: str | None, path: Path):
         frame = frame.rename(columns={"_value": value_name})
     for c in ("n_rows", "dof", "outliers", "duplicates_dropped"):
         frame[c] = frame[c].astype("Int64")
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            frame.to_csv(f, index=False)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_text(path, frame.to_csv(index=False))
     console.print(f"wrote {path} ({len(frame)} row(s))")

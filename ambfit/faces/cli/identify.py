@@ -6,6 +6,7 @@ One data set is identified here; several files or ``--by`` groups by
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -41,12 +42,19 @@ from ambfit.faces.cli.fitting import (
     drop_duplicates,
 )
 from ambfit.faces.cli.groups import _expand, _identify_groups
+from ambfit.faces.cli.options import number
+
+MAX_DEBIAS = 100_000
+"""Most synthetic data sets for --debias (2000 are plenty; each is a fit)."""
+MAX_WORKERS = 4 * (os.cpu_count() or 1)
+"""Most local worker processes: beyond a few per core they only contend for it."""
 
 
 @app.command()
 def check(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV (see ambfit/docs/data-format.md).")],
-    max_position_um: Annotated[float | None, typer.Option(help="Positions at least this large [µm] are flagged "
+    max_position_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
+                                                          help="Positions at least this large [µm] are flagged "
                                                           "(default: the bearing's nominal gap).")] = None,
     bearing: BearingOption = None,
 ):
@@ -107,10 +115,11 @@ def identify(
     position_noise_um: PositionNoiseOption = None,
     require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
                                             "(needs known loads).")] = False,
-    debias: Annotated[int, typer.Option(help="Subtract the estimator's second-order bias, estimated from this "
+    debias: Annotated[int, typer.Option(callback=number(0, MAX_DEBIAS), help="Subtract the estimator's second-order bias, estimated from this "
                                         "many synthetic data sets of the fitted model (0: off; 2000 is "
                                         "plenty).")] = 0,
-    max_position_um: Annotated[float | None, typer.Option(help="Reject positions at least this large [µm] "
+    max_position_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
+                                                          help="Reject positions at least this large [µm] "
                                                           "(unit check; default: the bearing's nominal "
                                                           "gap).")] = None,
     loss: Annotated[Loss, typer.Option(help="'auto': least squares with an outlier test (readings beyond the "
@@ -131,7 +140,7 @@ def identify(
                                               "model JSON for ambfit force.")] = False,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
-    workers: Annotated[int | None, typer.Option(min=1, help="With several files or --by: fit the groups on this "
+    workers: Annotated[int | None, typer.Option(callback=number(1, MAX_WORKERS), help="With several files or --by: fit the groups on this "
                                                 "many local worker processes (needs ambfit[dask]); plain least "
                                                 "squares runs as vmapped batches of groups. Default: this "
                                                 "process.")] = None,
@@ -153,7 +162,7 @@ def identify(
     cannot be read, else 3; the last line names the groups that are not fine.  --workers N
     or --scheduler ADDRESS spread the groups over processes or a Dask cluster (same results).
     """
-    check_output(json_out, table)
+    check_output(json_out, table, inputs=(*data, bearing))
     if workers is not None and scheduler is not None:
         fail("give --workers (local processes) or --scheduler (a running Dask cluster), not both")
     enable_compilation_cache()

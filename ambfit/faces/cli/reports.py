@@ -19,7 +19,13 @@ from ambfit.faces.cli.app import (
     fail,
     read_data,
 )
+from ambfit.faces.cli.explore import MAX_DESIGN_STEPS
 from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
+from ambfit.faces.cli.options import number
+from ambfit.faces.cli.sample import MAX_ENSEMBLES, MIN_STEPS
+
+MAX_REPLICATES = 100_000
+"""Most replicates of the paper's experiments (each about 1.3 s)."""
 
 
 @app.command()
@@ -27,19 +33,23 @@ def report(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for index.html (self-contained, figures "
                                       "embedded) and report.json.")],
-    steps: Annotated[int, typer.Option(help="emcee steps per ensemble to start the posterior with (extended "
+    steps: Annotated[int, typer.Option(callback=number(MIN_STEPS), help="emcee steps per ensemble to start the posterior with (extended "
                                        "until 50 autocorrelation times).")] = 3000,
-    max_steps: Annotated[int, typer.Option(help="Cap on the posterior's steps per ensemble.")] = 30000,
-    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat across them).")] = 4,
-    design_steps: Annotated[int, typer.Option(help="How many next perturbations to recommend.")] = 8,
-    max_radius_um: Annotated[float | None, typer.Option(help="Recommend only set-points within this distance "
+    max_steps: Annotated[int, typer.Option(callback=number(MIN_STEPS),
+                                           help="Cap on the posterior's steps per ensemble.")] = 30000,
+    ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
+                                           help="Independent emcee ensembles (R-hat across them).")] = 4,
+    design_steps: Annotated[int, typer.Option(callback=number(1, MAX_DESIGN_STEPS),
+                                              help="How many next perturbations to recommend.")] = 8,
+    max_radius_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
+                                                        help="Recommend only set-points within this distance "
                                                         "of the estimated bearing centre [µm] (default: the "
                                                         "bearing's back-up clearance less the origin's "
                                                         "uncertainty).")] = None,
     bearing: BearingOption = None,
     posterior: Annotated[bool, typer.Option(help="Sample the posterior (the slowest section).")] = True,
     diagnosis: Annotated[bool, typer.Option(help="Run the sim-to-real gap diagnosis.")] = True,
-    seed: Annotated[int, typer.Option(help="Sampler seed.")] = 0,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Sampler seed.")] = 0,
     current_noise_ma: CurrentNoiseOption = None,
     position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
@@ -49,8 +59,12 @@ def report(
     from ambfit.data import DataError
     from ambfit.faces import report as report_mod
     from ambfit.faces.cli.progress import progress_bar
+    from ambfit.faces.report.dataset import FILES
 
     check_output(out, folder=True)
+    check_output(*(out / name for name in FILES), parents=True, inputs=(data, bearing))
+    if max_steps < steps:
+        fail(f"--max-steps {max_steps}: the cap is below --steps {steps}")
     enable_compilation_cache()
     desc = bearing_of(bearing)
     read_data(data, desc, accept_implausible)      # input and plausibility problems end here, before any work
@@ -72,9 +86,9 @@ def report(
 def paper(
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the reproduction report.")] = Path(
         "reports/paper"),
-    replicates: Annotated[int, typer.Option(help="Repetitions of every experiment for the predicted spreads "
+    replicates: Annotated[int, typer.Option(callback=number(1, MAX_REPLICATES), help="Repetitions of every experiment for the predicted spreads "
                                             "(about 1.3 s each).")] = 200,
-    seed: Annotated[int, typer.Option(help="Seed of the reproduction and the replicates.")] = 0,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Seed of the reproduction and the replicates.")] = 0,
     demonstration: Annotated[bool, typer.Option(help="Also simulate which effect explains the paper's gap "
                                                 "excess and what separates the candidates (about 25 s).")] = True,
 ):
@@ -82,8 +96,10 @@ def paper(
     report (index.html, README.md, comparison.csv, spread.csv, reproduction.json, PNG figures)."""
     from ambfit.faces import report as report_mod
     from ambfit.faces.cli.progress import progress_bar
+    from ambfit.faces.report.paper import FILES
 
     check_output(out, folder=True)
+    check_output(*(out / name for name in FILES), parents=True)
     enable_compilation_cache()
     with progress_bar() as bar:
         path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from ambfit._jaxcache import enable_compilation_cache
+from ambfit._output import write_bytes
 from ambfit.faces.cli.app import (
     AcceptOption,
     BearingOption,
@@ -21,6 +22,14 @@ from ambfit.faces.cli.app import (
     write_json,
 )
 from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
+from ambfit.faces.cli.options import number
+
+SAMPLER_OPTIONS = {"n_steps": "--steps", "max_steps": "--max-steps", "n_ensembles": "--ensembles",
+                   "n_walkers": "--walkers"}
+"""The command line's name of each setting :class:`ambfit.estimation.bayes.SettingError` names."""
+MAX_ENSEMBLES = 64
+MIN_STEPS = 100
+"""Fewest steps to start with: the burn-in alone is two autocorrelation times (about 70 steps each here)."""
 
 
 @app.command()
@@ -31,16 +40,19 @@ def sample(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
                                                   "94 % HDI, R-hat, ESS) here.")] = None,
     pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
-    steps: Annotated[int, typer.Option(help="Steps per ensemble to start with; each ensemble is extended until "
+    steps: Annotated[int, typer.Option(callback=number(MIN_STEPS), help="Steps per ensemble to start with; each ensemble is extended until "
                                        "the run is 50 autocorrelation times long and tau has settled.")] = 3000,
-    max_steps: Annotated[int, typer.Option(help="Cap on the steps per ensemble (exit 3 with the length "
+    max_steps: Annotated[int, typer.Option(callback=number(MIN_STEPS), help="Cap on the steps per ensemble (exit 3 with the length "
                                            "needed when it is reached).")] = 30000,
-    ensembles: Annotated[int, typer.Option(help="Independent emcee ensembles (R-hat compares them).")] = 4,
-    walkers: Annotated[int | None, typer.Option(help="Walkers per ensemble (default max(32, 4 x parameters)).")] = None,
-    nominal_gap_um: Annotated[float | None, typer.Option(help="Centre the gap prior on this nominal gap [µm] "
+    ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
+                                           help="Independent emcee ensembles (R-hat compares them).")] = 4,
+    walkers: Annotated[int | None, typer.Option(callback=number(2), help="Walkers per ensemble (default "
+                                                "max(32, 4 x parameters); at least twice the parameters).")] = None,
+    nominal_gap_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True), help="Centre the gap prior on this nominal gap [µm] "
                                                           "(log-sd --gap-prior-log-sd).")] = None,
-    gap_prior_log_sd: Annotated[float, typer.Option(help="Log-sd of the gap prior [-].")] = 0.3,
-    seed: Annotated[int, typer.Option(help="Seed.")] = 0,
+    gap_prior_log_sd: Annotated[float, typer.Option(callback=number(0, low_open=True),
+                                                    help="Log-sd of the gap prior [-].")] = 0.3,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Seed.")] = 0,
     progress: Annotated[bool, typer.Option(help="Show a progress bar (on a terminal): steps of every ensemble, "
                                            "and the extension to 50 autocorrelation times.")] = True,
     current_noise_ma: CurrentNoiseOption = None,
@@ -58,7 +70,9 @@ def sample(
     from ambfit.estimation import bayes, fit
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(out, json_out, pair_png)
+    check_output(out, json_out, pair_png, inputs=(data, bearing))
+    if max_steps < steps:
+        fail(f"--max-steps {max_steps}: the cap is below --steps {steps}")
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
@@ -69,6 +83,8 @@ def sample(
             res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
                                max_steps=max_steps, seed=seed, progress=bar, bearing=desc,
                                **declared_noise(current_noise_ma, position_noise_um))
+    except bayes.SettingError as exc:
+        fail(f"{SAMPLER_OPTIONS.get(exc.setting, exc.setting)} {exc.value}: {exc.problem}")
     except DataError as exc:
         fail(str(exc))
     except fit.FitError as exc:
@@ -76,7 +92,8 @@ def sample(
     note(res.summary())
     record = res.to_json()
     if out is not None:
-        res.datatree.to_netcdf(out, engine="h5netcdf")
+        # serialised in memory first: HDF5 does not survive a full disk (it crashed the process), Python's writes do
+        write_bytes(out, res.datatree.to_netcdf(engine="h5netcdf"))
         console.print(f"wrote {out}")
     if json_out is not None:
         from ambfit.estimation.model_file import stamp

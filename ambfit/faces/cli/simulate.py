@@ -22,6 +22,12 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
+from ambfit.faces.cli.options import number, numbers, text
+
+# Longest runs the rig is asked for: far beyond any experiment (the paper ran 10 iterations), short of a run that
+# would fill the memory.
+MAX_ITERATIONS = 10_000
+MAX_SEARCH_ITERATIONS = 1_000
 
 
 class Preset(str, Enum):
@@ -43,25 +49,32 @@ def simulate(
                                                    "[[block]] and [loads.NAME] tables as in "
                                                    "ambfit.rig.protocol.from_dict, plus optional [[effect]] "
                                                    "tables (name = ..., parameters in SI units).")] = None,
-    biases_a: Annotated[str, typer.Option("--biases-a", help="Bias currents [A], comma separated.")] = "1.4,1.6",
-    offsets_um: Annotated[str, typer.Option(help="Symmetric position offsets [µm], comma separated.")] = "20",
-    center_um: Annotated[str, typer.Option(help="Centre of the preset's set-points 'v,w' [µm, sensor "
+    biases_a: Annotated[str, typer.Option("--biases-a", callback=numbers(0, low_open=True),
+                                          help="Bias currents [A], comma separated.")] = "1.4,1.6",
+    offsets_um: Annotated[str, typer.Option(callback=numbers(0, low_open=True),
+                                            help="Symmetric position offsets [µm], comma separated.")] = "20",
+    center_um: Annotated[str, typer.Option(callback=numbers(count=(1, 2), also=("origin",)),
+                                           help="Centre of the preset's set-points 'v,w' [µm, sensor "
                                            "coordinates], or 'origin': the rig's effective origin (-v0, -w0), "
                                            "where the paper's origin search puts them (its Table 2 ran there), "
                                            "so the rotor moves about the bearing centre.")] = "origin",
-    iterations: Annotated[int, typer.Option(help="Repetitions of the perturbation.")] = 10,
+    iterations: Annotated[int, typer.Option(callback=number(1, MAX_ITERATIONS),
+                                            help="Repetitions of the perturbation.")] = 10,
     effect: Annotated[list[str] | None, typer.Option(
         help="Unmodelled effect the rig applies, 'NAME' or 'NAME:param=value,...' in SI units "
              "(repeatable). Names: saturation, iron_reluctance, fringing, leakage, current_offset, "
              "current_gain, position_gain, cross_coupling, hysteresis, thermal_drift.")] = None,
-    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Std of each recorded "
-                                                    "current [mA].")] = 0.6,
-    position_noise_um: Annotated[float, typer.Option(help="Std of each recorded position [µm].")] = 0.1,
-    gap_um: Annotated[str | None, typer.Option(help="True effective gaps 'v,w' [µm] (default: the paper rig's "
+    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", callback=number(0),
+                                                    help="Std of each recorded current [mA].")] = 0.6,
+    position_noise_um: Annotated[float, typer.Option(callback=number(0),
+                                                     help="Std of each recorded position [µm].")] = 0.1,
+    gap_um: Annotated[str | None, typer.Option(callback=numbers(0, low_open=True, count=(1, 2)),
+                                               help="True effective gaps 'v,w' [µm] (default: the paper rig's "
                                                "775,763 on its 762 µm drawing, scaled to the bearing's nominal "
                                                "gap).")] = None,
-    origin_um: Annotated[str | None, typer.Option(help="True origins 'v,w' [µm] (default: 33.3,-11.3).")] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
+    origin_um: Annotated[str | None, typer.Option(callback=numbers(count=(1, 2)),
+                                                  help="True origins 'v,w' [µm] (default: 33.3,-11.3).")] = None,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Seed of the sensor noise.")] = 0,
     truth: Annotated[Path | None, typer.Option(help="Also write the truth (parameters, effects, noise) "
                                                "as JSON here.")] = None,
     allow_beyond_limits: Annotated[bool, typer.Option(
@@ -77,23 +90,17 @@ def simulate(
     """
     from ambfit import data as data_mod
     from ambfit import rig
-    from ambfit.physics.effects import effect_by_name
     from ambfit.rig import protocol as proto_mod
 
-    check_output(out, truth)
-
+    check_output(out, truth, inputs=(protocol, bearing))
+    desc = bearing_of(bearing)
+    effects = effects_of(effect, desc)
     try:
-        desc = bearing_of(bearing)
-        effects = [parse_effect(e, desc) for e in (effect or [])]
         spec = rig.RigSpec.for_bearing(desc).with_truth(g0=pair(gap_um, 1e-6), x0=pair(origin_um, 1e-6))
         center = ((-spec.x0[0], -spec.x0[1]) if center_um.strip().lower() == "origin" else pair(center_um, 1e-6))
         if protocol is not None:
-            with open(protocol, "rb") as f:
-                plan = tomllib.load(f)
-            for e in plan.pop("effect", []):
-                e = dict(e)
-                effects.append(effect_by_name(e.pop("name", ""), bearing=desc, **e))
-            proto = proto_mod.from_dict(plan, rotor_kg=desc.rotor_mass)
+            proto, more = protocol_of(protocol, desc)
+            effects += more
         elif preset is Preset.table2:
             proto = proto_mod.paper_table2(iterations, center=center, loads=spec.loads)
         elif preset is Preset.rich:
@@ -115,6 +122,39 @@ def simulate(
     console.print(f"wrote {len(sim.data)} rows to {out}")
 
 
+def effects_of(texts: list[str] | None, bearing=None) -> list:
+    """The ``--effect`` options as effects (facts of the bearing, the iron path, from ``bearing``); a bad one exits
+    2 naming it."""
+    out = []
+    for t in texts or []:
+        try:
+            out.append(parse_effect(t, bearing))
+        except ValueError as exc:
+            fail(f"--effect {t}: {exc}")
+    return out
+
+
+def protocol_of(path: Path, bearing):
+    """The ``--protocol`` TOML as a protocol (loads from ``bearing``'s rotor mass) and its ``[[effect]]`` tables
+    (facts of the bearing from it); a bad file exits 2 naming it."""
+    from ambfit.physics.effects import effect_by_name
+    from ambfit.rig import protocol as proto_mod
+
+    try:
+        with open(path, "rb") as f:
+            desc = tomllib.load(f)
+    except OSError as exc:
+        fail(f"--protocol {path}: cannot be read ({exc.strerror})")
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        fail(f"--protocol {path}: not a TOML file ({exc})")
+    try:
+        effects = []
+        for e in desc.pop("effect", []):
+            e = dict(e)
+            effects.append(effect_by_name(e.pop("name", ""), bearing=bearing, **e))
+        return proto_mod.from_dict(desc, rotor_kg=bearing.rotor_mass), effects
+    except (ValueError, TypeError, KeyError) as exc:
+        fail(f"--protocol {path}: {exc}")
 
 
 def within_limits(spec, proto, effects, allow: bool, currents=None):
@@ -143,19 +183,26 @@ def within_limits(spec, proto, effects, allow: bool, currents=None):
 
 @app.command("origin-search")
 def origin_search(
-    biases_a: Annotated[str, typer.Option("--biases-a", help="The two bias currents [A].")] = "1.4,1.6",
-    offset_um: Annotated[float, typer.Option(help="Half-distance of the symmetric position pair [µm].")] = 20.0,
-    start_um: Annotated[str, typer.Option(help="Initial set-point centre 'v,w' [µm].")] = "0,0",
-    tolerance_um: Annotated[float, typer.Option(help="Converged when both effective offsets are below "
+    biases_a: Annotated[str, typer.Option("--biases-a", callback=numbers(0, low_open=True, count=(2,)),
+                                          help="The two bias currents [A].")] = "1.4,1.6",
+    offset_um: Annotated[float, typer.Option(callback=number(0, low_open=True),
+                                             help="Half-distance of the symmetric position pair [µm].")] = 20.0,
+    start_um: Annotated[str, typer.Option(callback=numbers(count=(1, 2)),
+                                          help="Initial set-point centre 'v,w' [µm].")] = "0,0",
+    tolerance_um: Annotated[float, typer.Option(callback=number(0, low_open=True),
+                                                help="Converged when both effective offsets are below "
                                                 "this [µm].")] = 1.0,
-    iterations: Annotated[int, typer.Option(help="Largest number of iterations.")] = 10,
+    iterations: Annotated[int, typer.Option(callback=number(1, MAX_SEARCH_ITERATIONS),
+                                            help="Largest number of iterations.")] = 10,
     stop_at_tolerance: Annotated[bool, typer.Option(help="Stop once converged instead of running all "
                                                     "iterations.")] = False,
     effect: Annotated[list[str] | None, typer.Option(help="Unmodelled effect on the rig (see simulate).")] = None,
-    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", help="Current noise std [mA].")] = 0.6,
-    position_noise_um: Annotated[float, typer.Option(help="Position noise std [µm].")] = 0.1,
-    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
-    experiment: Annotated[str, typer.Option(help="Experiment label written to the data.")] = "origin_search",
+    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", callback=number(0),
+                                                    help="Current noise std [mA].")] = 0.6,
+    position_noise_um: Annotated[float, typer.Option(callback=number(0), help="Position noise std [µm].")] = 0.1,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Noise seed.")] = 0,
+    experiment: Annotated[str, typer.Option(callback=text,
+                                            help="Experiment label written to the data.")] = "origin_search",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write all readings as contract CSV.")] = None,
     truth: Annotated[Path | None, typer.Option(help="Write the rig's truth as JSON here.")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the trajectory as JSON.")] = None,
@@ -176,11 +223,13 @@ def origin_search(
     from ambfit.rig import protocol as proto_mod
     from ambfit.studies import origin
 
-    check_output(out, truth, json_out)
+    check_output(out, truth, json_out, inputs=(bearing,))
+    biases = tuple(float(b) for b in biases_a.split(","))
+    if biases[0] == biases[1]:
+        fail(f"--biases-a {biases_a}: the two biases must differ (Eq. 6 compares them)")
+    spec = rig.RigSpec.for_bearing(bearing_of(bearing))
+    effects = effects_of(effect, spec.bearing)
     try:
-        spec = rig.RigSpec.for_bearing(bearing_of(bearing))
-        biases = tuple(float(b) for b in biases_a.split(","))
-        effects = [parse_effect(e, spec.bearing) for e in (effect or [])]
         first = proto_mod.perturbation(biases, (offset_um * 1e-6,), center=pair(start_um, 1e-6))
         within_limits(spec, first, effects, allow_beyond_limits)
         with progress_bar() as bar:

@@ -21,14 +21,22 @@ def figure_of(obj):
 def save(obj, path, dpi: int = 120, *, close: bool = False) -> None:
     """Save an Axes, a Figure or an ArviZ plot collection to ``path`` (a file name or a binary buffer, PNG).
 
-    ``close`` releases the figure afterwards (reports that draw many figures); a notebook keeps it to show.
+    A file is written by :func:`ambfit._output.write_with` (atomically, through links, into devices), in the
+    format its suffix names when matplotlib knows it, else PNG.  ``close`` releases the figure afterwards
+    (reports that draw many figures); a notebook keeps it to show.
     """
     import os
 
     fig = figure_of(obj)
     fig.tight_layout()
-    # a file name gives the format by its suffix; a buffer has none
-    fig.savefig(path, dpi=dpi, **({} if isinstance(path, (str, os.PathLike)) else {"format": "png"}))
+    if isinstance(path, (str, os.PathLike)):
+        from ambfit._output import write_with
+
+        suffix = os.path.splitext(os.fspath(path))[1].lstrip(".").lower()
+        fmt = suffix if suffix in fig.canvas.get_supported_filetypes() else "png"
+        write_with(path, lambda f: fig.savefig(f, dpi=dpi, format=fmt))
+    else:
+        fig.savefig(path, dpi=dpi, format="png")
     if close:
         import matplotlib.pyplot as plt
 

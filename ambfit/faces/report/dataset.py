@@ -11,13 +11,13 @@ every number in it comes from the result.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from ambfit._output import write_json, write_text
 from ambfit.faces.report.render import figure, footer, render, table
 from ambfit.physics.bearing import PAPER_BEARING
 
@@ -260,6 +260,10 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
     return out
 
 
+FILES = ("index.html", "report.json")
+"""The files :func:`data_report` writes into its folder (the command line checks them before the work)."""
+
+
 def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
                 bearing=PAPER_BEARING, max_radius_um: float | None = None, do_posterior: bool = True,
                 do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None, sigma_i: float | None = None,
@@ -297,9 +301,9 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
                               do_diagnosis=do_diagnosis, seed=seed, progress=progress,
                               noise=dict(sigma_i=sigma_i, sigma_x=sigma_x))
     _step(progress, "writing")
-    (out / "report.json").write_text(json.dumps(record, indent=2, default=float))
+    write_json(out / "report.json", record, default=float)
     html_path = out / "index.html"
     command = command or f"ambfit report {data_path} --out {out}"
-    html_path.write_text(render("data.html.j2", title=f"ambfit report: {Path(data_path).name}", sections=sections,
+    write_text(html_path, render("data.html.j2", title=f"ambfit report: {Path(data_path).name}", sections=sections,
                                 footer=footer(command, time.perf_counter() - t0)))
     return html_path, record

@@ -9,14 +9,20 @@ PNG.  The sections' contexts come from :mod:`ambfit.faces.report.paper_sections`
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
+from ambfit._output import write_bytes, write_json, write_text
 from ambfit.faces.report import paper_sections as sec
 from ambfit.faces.report.render import footer, img, markdown, plain, png_bytes, render, section
 from ambfit.studies import paper as study
 from ambfit.studies import paper_gap
+
+FIGURES = ("fig2_solution_space.png", "fig2_map.png", "fig3_position_pairs.png", "fig3_position_pairs_table4.png",
+           "fig5_iterations.png", "spread.png")
+FILES = ("index.html", "README.md", "comparison.csv", "spread.csv", "origins_over_time.csv", "reproduction.json",
+         *FIGURES)
+"""The files :func:`paper_report` writes into its folder (the command line checks them before the work)."""
 
 PROSE = ("intro", "calibration", "gap_spread", "origin_spread", "eq7_bias")
 """The paragraphs of the paper report that the Markdown summary repeats, in order."""
@@ -48,9 +54,9 @@ def _figures(out: Path, rep, space, fig2_fit, spread) -> dict:
         "spread.png": lambda: plots.plot_spread(spread),
     }
     figs = {}
-    for name, draw in drawings.items():
-        data = png_bytes(draw())
-        (out / name).write_bytes(data)
+    for name in FIGURES:                 # (the names the command line checks before the work)
+        data = png_bytes(drawings[name]())
+        write_bytes(out / name, data)
         figs[name.removesuffix(".png")] = img(data)
     return figs
 
@@ -108,8 +114,8 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     out.mkdir(parents=True, exist_ok=True)
     rep = study.reproduce(replicates=replicates, seed=seed, progress=progress)
     spread = rep.spread()
-    rep.comparison().to_csv(out / "comparison.csv", index=False)
-    spread.to_csv(out / "spread.csv", index=False)
+    write_text(out / "comparison.csv", rep.comparison().to_csv(index=False))
+    write_text(out / "spread.csv", spread.to_csv(index=False))
     steps = ("Fig. 2", "figures", "gap demonstration", "writing")
 
     def step(name):
@@ -132,13 +138,13 @@ def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, d
     step("writing")
     record = _record(rep, seed=seed, space=space, fig2_fit=fig2_fit, bias_check=bias_check, published=published,
                      demo=demo)
-    (out / "reproduction.json").write_text(json.dumps(record, indent=2, default=float))
+    write_json(out / "reproduction.json", record, default=float)
     s = sections(rep, fig2_data=f2, space=space, fig2_fit=fig2_fit, bias_check=bias_check, published=published,
                  demo=demo)
-    s["origins_over_time"]["frame"].to_csv(out / "origins_over_time.csv", index=False)
-    (out / "README.md").write_text(readme(s, replicates=replicates, seconds=time.perf_counter() - t0))
+    write_text(out / "origins_over_time.csv", s["origins_over_time"]["frame"].to_csv(index=False))
+    write_text(out / "README.md", readme(s, replicates=replicates, seconds=time.perf_counter() - t0))
     html_path = out / "index.html"
-    html_path.write_text(render(
+    write_text(html_path, render(
         "paper.html.j2", title="ambfit: the seed paper's Tables 1-4 and Figs. 2, 3, 5 on the virtual rig", s=s,
         figs=figs, footer=footer(command or f"ambfit paper --out {out}", time.perf_counter() - t0)))
     return html_path

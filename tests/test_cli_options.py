@@ -1,0 +1,86 @@
+"""Bad option values end in one line naming the option and the value, exit 2, no traceback (issue 24); tables
+piped to a file keep every cell whole."""
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from ambfit.faces.cli import app
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = str(ROOT / "data" / "paper_table2.csv")
+runner = CliRunner()
+
+# (arguments, what the message must name); the value itself is checked to appear too
+BAD = [
+    (["sample", DATA, "--gap-prior-log-sd", "0"], "--gap-prior-log-sd"),
+    (["sample", DATA, "--gap-prior-log-sd", "nan"], "--gap-prior-log-sd"),
+    (["sample", DATA, "--walkers", "1"], "--walkers"),
+    (["sample", DATA, "--walkers", "3"], "--walkers"),
+    (["sample", DATA, "--steps", "0"], "--steps"),
+    (["sample", DATA, "--steps", "2000", "--max-steps", "1000"], "--max-steps"),
+    (["sample", DATA, "--ensembles", "1"], "--ensembles"),
+    (["sample", DATA, "--nominal-gap-um", "-1"], "--nominal-gap-um"),
+    (["sample", DATA, "--seed", "-1"], "--seed"),
+    (["solution-space", DATA, "--png", "x.png", "--step-um", "0.001"], "--step-um"),
+    (["solution-space", DATA, "--png", "x.png", "--step-um", "0"], "--step-um"),
+    (["solution-space", DATA, "--png", "x.png", "--gap-um", "1000,600"], "--gap-um"),
+    (["solution-space", DATA, "--png", "x.png", "--origin-um", "100,-100"], "--origin-um"),
+    (["solution-space", DATA, "--png", "x.png", "--gap-um", "600"], "--gap-um"),
+    (["design", DATA, "--steps", "0"], "--steps"),
+    (["design", DATA, "--max-radius-um", "nan"], "--max-radius-um"),
+    (["identify", DATA, "--bearing", "/bin/sh"], "--bearing"),
+    (["identify", DATA, "--current-noise-ma", "-1"], "--current-noise-ma"),
+    (["identify", DATA, "--position-noise-um", "nan"], "--position-noise-um"),
+    (["identify", DATA, "--debias", "-1"], "--debias"),
+    (["identify", DATA, "--max-position-um", "0"], "--max-position-um"),
+    (["identify", DATA, "--workers", "0"], "--workers"),
+    (["check", DATA, "--bearing", "/bin/sh"], "--bearing"),
+    (["check", DATA, "--max-position-um", "nan"], "--max-position-um"),
+    (["simulate", "-o", "x.csv", "--iterations", "0"], "--iterations"),
+    (["simulate", "-o", "x.csv", "--biases-a", "1.4,abc"], "--biases-a"),
+    (["simulate", "-o", "x.csv", "--offsets-um", "-20"], "--offsets-um"),
+    (["simulate", "-o", "x.csv", "--gap-um", "nan"], "--gap-um"),
+    (["simulate", "-o", "x.csv", "--center-um", "1,2,3"], "--center-um"),
+    (["simulate", "-o", "x.csv", "--current-noise-ma", "inf"], "--current-noise-ma"),
+    (["simulate", "-o", "x.csv", "--protocol", "/bin/sh"], "--protocol"),
+    (["simulate", "-o", "x.csv", "--effect", "saturation:b_sat=abc"], "--effect"),
+    (["simulate", "-o", "x.csv", "--effect", "saturation:b_sat=-1"], "b_sat=-1"),
+    (["origin-search", "--biases-a", "1.4"], "--biases-a"),
+    (["origin-search", "--biases-a", "1.4,1.4"], "--biases-a"),
+    (["origin-search", "--tolerance-um", "0"], "--tolerance-um"),
+    (["origin-search", "--offset-um", "-5"], "--offset-um"),
+    (["origin-search", "--iterations", "0"], "--iterations"),
+    (["origin-search", "--experiment", " "], "--experiment"),
+    (["report", DATA, "-o", "rep", "--ensembles", "0"], "--ensembles"),
+    (["report", DATA, "-o", "rep", "--max-radius-um", "-1"], "--max-radius-um"),
+    (["paper", "-o", "pap", "--replicates", "0"], "--replicates"),
+    (["campaign", DATA, "--seed", "-1"], "--seed"),
+    (["campaign", DATA, "--alpha", "nan"], "--alpha"),
+]
+
+
+@pytest.mark.parametrize("args, names", BAD, ids=lambda a: " ".join(a[-2:]) if isinstance(a, list) else None)
+def test_a_bad_option_is_one_line_naming_it(tmp_path, monkeypatch, args, names):
+    monkeypatch.chdir(tmp_path)
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert r.exception is None or isinstance(r.exception, SystemExit), repr(r.exception)
+    assert "Traceback" not in r.output
+    errors = [line for line in r.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and names in errors[0], r.output
+    if names.startswith("--"):
+        assert args[args.index(names) + 1].strip() in errors[0] or args[-1] in errors[0], r.output
+    assert not (tmp_path / "x.csv").exists() and not (tmp_path / "rep").exists()
+
+
+def test_piped_tables_keep_long_file_names_whole(tmp_path):
+    long = "a_rather_long_campaign_file_name_from_the_rig_logger_" * 3
+    paths = [tmp_path / f"{long}{i}.csv" for i in (1, 2)]
+    for p in paths:
+        p.write_bytes(Path(DATA).read_bytes())
+    r = runner.invoke(app, ["identify", *map(str, paths), "--method", "closed-form"])
+    assert r.exit_code == 0, r.output
+    for p in paths:
+        assert str(p) in r.output, r.output
