@@ -32,19 +32,25 @@ def result_at(sol: Solution, prob: Problem, meta: Meta, model: Model, how: str, 
     return out
 
 
-def _problem(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, theta: np.ndarray) -> FitError | None:
-    """Why a solution has no result: fewer readings than parameters, or values that are not finite."""
-    dof = int(used.sum()) - n_free
-    if dof < 1:
-        return FitError(f"the design does not identify the parameters: {int(used.sum())} readings for {n_free} "
-                        "parameters (no redundancy); add positions, biases or repetitions")
-    bad = (~np.isfinite(z[: len(used)]) | ~np.all(np.isfinite(jac[: len(used)]), axis=1)) & used
-    if bad.any() or not np.all(np.isfinite(theta)):
-        first = f", the first row {int(np.argmax(bad)) + 1}" if bad.any() else ""
-        return FitError(f"the force law gives non-finite values{f' on {int(bad.sum())} row(s)' if bad.any() else ''}"
-                        f"{first} at the estimate (a pole gap closed, or currents and positions the law cannot use); "
-                        "check those rows' units and values (ambfit check)")
-    return None
+def _problems(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, theta: np.ndarray) -> list:
+    """Why each of a group of alike solutions has no result (``used[sets, rows]``, ``z``, ``jac`` and ``theta``
+    stacked): fewer readings than parameters, or values that are not finite; None where there is a result."""
+    rows = used.shape[1]
+    dof = used.sum(axis=1) - n_free
+    bad = (~np.isfinite(z[:, :rows]) | ~np.all(np.isfinite(jac[:, :rows]), axis=2)) & used
+    theta_bad = ~np.all(np.isfinite(theta), axis=1)
+    out: list = [None] * len(used)
+    for b in np.nonzero((dof < 1) | bad.any(axis=1) | theta_bad)[0]:
+        if dof[b] < 1:
+            out[b] = FitError(f"the design does not identify the parameters: {int(used[b].sum())} readings for "
+                              f"{n_free} parameters (no redundancy); add positions, biases or repetitions")
+            continue
+        count = int(bad[b].sum())
+        where = f" on {count} row(s), the first row {int(np.argmax(bad[b])) + 1}" if count else ""
+        out[b] = FitError(f"the force law gives non-finite values{where} at the estimate (a pole gap closed, or "
+                          "currents and positions the law cannot use); check those rows' units and values "
+                          "(ambfit check)")
+    return out
 
 
 def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequence[Meta], model: Model,
@@ -56,18 +62,24 @@ def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequen
     """
     out: list = [None] * len(sols)
     groups: dict = {}
+    frees: dict = {}
     for s, (sol, prob, meta) in enumerate(zip(sols, probs, metas)):
-        free = free_mask(prob, meta, model)
-        mask = np.asarray(prob.mask, dtype=float)
-        used = mask > 0
-        problem = _problem(used, int(free.sum()), np.asarray(sol.z), np.asarray(sol.jac), np.asarray(sol.theta))
-        if problem is not None:
-            out[s] = problem
-            continue
+        shape = (meta.axes_present, meta.k_free, len(meta.load_groups))
+        if shape not in frees:
+            frees[shape] = free_mask(prob, meta, model)
+        free = frees[shape]
         key = (free.tobytes(), np.shape(sol.jac), tuple(meta.load_groups), meta.noise_source, meta.k_free)
-        groups.setdefault(key, []).append((s, free, mask))
+        groups.setdefault(key, []).append((s, free, np.asarray(prob.mask, dtype=float)))
     for members in groups.values():
-        _measure(members, sols, probs, metas, model, hows, thresholds, out)
+        idx = [s for s, _, _ in members]
+        why = _problems(np.stack([m for _, _, m in members]) > 0, int(members[0][1].sum()),
+                        np.stack([np.asarray(sols[s].z) for s in idx]), np.stack([np.asarray(sols[s].jac) for s in idx]),
+                        np.stack([np.asarray(sols[s].theta) for s in idx]))
+        for s, problem in zip(idx, why):
+            out[s] = problem
+        members = [m for m, problem in zip(members, why) if problem is None]
+        if members:
+            _measure(members, sols, probs, metas, model, hows, thresholds, out)
     return out
 
 
@@ -113,6 +125,7 @@ def _measure(members, sols, probs, metas, model, hows, thresholds, out):
     weak = describe_weaknesses(names, corr, vt[:, -1])
     n_rows = masks.shape[1]
     rows_all = np.stack([np.asarray(sols[s].jac_all)[:n_rows] for s in idx])[:, :, free]
+    effects, model_name, bearing = model.effects, model.name, model.bearing
     for b, s in enumerate(idx):
         sol = sols[s]
         noise = meta.noise_source
@@ -124,6 +137,6 @@ def _measure(members, sols, probs, metas, model, hows, thresholds, out):
             num_steps=int(sol.steps), condition=float(cond[b]), weak_direction=weak[b],
             noise_source=noise, noise_estimated=meta.noise_estimated, start=hows[s], k_free=meta.k_free,
             n_rows=metas[s].n_rows, n_fit_rows=int(used[b].sum()),
-            effects=model.build(theta[b, theta.shape[1] - model.n:]) if model.n else model.effects, model=model.name,
-            bearing=model.bearing, theta=theta[b], thresholds=thresholds,
+            effects=model.build(theta[b, theta.shape[1] - model.n:]) if model.n else effects, model=model_name,
+            bearing=bearing, theta=theta[b], thresholds=thresholds,
             jacobian_rows=rows_all[b])
