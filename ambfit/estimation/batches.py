@@ -85,7 +85,8 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
         sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps)
         return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
     out: list = [None] * len(probs)
-    sizes = [(len(np.asarray(p.mask)), p.n_loads) for p in probs]
+    # (rows, nuisance loads): a start holds the six head entries, one per load, then the model's effect entries
+    sizes = [(len(np.asarray(p.mask)), len(t) - 6 - model.n) for p, t in zip(probs, thetas)]
     keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
     for key in dict.fromkeys(keys):
         rows, loads = key

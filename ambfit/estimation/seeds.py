@@ -151,10 +151,11 @@ _PROFILE_FIELDS = ("axis", "i_top", "i_bottom", "x", "mask", "known", "load", "g
 
 
 def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bearing], k_held=K_REFERENCE,
-                 col: dict | None = None) -> list[np.ndarray]:
+                 col: dict | None = None, n_loads: Sequence[int] | None = None) -> list[np.ndarray]:
     """Each data set's scaled start from its ``(v, w)`` gaps and origins [m] (arrays[n_sets, 2]): ``k`` from its known
     loads (``k_held``, float or array[n_sets, 2], on an axis without) and its nuisance loads profiled there, for all
-    data sets in one pass.  ``col``: the problems' :func:`columns`, when already read."""
+    data sets in one pass.  ``col``: the problems' :func:`columns`, when already read; ``n_loads``: their numbers of
+    nuisance loads, when known (each :class:`Meta`'s load groups)."""
     gaps, origins = np.asarray(gaps, dtype=float), np.asarray(origins, dtype=float)
     n = len(probs)
     lengths = np.array([len(p.mask) for p in probs])
@@ -163,7 +164,7 @@ def with_profile(gaps, origins, probs: Sequence[Problem], bearings: Sequence[Bea
     col = columns(probs, _PROFILE_FIELDS) if col is None else col
     ax, it, ib, x = col["axis"].astype(int), col["i_top"], col["i_bottom"], col["x"]
     used, known, load = col["mask"] > 0, col["known"].astype(bool), col["load"]
-    n_loads = np.array([p.n_loads for p in probs], dtype=int)
+    n_loads = np.array([p.n_loads for p in probs] if n_loads is None else n_loads, dtype=int)
     first_load = np.concatenate([[0], np.cumsum(n_loads)])
     gidx = col["gidx"].astype(int)
     load_seg = np.where(gidx >= 0, first_load[set_of_row] + gidx, -1)
@@ -220,7 +221,7 @@ def starts(table: pd.DataFrame, probs: Sequence[Problem], metas: Sequence[Meta],
     how = [words[tuple(present[s]) + tuple(closed[s])] for s in range(n)]
     for s, a in zip(*np.nonzero(present & ~closed)):       # an axis without a valid pair starts from a grid
         gaps[s, a], origins[s, a] = grid_start(probs[s], int(a), bearings[s])
-    return with_profile(gaps, origins, probs, bearings, col=col), how
+    return with_profile(gaps, origins, probs, bearings, col=col, n_loads=[len(m.load_groups) for m in metas]), how
 
 
 def seed_loads_and_k(theta, prob: Problem, bearing: Bearing = PAPER_BEARING) -> np.ndarray:
