@@ -76,3 +76,14 @@ def test_missing_label_names_no_group(fill):
     want_prob, want_meta = build_problem(frames[1])
     assert built[1][1] == want_meta
     np.testing.assert_array_equal(np.asarray(built[1][0].gidx), np.asarray(want_prob.gidx))
+
+
+def test_an_empty_table_in_a_study_is_an_error_in_its_place():
+    """A data set without readings gets a FitError saying so; the others of the study still fit."""
+    from ambfit.estimation.core import FitError
+    from ambfit.estimation.fit import fit_many
+
+    frame = _variant(6, frozenset(), 0.0, False)
+    out = fit_many([frame, frame.iloc[:0], frame])
+    assert isinstance(out[1], FitError) and "no readings" in str(out[1])
+    assert out[0].values == pytest.approx(out[2].values, rel=1e-12)

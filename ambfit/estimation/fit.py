@@ -232,6 +232,8 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
             continue
         prob, meta = built[s]
         try:
+            if not meta.n_rows:
+                raise FitError("the data set has no readings")
             if masks[s] is not None:
                 prob = prob.with_mask(_checked(masks[s], len(dfs[s]), "mask"))
             if helds[s] is not None:

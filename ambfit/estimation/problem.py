@@ -237,11 +237,11 @@ def _slicer(prob: Problem):
     names = [jax.tree_util.keystr(path) for path, _ in paths]
     leaves = [np.asarray(leaf) for _, leaf in paths]
 
+    k_at, g_at = (next(i for i, name in enumerate(names) if name.endswith(end)) for end in (".k_free", ".gidx"))
+
     def rows(lo, hi, k_free, gidx):
-        out = []
-        for name, leaf in zip(names, leaves):
-            out.append(np.asarray(k_free) if name.endswith(".k_free") else gidx if name.endswith(".gidx")
-                       else leaf[lo:hi])
+        out = [leaf[lo:hi] for leaf in leaves]
+        out[k_at], out[g_at] = np.asarray(k_free), gidx
         return jax.tree_util.tree_unflatten(tree, out)
 
     return rows
@@ -280,20 +280,23 @@ def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
     prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups)
     rows = _slicer(prob)
     offsets = np.cumsum([0] + list(lengths))
-    gidx_all, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
+    gidx, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
+    # each data set's load groups are numbered one after another from its first: its own numbers start at 0
+    starts = offsets[:-1]
+    big = np.iinfo(gidx.dtype).max
+    first = np.minimum.reduceat(np.where(gidx >= 0, gidx, big), starts)
+    m = np.where(first < big, np.maximum.reduceat(gidx, starts) - first + 1, 0)
+    first = np.where(first < big, first, 0)
+    local = np.where(gidx >= 0, gidx - np.repeat(first, lengths), -1)
+    k_free = np.stack([np.add.reduceat(known & (ax == a), starts) > 0 for a in range(2)], axis=1)
+    present = np.stack([np.add.reduceat(ax == a, starts) > 0 for a in range(2)], axis=1)
     out = []
-    for s in range(len(lengths)):
-        lo, hi = offsets[s], offsets[s + 1]
-        g = gidx_all[lo:hi]
-        first = int(g[g >= 0].min()) if (g >= 0).any() else 0
-        local = np.where(g >= 0, g - first, -1)
-        m = int(local.max(initial=-1)) + 1
-        a, kn = ax[lo:hi], known[lo:hi]
-        k_free = tuple(bool(kn[a == i].any()) for i in range(2))
-        present = tuple(bool((a == i).any()) for i in range(2))
-        out.append((rows(lo, hi, k_free, local),
-                    Meta(load_groups=list(meta.load_groups[first:first + m]), k_free=k_free, axes_present=present,
-                         noise_source=meta.noise_source, n_rows=int(hi - lo))))
+    for s, (lo, hi) in enumerate(zip(offsets[:-1], offsets[1:])):
+        kf = (bool(k_free[s, 0]), bool(k_free[s, 1]))
+        out.append((rows(lo, hi, kf, local[lo:hi]),
+                    Meta(load_groups=list(meta.load_groups[first[s]:first[s] + m[s]]), k_free=kf,
+                         axes_present=(bool(present[s, 0]), bool(present[s, 1])), noise_source=meta.noise_source,
+                         n_rows=int(hi - lo))))
     return out
 
 
@@ -321,8 +324,19 @@ def build_problems(frames: list[pd.DataFrame], *, sigma_i: float | None = None, 
     joined = pd.concat(frames, ignore_index=True, sort=False)     # every column of any table; NaN where it lacks it
     set_id = np.repeat(np.arange(n), lengths)
     keys = _join_keys(joined, frames, set_id, sigma_i, sigma_x)
+
+    def alone(members):                         # the single build names the data set and the problem
+        for s in members:
+            try:
+                built[s] = _build(frames[s], sigma_i, sigma_x)
+            except (DataError, ValueError, KeyError) as exc:
+                built[s] = exc
+
+    alone([s for s in range(n) if not lengths[s]])          # (an empty table joins nothing)
     for key in dict.fromkeys(keys):
-        members = [s for s in range(n) if keys[s] == key]
+        members = [s for s in range(n) if keys[s] == key and lengths[s]]
+        if not members:
+            continue
         cols = [c for c in joined.columns if any(c in frames[s].columns for s in members)]
         part = joined if len(members) == n else joined[np.isin(set_id, members)]
         try:
@@ -330,11 +344,7 @@ def build_problems(frames: list[pd.DataFrame], *, sigma_i: float | None = None, 
                                                    sigma_i, sigma_x)):
                 built[s] = b
         except (DataError, ValueError, KeyError):
-            for s in members:                   # the single build names the data set and the problem
-                try:
-                    built[s] = _build(frames[s], sigma_i, sigma_x)
-                except (DataError, ValueError, KeyError) as exc:
-                    built[s] = exc
+            alone(members)
     return _table(joined, lengths), built, offsets
 
 
