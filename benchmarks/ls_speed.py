@@ -49,12 +49,18 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _median_time(fn, repeats):
+    """Median wall time of ``repeats`` calls, with the cyclic garbage collector off while they run, as timeit does:
+    a full collection triggered by one side's garbage would otherwise land in whichever call runs next."""
     ts = []
-    for _ in range(repeats):
-        gc.collect()        # (as timeit does: no repeat pays for the garbage of the one before, or of the other side)
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
+    gc.collect()
+    gc.disable()
+    try:
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t)
+    finally:
+        gc.enable()
     return float(np.median(ts))
 
 
@@ -139,10 +145,7 @@ def _warm_fit_s(rows: int):
     df = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(iterations=rows // 8, center=(-33.3e-6, 11.3e-6)),
                       seed=1).data
     fit.fit(df)                                         # compiles this length's solve
-    gc.collect()
-    t = time.perf_counter()
-    res = fit.fit(df)
-    return time.perf_counter() - t, df, res
+    return _median_time(lambda: fit.fit(df), 3), df, fit.fit(df)
 
 
 def large_fit(rows: int):
