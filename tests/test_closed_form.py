@@ -152,3 +152,25 @@ def test_biased_mean_at_three_times_the_noise_is_flagged_not_returned():
     # the paper's noise (another seed: at 1x the check fires on 1.7 % of data sets, seed 40 among them): no flag
     clean = cf.identify(rig.simulate(spec, proto, seed=1).data)
     assert all(ok is not False for name, ok, _ in clean.checks() if name == "agrees_with_least_squares")
+
+
+def test_a_least_squares_solution_that_closes_a_pole_gap_is_refused():
+    # with two positions a positive gap and positive ratios P keep every |u| below g0 by themselves; with three
+    # the least-squares solution need not: these ratios (inconsistent, as noise makes them) give g0 = 4.4 µm > 0
+    # with the rotor 19 µm off centre, a closed gap, which the guard must refuse rather than report
+    p = np.array([0.65, 1.25, 0.6])
+    x = np.array([-20e-6, 0.0, 20e-6])
+    a, rhs = cf.eq7_system(p, x, rig.PAPER_RIG.bearing.cos_alpha)
+    g0 = np.linalg.lstsq(a, rhs, rcond=None)[0][0]
+    assert 0 < g0 < 20e-6                                   # positive gap, smaller than the excursions
+    it = [[math.sqrt(1.0 + q**2 * (1.2**2 - 1.0)), 1.0] for q in p]   # Eq. 6 gives back exactly these P
+    with pytest.raises(cf.ClosedFormError, match="non-physical"):
+        cf.solve(x, it, [[1.2, 1.0]] * 3)
+
+
+def test_a_position_without_its_second_bias_is_named():
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=1), noise=NF)
+    rows = sim.data[sim.data.axis == "v"]
+    gone = rows[(rows["bias_A"] == rows["bias_A"].max()) & (rows["v_set_um"] > 0)].index
+    with pytest.raises(cf.ClosedFormError, match=r"has no reading at bias 1\.6 A: each position needs both"):
+        cf.solve_rows(rows.drop(gone))
