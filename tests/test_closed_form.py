@@ -174,3 +174,13 @@ def test_a_position_without_its_second_bias_is_named():
     gone = rows[(rows["bias_A"] == rows["bias_A"].max()) & (rows["v_set_um"] > 0)].index
     with pytest.raises(cf.ClosedFormError, match=r"has no reading at bias 1\.6 A: each position needs both"):
         cf.solve_rows(rows.drop(gone))
+
+
+def test_a_position_whose_biases_carry_different_loads_is_refused():
+    # Eq. 5 cancels the load between the two biases: a different load at one of them is a different equation
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=1), noise=NF)
+    rows = sim.data[sim.data.axis == "v"].copy()
+    rows["load_id"] = "rotor"
+    rows.loc[(rows["bias_A"] == rows["bias_A"].max()) & (rows["v_set_um"] > 0), "load_id"] = "rotor+mass"
+    with pytest.raises(cf.ClosedFormError, match="carry different loads .* Eq. 5 needs the same load"):
+        cf.solve_rows(rows)
