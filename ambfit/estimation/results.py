@@ -13,6 +13,9 @@ Health follows iminuit's ``FMin``: each property is a yes/no answer and
 ``adequate``
     χ² is consistent with the noise levels (p-value at least ``p_min``); ``None`` when
     the noise was estimated from the residuals, which makes χ²/dof 1 by construction.
+``effects_identified``
+    The data determine every effect parameter (:func:`ambfit.estimation.conditioning.effect_identification`);
+    ``None`` when not measured.  Raised before non-convergence: an unseen effect makes the solver wander.
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ class FitResult:
     (what the outlier test's leverages need; measured with the solve)."""
     plain_shift: dict | None = None
     implausible: tuple = ()
+    effect_identification: dict | None = None     # {effect parameter: share of its prior's variance left}
 
     # --- values ---------------------------------------------------------------------------------------------
 
@@ -199,6 +203,7 @@ class FitResult:
 
     def checks(self) -> list[tuple[str, bool | None, str]]:
         """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
+        from ambfit.estimation.conditioning import undetermined_text
         from ambfit.estimation.core import EDM_MAX
 
         rel = self.relative_gap_std
@@ -206,10 +211,12 @@ class FitResult:
                self.condition < self.thresholds.max_condition else f"a gap has a relative standard error of {rel:.2g}")
         law = "the ideal law" if self.model == "ideal" else f"the model ({self.model})"
         missing = [ax for ax, ok in self.k_by_axis.items() if not ok and f"g_{ax}0" in self.names]
+        unseen = undetermined_text(self.effect_identification or {})
         return [
             ("well_conditioned", self.well_conditioned,
              f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more positions "
              "(the paper's symmetric pairs) and two or more biases"),
+            ("effects_identified", None if self.effect_identification is None else not unseen, unseen),
             ("converged", self.converged,
              f"least squares did not converge within {self.thresholds.max_steps} steps (EDM {self.edm:.2g}, limit "
              f"{EDM_MAX:g}; optimistix: {self.optimistix}); check the data for outliers or a wrong unit, or give a "
@@ -257,6 +264,8 @@ class FitResult:
 
         for name, ok, text in self.checks():
             if name in ("well_conditioned", "converged") and not ok:
+                raise FitError(text)
+            if name == "effects_identified" and ok is False and not self.converged:   # the cause of the failure
                 raise FitError(text)
 
     def goodness_of_fit(self) -> dict:
