@@ -96,7 +96,9 @@ def test_published_gap_names_the_candidates_with_magnitudes():
     pg = {e["parameter"]: e for e in paper_gap.published_gap()}
     avgs = pd.concat([paper.load_table(t, averages=True) for t in (1, 3, 4)])
     diff_v = avgs["g_v0_um"].mean() - 762.0
-    assert pg["g_v0_um"]["flagged"] and not pg["g_w0_um"]["flagged"]
+    # 13 µm (1.7 %) is many standard errors from the drawn number, yet inside a sound bearing's machining and
+    # iron-reluctance band (±2 %): an effective value to explain, not a flag
+    assert pg["g_v0_um"]["differs"] and not pg["g_v0_um"]["flagged"] and not pg["g_w0_um"]["differs"]
     assert pg["g_v0_um"]["difference"] == pytest.approx(diff_v)
     could = {c["effect"]: c for c in pg["g_v0_um"]["could_be"]}
     mu = 0.080 / (2 * diff_v * 1e-6)
@@ -142,7 +144,7 @@ def test_eq7_gap_scatter_is_proportional_to_current_noise():
         g = []
         for seed in range(20):
             res = closed_form.identify(rig.simulate(rig.PAPER_RIG, proto, noise=rig.Noise(sigma_i, 0.1e-6),
-                                                    seed=seed).data)
+                                                    seed=seed).data, cross_check=False)
             g += [s.g0 for s in res.estimates[("all", "v")].iterations.values()]
         return np.std(g, ddof=1)
 

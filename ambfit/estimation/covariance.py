@@ -15,7 +15,35 @@ import numpy as np
 
 from ambfit.estimation.core import FitError, Meta, Model, Problem, free_mask, free_names, si_scale
 from ambfit.estimation.lm import Solution
-from ambfit.estimation.results import FitResult, Thresholds, describe_weaknesses
+from ambfit.estimation.results import FitResult, Thresholds
+
+
+def describe_weakness(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> str:
+    """The least-determined direction in words: the most correlated pair and the weakest singular vector."""
+    return describe_weaknesses(names, np.asarray(corr)[None], np.asarray(vt_last)[None])[0]
+
+
+def describe_weaknesses(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> list[str]:
+    """:func:`describe_weakness` of many fits of the same parameters: ``corr[sets, p, p]``, ``vt_last[sets, p]``."""
+    corr, vt_last = np.asarray(corr), np.asarray(vt_last)
+    sets, p = vt_last.shape
+    top = np.argsort(-np.abs(vt_last), axis=1)[:, :2]
+    pair = None
+    if p > 1:
+        c = np.nan_to_num(np.abs(corr), nan=0.0) - np.eye(p)
+        flat = np.argmax(c.reshape(sets, -1), axis=1)
+        pair = np.unravel_index(flat, (p, p))
+    out = []
+    for b in range(sets):
+        text = []
+        if pair is not None:
+            i, j = pair[0][b], pair[1][b]
+            r = corr[b, i, j]
+            if np.isfinite(r) and abs(r) <= 1.0 + 1e-9:
+                text.append(f"{names[i]} and {names[j]} are {100 * abs(r):.1f} % {'anti-' if r < 0 else ''}correlated")
+        text.append("weakest direction mostly " + " and ".join(names[t] for t in top[b]))
+        out.append("; ".join(text))
+    return out
 
 
 def result_at(sol: Solution, prob: Problem, meta: Meta, model: Model, how: str, thresholds: Thresholds) -> FitResult:

@@ -156,6 +156,11 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
                    max_steps=max_steps, loss=loss, alpha=alpha, debias=debias, seed=seed)[0]
     if isinstance(out, BaseException):
         raise out
+    if effects and not out.converged:       # an effect these data do not determine makes the solver wander: say which
+        from ambfit.estimation.conditioning import effect_identification
+
+        out = dataclasses.replace(out, effect_identification=effect_identification(
+            data, effects, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x))
     if throw:
         out.raise_for_health()
     return out

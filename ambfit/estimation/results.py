@@ -13,6 +13,9 @@ Health follows iminuit's ``FMin``: each property is a yes/no answer and
 ``adequate``
     χ² is consistent with the noise levels (p-value at least ``p_min``); ``None`` when
     the noise was estimated from the residuals, which makes χ²/dof 1 by construction.
+``effects_identified``
+    The data determine every effect parameter (:func:`ambfit.estimation.conditioning.effect_identification`);
+    ``None`` when not measured.  Raised before non-convergence: an unseen effect makes the solver wander.
 """
 
 from __future__ import annotations
@@ -35,34 +38,6 @@ class Thresholds:
     max_relative_gap_std: float = 0.1
     p_min: float = 1e-3
     max_steps: int = 200
-
-
-def describe_weakness(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> str:
-    """The least-determined direction in words: the most correlated pair and the weakest singular vector."""
-    return describe_weaknesses(names, np.asarray(corr)[None], np.asarray(vt_last)[None])[0]
-
-
-def describe_weaknesses(names: Sequence[str], corr: np.ndarray, vt_last: np.ndarray) -> list[str]:
-    """:func:`describe_weakness` of many fits of the same parameters: ``corr[sets, p, p]``, ``vt_last[sets, p]``."""
-    corr, vt_last = np.asarray(corr), np.asarray(vt_last)
-    sets, p = vt_last.shape
-    top = np.argsort(-np.abs(vt_last), axis=1)[:, :2]
-    pair = None
-    if p > 1:
-        c = np.nan_to_num(np.abs(corr), nan=0.0) - np.eye(p)
-        flat = np.argmax(c.reshape(sets, -1), axis=1)
-        pair = np.unravel_index(flat, (p, p))
-    out = []
-    for b in range(sets):
-        text = []
-        if pair is not None:
-            i, j = pair[0][b], pair[1][b]
-            r = corr[b, i, j]
-            if np.isfinite(r) and abs(r) <= 1.0 + 1e-9:
-                text.append(f"{names[i]} and {names[j]} are {100 * abs(r):.1f} % {'anti-' if r < 0 else ''}correlated")
-        text.append("weakest direction mostly " + " and ".join(names[t] for t in top[b]))
-        out.append("; ".join(text))
-    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +107,7 @@ class FitResult:
     (what the outlier test's leverages need; measured with the solve)."""
     plain_shift: dict | None = None
     implausible: tuple = ()
+    effect_identification: dict | None = None     # {effect parameter: share of its prior's variance left}
 
     # --- values ---------------------------------------------------------------------------------------------
 
@@ -207,6 +183,7 @@ class FitResult:
 
     def checks(self) -> list[tuple[str, bool | None, str]]:
         """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
+        from ambfit.estimation.conditioning import undetermined_text
         from ambfit.estimation.convergence import not_converged
         from ambfit.estimation.core import EDM_MAX
 
@@ -215,10 +192,12 @@ class FitResult:
                self.condition < self.thresholds.max_condition else f"a gap has a relative standard error of {rel:.2g}")
         law = "the ideal law" if self.model == "ideal" else f"the model ({self.model})"
         missing = [ax for ax, ok in self.k_by_axis.items() if not ok and f"g_{ax}0" in self.names]
+        unseen = undetermined_text(self.effect_identification or {})
         return [
             ("well_conditioned", self.well_conditioned,
              f"the design does not identify the parameters: {why}; {self.weak_direction}. Use two or more positions "
              "(the paper's symmetric pairs) and two or more biases"),
+            ("effects_identified", None if self.effect_identification is None else not unseen, unseen),
             ("converged", self.converged, not_converged(self, EDM_MAX)),
             ("adequate", self.adequate,
              f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
@@ -263,6 +242,8 @@ class FitResult:
 
         for name, ok, text in self.checks():
             if name in ("well_conditioned", "converged") and not ok:
+                raise FitError(text)
+            if name == "effects_identified" and ok is False and not self.converged:   # the cause of the failure
                 raise FitError(text)
 
     def goodness_of_fit(self) -> dict:

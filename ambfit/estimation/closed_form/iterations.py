@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
+from ambfit.estimation.closed_form import agreement
 from ambfit.estimation.closed_form.equations import POSITION_TOLERANCE, ClosedFormError, Solution, solve
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
@@ -29,7 +30,8 @@ class AxisEstimate:
     ``*_sem`` is the standard error of the mean (std / sqrt(n), NaN for n < 2);
     ``*_std`` the iteration-to-iteration scatter.  ``iterations`` holds the
     per-iteration :class:`Solution` records (for plots), ``rejected`` the
-    iterations that could not be solved and why.
+    iterations that could not be solved and why; ``reference`` least squares on
+    the same readings (:mod:`~ambfit.estimation.closed_form.agreement`), None when not compared.
     """
 
     axis: str
@@ -44,10 +46,15 @@ class AxisEstimate:
     k_sem: float
     iterations: dict
     rejected: dict
+    reference: agreement.Reference | None = None
 
     @property
     def n(self) -> int:
         return len(self.iterations)
+
+    def interval(self, name: str = "g0", level: float = agreement.LEVEL) -> tuple[float, float]:
+        """Level-``level`` interval of ``g0``, ``x0`` or ``k`` [SI]: mean ± Student t (n - 1 dof) x standard error."""
+        return agreement.interval(getattr(self, name), getattr(self, f"{name}_sem"), self.n, level)
 
     @property
     def g0_std_predicted(self) -> float:
@@ -76,6 +83,7 @@ class AxisEstimate:
              f"{where}: the iterations' gaps scatter {ratio:.1f} times more than the current noise predicts "
              f"({self.g0_std * 1e6:.3g} µm against {self.g0_std_predicted * 1e6:.3g} µm): the load or the origin "
              "changed between iterations, or the noise is larger than the std columns say"),
+            agreement.check(self),
         ]
 
 
@@ -171,8 +179,10 @@ class ClosedFormResult:
         """One ``{column: text}`` row per (experiment, axis): mean ± standard error over iterations."""
         from ambfit.estimation.units import pm
 
+        level = f"{100 * agreement.LEVEL:.0f} %"
         return [{"experiment": exp, "axis": ax, "iterations": str(e.n), "gap [µm]": pm(e.g0 * 1e6, e.g0_sem * 1e6),
-                 "origin [µm]": pm(e.x0 * 1e6, e.x0_sem * 1e6),
+                 f"gap {level} [µm]": _span(e.interval("g0"), 1e6),
+                 "origin [µm]": pm(e.x0 * 1e6, e.x0_sem * 1e6), f"origin {level} [µm]": _span(e.interval("x0"), 1e6),
                  "k [N·m²/A²]": pm(e.k, e.k_sem) if np.isfinite(e.k) else "–", "rejected": str(len(e.rejected))}
                 for (exp, ax), e in self.estimates.items()]
 
@@ -224,6 +234,8 @@ class ClosedFormResult:
                 "iterations": {str(i): {"g0_um": s.g0 * 1e6, "x0_um": s.x0 * 1e6, "condition": s.condition,
                                          "ratios": s.ratios.tolist()} for i, s in est.iterations.items()},
                 "rejected": {str(i): r for i, r in est.rejected.items()},
+                "interval": _intervals(est),
+                "least_squares": _reference_json(est),
             }
         out = {
             "method": "closed_form",
@@ -231,7 +243,8 @@ class ClosedFormResult:
             "converged": all(e.n > 0 for e in self.estimates.values()),
             "trusted": self.trusted, "health": self.health(),
             "n_rows": self.n_rows,
-            "std_meaning": "standard error of the mean over iterations (null with one iteration)",
+            "std_meaning": "standard error of the mean over iterations (null with one iteration); detail's interval: "
+                           f"{100 * agreement.LEVEL:g} % interval, mean ± Student t (n - 1 dof) x standard error",
             "detail": detail,
         }
         if self.by_experiment:
@@ -243,14 +256,55 @@ def _none(x):
     return None if not np.isfinite(x) else float(x)
 
 
+def _reference(ls, axis: str) -> agreement.Reference | None:
+    """One axis of the least-squares reference: None when not asked for, the reason when it failed."""
+    if ls is None:
+        return None
+    if isinstance(ls, Exception):
+        return agreement.Reference(why=f"least squares on the same readings failed: {ls}")
+    if f"g_{axis}0" not in ls.names:
+        return agreement.Reference(why=f"least squares has no axis {axis}")
+    return agreement.Reference.of(ls, axis)
+
+
+def _intervals(est: AxisEstimate) -> dict:
+    """The t intervals of gap and origin [µm] (and k) with their level and degrees of freedom."""
+    out = {"level": agreement.LEVEL, "dof": est.n - 1 if est.n > 1 else None}
+    for name, key, f in (("g0", "g0_um", 1e6), ("x0", "x0_um", 1e6), ("k", "k_Nm2_per_A2", 1.0)):
+        lo, hi = est.interval(name)
+        out[key] = [_none(lo * f), _none(hi * f)]
+    return out
+
+
+def _span(lo_hi, f: float) -> str:
+    lo, hi = lo_hi
+    return f"{lo * f:.4g} – {hi * f:.4g}" if np.isfinite(lo) and np.isfinite(hi) else "–"
+
+
+def _reference_json(est: AxisEstimate) -> dict | None:
+    ref = est.reference
+    if ref is None:
+        return None
+    if not ref.usable:
+        return {"why": ref.why}
+    return {"g0_um": ref.g0 * 1e6, "g0_std_um": ref.g0_err * 1e6, "x0_um": ref.x0 * 1e6, "x0_std_um": ref.x0_err * 1e6,
+            "difference": {name: {"um": d * 1e6, "z": z, "p": p} for name, d, z, p in agreement.disagreement(est, ref)}}
+
+
 def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
-             bearing: Bearing = PAPER_BEARING) -> ClosedFormResult:
+             bearing: Bearing = PAPER_BEARING, cross_check: bool = True, reference=None) -> ClosedFormResult:
     """Closed-form identification of every iteration, averaged as in the paper's tables.
 
     Iterations are the (``experiment``, ``iteration``) groups of each axis (a file
     without these columns is one iteration).  With ``by_experiment`` each experiment
     gets its own estimate; otherwise all iterations are pooled under ``"all"``.
     An iteration that cannot be solved is listed in ``rejected`` with the reason.
+
+    With ``cross_check`` (default) each estimate's rows are also fitted by least squares, and a mean that
+    differs from it by more than their errors allow fails the ``agrees_with_least_squares`` check
+    (:mod:`~ambfit.estimation.closed_form.agreement`: at higher noise Eq. 6-7's mean is biased).
+    ``reference`` gives that least-squares fit of all rows instead of fitting it (not with ``by_experiment``);
+    studies that compare with the truth themselves pass ``cross_check=False``.
 
     Raises
     ------
@@ -276,6 +330,12 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     exp_keys = list(dict.fromkeys(df["experiment"])) if by_experiment else ["all"]
     for exp in exp_keys:
         sub_e = df if exp == "all" and not by_experiment else df[df["experiment"] == exp]
+        ls = None
+        if reference is not None and not by_experiment:
+            ls = reference
+        elif cross_check:
+            ls = agreement.least_squares(data if exp == "all" and not by_experiment else
+                                         sub_e.drop(columns="_it"), bearing)
         for ax in AXES:
             sub = sub_e[sub_e["axis"] == ax]
             if sub.empty:
@@ -295,5 +355,5 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
             k = _mean_sem([s.k for s in sols.values()])
             estimates[(exp, ax)] = AxisEstimate(
                 axis=ax, experiment=exp, g0=g[0], g0_sem=g[1], g0_std=g[2], x0=x[0], x0_sem=x[1], x0_std=x[2],
-                k=k[0], k_sem=k[1], iterations=sols, rejected=rejected)
+                k=k[0], k_sem=k[1], iterations=sols, rejected=rejected, reference=_reference(ls, ax))
     return ClosedFormResult(estimates=estimates, n_rows=len(df), by_experiment=by_experiment)

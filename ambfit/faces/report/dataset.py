@@ -212,7 +212,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
     _step(progress, "closed form")
     try:
-        closed = closed_form.identify(ds, bearing=bearing)
+        closed = closed_form.identify(ds, bearing=bearing, reference=res)
         record["closed_form"] = closed.to_json()
     except closed_form.ClosedFormError as exc:
         closed = exc
