@@ -8,7 +8,7 @@ import pytest
 
 import ambfit
 from ambfit import rig
-from ambfit.estimation import conditioning, fit
+from ambfit.estimation import conditioning, fit, identification
 from ambfit.estimation.core import FitError
 from ambfit.physics import effects as E
 from ambfit.rig import protocol
@@ -26,7 +26,7 @@ def test_two_close_biases_do_not_determine_saturation(table2):
     # bias sweep (rich preset, 1.0-1.6 A up and down) of a saturating rig determines them to a thousandth
     shares = conditioning.effect_identification(table2, (E.Saturation(),))
     assert set(shares) == {f"saturation.{f}[{ax}]" for f in ("b_sat", "sharpness") for ax in "vw"}
-    assert min(shares.values()) > 0.5 > conditioning.MAX_PRIOR_SHARE
+    assert min(shares.values()) > 0.5 > identification.MAX_PRIOR_SHARE
     sweep = rig.simulate(rig.PAPER_RIG, protocol.rich(), [E.Saturation(b_sat=np.asarray(1.2))], seed=1).data
     assert max(conditioning.effect_identification(sweep, (E.Saturation(),)).values()) < 0.01
 

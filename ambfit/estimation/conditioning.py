@@ -317,22 +317,6 @@ def compare_designs(spec=None, noise=None, designs: dict | None = None) -> pd.Da
 
 # --- can these data determine an effect? ---------------------------------------------------------
 
-MAX_PRIOR_SHARE = 0.25
-"""An effect parameter is determined by the data when its variance, at the start of the extended fit, is below this
-share of its weak prior's: the data at least halve the prior's standard deviation.  On the paper's Table 2
-protocol saturation's parameters keep 0.52-0.62 (two close biases); on the rich preset 0.001."""
-
-SEPARATE_BY = {
-    "saturation": "a bias sweep up to the coil limit (ambfit simulate --preset rich: biases 1.0-1.6 A up and down)",
-    "iron_reluctance": "a bias sweep up to the coil limit (the rich preset) and a known-displacement calibration",
-    "leakage": "a bias sweep with known loads (the rich preset; a constant leakage is part of k)",
-    "hysteresis": "approaching each set-point from both directions (biases up and down)",
-    "cross_coupling": "moving the other axis while this one is perturbed",
-    "thermal_drift": "readings over a range of time and temperature",
-}
-"""The experiment that shows each effect, for the message of an effect the data do not determine."""
-
-
 def effect_identification(data: Dataset | pd.DataFrame, effects, start=None, *, bearing: Bearing = PAPER_BEARING,
                           sigma_i: float | None = None, sigma_x: float | None = None) -> dict:
     """How much each effect parameter's prior still holds after these data, at the start of the extended fit.
@@ -348,34 +332,10 @@ def effect_identification(data: Dataset | pd.DataFrame, effects, start=None, *, 
     dict
         ``{parameter name: prior share}`` for every effect parameter.
     """
-    from ambfit.estimation.core import free_mask, free_names, row_jacobian
     from ambfit.estimation.fit import fit
+    from ambfit.estimation.identification import prior_shares
 
-    effects = tuple(effects)
     if start is None:
         start = fit(data, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, throw=False)
     prob, meta = build_problem(data, sigma_i=sigma_i, sigma_x=sigma_x)
-    model = Model.of(effects, bearing)
-    if not model.n:
-        return {}
-    theta = np.concatenate([np.asarray(start.theta), np.zeros(model.n)])
-    jac = row_jacobian(theta, prob, meta, model)[start.fitted_rows]
-    info = jac.T @ jac
-    info[-model.n:, -model.n:] += np.eye(model.n)          # q ~ N(0, 1): the effects' weak priors
-    share = np.diag(np.linalg.pinv(info))[-model.n:]
-    names = free_names(meta, free_mask(prob, meta, model), model)[-model.n:]
-    return {n: float(s) for n, s in zip(names, share)}
-
-
-def undetermined_text(shares: dict, max_share: float = MAX_PRIOR_SHARE) -> str:
-    """The effects whose parameters these data do not determine, and the experiment that would (empty when all
-    are determined)."""
-    bad = {n: s for n, s in shares.items() if s > max_share}
-    if not bad:
-        return ""
-    families = list(dict.fromkeys(n.split(".")[0] for n in bad))
-    params = ", ".join(f"{n} ({100 * s:.0f} % of its prior's variance left)" for n, s in bad.items())
-    runs = "; ".join(SEPARATE_BY.get(f, "a design that varies what it depends on (ambfit design)")
-                     + (f" for {f}" if len(families) > 1 else "") for f in families)
-    return (f"not identifiable: {params} are not determined by these data (the solver can only wander along them). "
-            f"To see {' and '.join(families)}, run {runs}")
+    return prior_shares(prob, meta, Model.of(tuple(effects), bearing), start)

@@ -70,6 +70,7 @@ from ambfit.estimation.core import (
 )
 from ambfit.estimation.covariance import result_at, results_at
 from ambfit.estimation.debias import debiased
+from ambfit.estimation.identification import prior_shares
 from ambfit.estimation.outliers import screen, studentized
 from ambfit.estimation.problem import build_problems
 from ambfit.estimation.results import FitResult, Thresholds
@@ -156,11 +157,6 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
                    max_steps=max_steps, loss=loss, alpha=alpha, debias=debias, seed=seed)[0]
     if isinstance(out, BaseException):
         raise out
-    if effects and not out.converged:       # an effect these data do not determine makes the solver wander: say which
-        from ambfit.estimation.conditioning import effect_identification
-
-        out = dataclasses.replace(out, effect_identification=effect_identification(
-            data, effects, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x))
     if throw:
         out.raise_for_health()
     return out
@@ -309,6 +305,12 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
                              inherited=inherited[s], name_outliers=name_outliers, t=t.get(s))
         except _FAILURES as exc:
             out[s] = exc
+    for s in fitted:    # an effect these data do not determine makes the solver wander: say which, from the start
+        res = out[s]
+        if models[bearings[s]].n and isinstance(res, FitResult) and not res.converged and froms[s] is not None \
+                and froms[s].model == "ideal":
+            out[s] = dataclasses.replace(res, effect_identification=prior_shares(probs[s], built[s][1],
+                                                                                 models[bearings[s]], froms[s]))
     return out
 
 

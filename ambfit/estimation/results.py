@@ -14,7 +14,7 @@ Health follows iminuit's ``FMin``: each property is a yes/no answer and
     χ² is consistent with the noise levels (p-value at least ``p_min``); ``None`` when
     the noise was estimated from the residuals, which makes χ²/dof 1 by construction.
 ``effects_identified``
-    The data determine every effect parameter (:func:`ambfit.estimation.conditioning.effect_identification`);
+    The data determine every effect parameter (:func:`ambfit.estimation.identification.prior_shares`);
     ``None`` when not measured.  Raised before non-convergence: an unseen effect makes the solver wander.
 """
 
@@ -183,9 +183,9 @@ class FitResult:
 
     def checks(self) -> list[tuple[str, bool | None, str]]:
         """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
-        from ambfit.estimation.conditioning import undetermined_text
         from ambfit.estimation.convergence import not_converged
         from ambfit.estimation.core import EDM_MAX
+        from ambfit.estimation.identification import undetermined_text
 
         rel = self.relative_gap_std
         why = (f"condition number {self.condition:.3g} of the scaled Jacobian" if not

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import group_labels
-from ambfit.estimation.closed_form import POSITION_TOLERANCE, eq6, eq7
+from ambfit.estimation.closed_form.equations import POSITION_TOLERANCE, eq6, eq7
 from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, SCALE_LOAD
 from ambfit.estimation.problem import Meta, Problem
 from ambfit.estimation.profile import profile
