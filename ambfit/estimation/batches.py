@@ -91,15 +91,17 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
     for key in dict.fromkeys(keys):
         rows, loads = key
         members = [s for s, k in enumerate(keys) if k == key]
-        for lo in range(0, len(members), size):
-            part = members[lo:lo + size]
-            idx = part + [part[0]] * (size - len(part))
-            theta0 = np.zeros((size, 6 + loads + model.n))
-            for b, s in enumerate(idx):
-                t = np.asarray(thetas[s], dtype=float)
-                m = sizes[s][1]
-                theta0[b, :6 + m], theta0[b, 6 + loads:] = t[:6 + m], t[6 + m:]
-            sol = _vmapped(theta0, pad([probs[s] for s in idx], rows), model, max_steps)
+        parts = [members[lo:lo + size] for lo in range(0, len(members), size)]
+        order = [s for part in parts for s in part + [part[0]] * (size - len(part))]
+        stacked = pad([probs[s] for s in order], rows)          # every batch of the bucket at once
+        starts = np.zeros((len(order), 6 + loads + model.n))
+        for b, s in enumerate(order):
+            t = np.asarray(thetas[s], dtype=float)
+            m = sizes[s][1]
+            starts[b, :6 + m], starts[b, 6 + loads:] = t[:6 + m], t[6 + m:]
+        for i, part in enumerate(parts):
+            batch = slice(i * size, (i + 1) * size)
+            sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model, max_steps)
             ok = np.asarray(sol.result == optx.RESULTS.successful)
             theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
                                                                             sol.jac_all, sol.z))

@@ -82,8 +82,9 @@ def _problems(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, the
 
 
 def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequence[Meta], model: Model,
-               hows: Sequence[str], thresholds: Thresholds) -> list:
+               hows: Sequence[str], thresholds: Thresholds, extras: Sequence[dict] | None = None) -> list:
     """:func:`result_at` of every solution: a :class:`FitResult`, or the :class:`FitError` saying why there is none.
+    ``extras``: more fields of each result (how its fit treats outliers, its file rows), set as it is made.
 
     Solutions whose problems have the same rows, free parameters and load groups are measured together: one
     stacked SVD of their column-scaled Jacobians gives conditioning and covariance.
@@ -107,11 +108,11 @@ def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequen
             out[s] = problem
         members = [m for m, problem in zip(members, why) if problem is None]
         if members:
-            _measure(members, sols, probs, metas, model, hows, thresholds, out)
+            _measure(members, sols, probs, metas, model, hows, thresholds, out, extras)
     return out
 
 
-def _measure(members, sols, probs, metas, model, hows, thresholds, out):
+def _measure(members, sols, probs, metas, model, hows, thresholds, out, extras=None):
     """Covariance, conditioning and χ² of a group of alike solutions (see :func:`results_at`), into ``out``."""
     idx = [s for s, _, _ in members]
     free = members[0][1]
@@ -129,7 +130,7 @@ def _measure(members, sols, probs, metas, model, hows, thresholds, out):
     except np.linalg.LinAlgError:
         if len(idx) > 1:                           # one data set's SVD failed: measure the others without it
             for member in members:
-                _measure([member], sols, probs, metas, model, hows, thresholds, out)
+                _measure([member], sols, probs, metas, model, hows, thresholds, out, extras)
             return
         out[idx[0]] = FitError("the fit's Jacobian could not be decomposed (SVD did not converge): the readings "
                                "span values the force law cannot handle; check units and extreme values (ambfit check)")
@@ -167,4 +168,4 @@ def _measure(members, sols, probs, metas, model, hows, thresholds, out):
             n_rows=metas[s].n_rows, n_fit_rows=int(used[b].sum()),
             effects=model.build(theta[b, theta.shape[1] - model.n:]) if model.n else effects, model=model_name,
             bearing=bearing, theta=theta[b], thresholds=thresholds,
-            jacobian_rows=rows_all[b])
+            jacobian_rows=rows_all[b], **(extras[s] if extras is not None else {}))

@@ -280,8 +280,9 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
         if not members:
             continue
         sols = solve_sets([starts[s][0] for s in members], [probs[s] for s in members], model, max_steps)
+        extras = [dict(loss=loss, rows=rows[s], weights=np.asarray(probs[s].mask, dtype=float)) for s in members]
         for s, res in zip(members, results_at(sols, [probs[s] for s in members], [built[s][1] for s in members],
-                                              model, [starts[s][1] for s in members], thresholds)):
+                                              model, [starts[s][1] for s in members], thresholds, extras)):
             out[s] = res
     fitted = [s for s in live if not isinstance(out[s], BaseException)]
     t: dict = {}
@@ -296,8 +297,10 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
         if s in t and not inherited[s] and np.all(np.isfinite(res.residuals[used])) and \
                 not np.any(np.abs(t[s][used]) > robust.threshold(int(used.sum()), alpha)):
             # clean (the common case of a study): plain least squares, as screen finds it, without a refit
+            # (its loss, rows and weights were set as it was made)
             flags = plausibility.check_result(dict(zip(res.names, res.values)), models[bearings[s]].bearing)
-            out[s] = dataclasses.replace(res, loss=loss, rows=rows[s], weights=base, implausible=tuple(flags))
+            if flags:
+                out[s] = dataclasses.replace(res, implausible=tuple(flags))
             continue
         try:
             out[s] = _finish(out[s], probs[s], built[s][1], dfs[s], models[bearings[s]], thresholds, rows[s],
