@@ -25,7 +25,7 @@ from ambfit.faces.cli.options import number
 from ambfit.faces.cli.sample import MAX_ENSEMBLES, MIN_STEPS
 
 MAX_REPLICATES = 100_000
-"""Most replicates of the paper's experiments (each about 1.3 s)."""
+"""Most replicates of the paper's experiments (each simulates and fits every experiment of Tables 1-4)."""
 
 
 @app.command()
