@@ -198,3 +198,16 @@ def test_an_output_onto_the_input_is_refused(tmp_path):
     r = runner.invoke(app, ["identify", str(data), "--json", str(tmp_path / "o"), "--table", str(tmp_path / "o")])
     assert r.exit_code == 2 and "given for two outputs" in r.output, r.output
     assert data.read_bytes() == DEFAULT.read_bytes()
+
+
+def test_force_refuses_to_write_over_its_model_or_readings(tmp_path):
+    """``ambfit force`` checks its outputs against its inputs too: the model file and the readings stay."""
+    data = tmp_path / "d.csv"
+    data.write_bytes(DEFAULT.read_bytes())
+    model = tmp_path / "m.json"
+    assert runner.invoke(app, ["identify", str(data), "--json", str(model)]).exit_code == 0
+    before = model.read_bytes()
+    for option, target in (("--json", model), ("--out", data)):
+        r = runner.invoke(app, ["force", str(model), "--data", str(data), option, str(target)])
+        assert r.exit_code == 2 and "is the input" in r.output, r.output
+    assert model.read_bytes() == before and data.read_bytes() == DEFAULT.read_bytes()

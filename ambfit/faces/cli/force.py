@@ -60,7 +60,7 @@ def force(
 
     from ambfit.estimation.measure import FittedModel, ModelFileError
 
-    check_output(out, json_out)
+    check_output(out, json_out, inputs=(model, data, bearing))
     record = _read_record(model)
     desc = _bearing(model, record, bearing, use)
     try:
