@@ -4,6 +4,8 @@
 joined table; the reference is :func:`build_problem` of each table alone (the row-by-row definition).
 """
 
+from pathlib import Path
+
 import jax
 import numpy as np
 import pandas as pd
@@ -87,3 +89,19 @@ def test_an_empty_table_in_a_study_is_an_error_in_its_place():
     out = fit_many([frame, frame.iloc[:0], frame])
     assert isinstance(out[1], FitError) and "no readings" in str(out[1])
     assert out[0].values == pytest.approx(out[2].values, rel=1e-12)
+
+
+def test_non_finite_rows_are_named_by_their_data_row():
+    """A fit that gives non-finite values names the first such row as the file counts it, not its place in the
+    subset fitted: the same rows kept with their file index are named 40 rows further on."""
+    import re
+
+    from ambfit.data import read_csv
+    from ambfit.estimation.fit import fit_many
+
+    frame = read_csv(Path(__file__).resolve().parents[1] / "data" / "paper_table2.csv").frame
+    sub = frame.iloc[40:].copy()
+    sub.loc[sub.index[5], "i_top_A"] = np.inf
+    kept, renumbered = fit_many([sub, sub.reset_index(drop=True)])
+    first = [int(re.search(r"the first data row (\d+)", str(e)).group(1)) for e in (kept, renumbered)]
+    assert first[0] == first[1] + 40

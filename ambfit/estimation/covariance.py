@@ -60,9 +60,10 @@ def result_at(sol: Solution, prob: Problem, meta: Meta, model: Model, how: str, 
     return out
 
 
-def _problems(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, theta: np.ndarray) -> list:
+def _problems(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, theta: np.ndarray, file_rows) -> list:
     """Why each of a group of alike solutions has no result (``used[sets, rows]``, ``z``, ``jac`` and ``theta``
-    stacked): fewer readings than parameters, or values that are not finite; None where there is a result."""
+    stacked): fewer readings than parameters, or values that are not finite; None where there is a result.
+    ``file_rows``: each set's data rows as messages count them (None: its rows from 1)."""
     rows = used.shape[1]
     dof = used.sum(axis=1) - n_free
     bad = (~np.isfinite(z[:, :rows]) | ~np.all(np.isfinite(jac[:, :rows]), axis=2)) & used
@@ -74,7 +75,9 @@ def _problems(used: np.ndarray, n_free: int, z: np.ndarray, jac: np.ndarray, the
                               f"{n_free} parameters (no redundancy); add positions, biases or repetitions")
             continue
         count = int(bad[b].sum())
-        where = f" on {count} row(s), the first row {int(np.argmax(bad[b])) + 1}" if count else ""
+        j = int(np.argmax(bad[b]))
+        row = int(file_rows[b][j]) if file_rows[b] is not None else j + 1
+        where = f" on {count} row(s), the first data row {row}" if count else ""
         out[b] = FitError(f"the force law gives non-finite values{where} at the estimate (a pole gap closed, or "
                           "currents and positions the law cannot use); check those rows' units and values "
                           "(ambfit check)")
@@ -103,7 +106,8 @@ def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequen
         idx = [s for s, _, _ in members]
         why = _problems(np.stack([m for _, _, m in members]) > 0, int(members[0][1].sum()),
                         np.stack([np.asarray(sols[s].z) for s in idx]), np.stack([np.asarray(sols[s].jac) for s in idx]),
-                        np.stack([np.asarray(sols[s].theta) for s in idx]))
+                        np.stack([np.asarray(sols[s].theta) for s in idx]),
+                        [extras[s].get("rows") if extras is not None else None for s in idx])
         for s, problem in zip(idx, why):
             out[s] = problem
         members = [m for m, problem in zip(members, why) if problem is None]
