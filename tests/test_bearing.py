@@ -91,3 +91,14 @@ def test_shipped_paper_file_is_the_default_bearing():
                  "iron_path", "lamination", "pole_width", "position_gain_tolerance", "current_gain_tolerance"):
         assert getattr(b, name) == pytest.approx(getattr(PAPER_BEARING, name)) if name != "polarity" else \
             getattr(b, name) == getattr(PAPER_BEARING, name), name
+
+
+def test_a_description_survives_its_own_dict():
+    """to_dict and from_dict are inverses for every field a bearing description has (a model file records it)."""
+    import dataclasses
+
+    other = dataclasses.replace(PAPER_BEARING, rotor_mass=2.5, nominal_gap=500e-6, max_current=5.0)
+    back = Bearing.from_dict(other.to_dict())
+    for f in dataclasses.fields(Bearing):
+        a, b = getattr(other, f.name), getattr(back, f.name)
+        assert (a == pytest.approx(b, rel=1e-12)) if isinstance(a, float) else a == b, f.name

@@ -169,7 +169,8 @@ class Bearing:
                "backup_clearance_um": self.backup_clearance * 1e6, "max_current_A": self.max_current,
                "polarity": self.polarity, "iron_path_mm": self.iron_path * 1e3, "lamination": self.lamination,
                "position_gain_tolerance": self.position_gain_tolerance,
-               "current_gain_tolerance": self.current_gain_tolerance, "bore_diameter_mm": self.bore_diameter * 1e3}
+               "current_gain_tolerance": self.current_gain_tolerance, "bore_diameter_mm": self.bore_diameter * 1e3,
+               "rotor_mass_kg": self.rotor_mass}
         if self.b_curve:
             out["material"] = {"B_T": list(self.b_curve), "H_A_per_m": list(self.h_curve)}
         return out
