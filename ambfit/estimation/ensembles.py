@@ -17,7 +17,7 @@ than this fraction.  An integrated autocorrelation time estimated from 50 tau of
 
 
 MAX_CHAIN_BYTES = 2**32
-"""Memory the chains may take (4 GiB, float64); the defaults on the paper's data take about 50 MB."""
+"""Memory the chains may take (4 GiB of float64)."""
 
 
 class SettingError(ValueError):

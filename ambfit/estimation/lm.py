@@ -61,7 +61,7 @@ class Solution(NamedTuple):
         The scaled parameter vector at the solution (:mod:`ambfit.estimation.core`).
     result : optimistix.RESULTS or str
         The last round's outcome: ``successful`` when the Cauchy test or :data:`EDM_ROUND` stopped it, else
-        ``nonlinear_max_steps_reached``; :func:`solve_sets` gives it as text.
+        ``nonlinear_max_steps_reached``; :func:`ambfit.estimation.batches.solve_sets` gives it as text.
     steps : int
         Levenberg-Marquardt steps of all rounds.
     edm : float

@@ -277,13 +277,6 @@ class FittedModel:
             effects.append(e)
         return params, tuple(effects)
 
-    @staticmethod
-    def bearing_name(record: dict) -> str | None:
-        """The name of the bearing the model in ``record`` was fitted with (None when not recorded)."""
-        state = record.get("model_state") or (record.get("verdict_fit") or record.get("baseline_fit") or {}).get(
-            "model_state") or {}
-        return state.get("bearing")
-
     def force(self, readings: Readings, *, sigma_i=0.0, sigma_x=0.0, sigma_i_bottom=None):
         """Force [N] on each reading's own axis and its standard error [N].
 

@@ -71,11 +71,12 @@ class Reference:
 
 def least_squares(frame, bearing) -> object:
     """Least squares of the rows of one closed-form estimate (a result with its health, or the error it raised)."""
+    from ambfit.data import DataError
     from ambfit.estimation import fit
 
     try:
         return fit.fit(frame, bearing=bearing, throw=False)
-    except Exception as exc:  # noqa: BLE001 - any failure of the reference only means it cannot be judged
+    except (fit.FitError, DataError, ValueError, KeyError) as exc:   # what a fit raises: the reference is missing
         return exc
 
 

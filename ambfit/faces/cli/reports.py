@@ -86,11 +86,13 @@ def report(
 def paper(
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the reproduction report.")] = Path(
         "reports/paper"),
-    replicates: Annotated[int, typer.Option(callback=number(1, MAX_REPLICATES), help="Repetitions of every experiment for the predicted spreads "
-                                            "(about 1.3 s each).")] = 200,
+    replicates: Annotated[int, typer.Option(callback=number(1, MAX_REPLICATES),
+                                            help="Repetitions of every experiment for the predicted spreads (the "
+                                            "run's time grows with them).")] = 200,
     seed: Annotated[int, typer.Option(callback=number(0), help="Seed of the reproduction and the replicates.")] = 0,
     demonstration: Annotated[bool, typer.Option(help="Also simulate which effect explains the paper's gap "
-                                                "excess and what separates the candidates (about 25 s).")] = True,
+                                                "excess and what separates the candidates (a diagnosis of each "
+                                                "candidate).")] = True,
 ):
     """Rerun the seed paper's Tables 1-4 and Figs. 2, 3 and 5 on the virtual rig; write the side-by-side
     report (index.html, README.md, comparison.csv, spread.csv, reproduction.json, PNG figures)."""

@@ -29,7 +29,7 @@ SAMPLER_OPTIONS = {"n_steps": "--steps", "max_steps": "--max-steps", "n_ensemble
 """The command line's name of each setting :class:`ambfit.estimation.bayes.SettingError` names."""
 MAX_ENSEMBLES = 64
 MIN_STEPS = 100
-"""Fewest steps to start with: the burn-in alone is two autocorrelation times (about 70 steps each here)."""
+"""Fewest steps to start with: the burn-in alone is two autocorrelation times."""
 
 
 @app.command()
@@ -92,7 +92,7 @@ def sample(
     note(res.summary())
     record = res.to_json()
     if out is not None:
-        # serialised in memory first: HDF5 does not survive a full disk (it crashed the process), Python's writes do
+        # serialised in memory first: HDF5 writing to a full disk fails uncleanly, Python's writes fail cleanly
         write_bytes(out, res.datatree.to_netcdf(engine="h5netcdf"))
         console.print(f"wrote {out}")
     if json_out is not None:
