@@ -84,3 +84,16 @@ def test_piped_tables_keep_long_file_names_whole(tmp_path):
     assert r.exit_code == 0, r.output
     for p in paths:
         assert str(p) in r.output, r.output
+
+
+@pytest.mark.parametrize("text, named", [
+    ('loads = [1, 2]\n[[block]]\nkind = "perturbation"\nbiases_A = [1.4, 1.6]\noffsets_um = [-20, 20]\n', "wrong kind"),
+    ('[[block]]\nkind = "perturbation"\noffsets_um = [-20, 20]\n', "lacks the key"),
+])
+def test_a_bad_protocol_file_is_one_line_naming_it(tmp_path, text, named):
+    """A --protocol table of the wrong shape or missing a key: one line naming the file, exit 2, no traceback."""
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    r = runner.invoke(app, ["simulate", "-o", str(tmp_path / "o.csv"), "--protocol", str(path)])
+    assert r.exit_code == 2 and str(path.name) in r.output and named in r.output, r.output
+    assert "Traceback" not in r.output

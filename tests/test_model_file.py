@@ -200,3 +200,21 @@ def test_diagnose_records_its_version_and_force_reads_it(tmp_path):
     out.write_text(json.dumps(rec))
     r = runner.invoke(app, ["force", str(out), *ONE, "--use", "ideal"])
     assert r.exit_code == 2 and "baseline_fit.model_state.names[1] = 'g_w'" in r.output, r.output
+
+
+@pytest.mark.parametrize("edit", ["off", "method"])
+def test_json_values_of_the_wrong_kind_are_named_not_a_traceback(tmp_path, record, edit):
+    """An effect's "off" that is not a list, a "method" that is not a string: one line or a clean run, never a
+    traceback (review found a TypeError escaping)."""
+    rec = copy.deepcopy(record)
+    if edit == "off":
+        rec["model_state"]["effects"] = [{"name": "saturation", "off": 3, "held": {}}]
+        rec.pop("params")
+    else:
+        rec.pop("kind", None)
+        rec.pop("ambfit_version", None)
+        rec["method"] = ["least_squares"]
+    r = _force(tmp_path, rec)
+    assert r.exit_code in (0, 2) and r.exception is None or isinstance(r.exception, SystemExit), r.output
+    if edit == "off":
+        assert r.exit_code == 2 and "model_state.effects[0]" in r.output, r.output

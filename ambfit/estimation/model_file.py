@@ -135,9 +135,14 @@ def _marker(record, source: str) -> tuple[str, str | None, str | None, list[str]
     if "groups" in record:
         raise _bad(source, "groups", f"{len(record['groups'])} groups", "one fit per group; force needs one model "
                    "(identify one file without --by and give its --json)")
-    if kind == "identify" and record.get("method", "least_squares") in _FOREIGN:
+    if kind == "identify" and _foreign(record.get("method", "least_squares")):
         raise _bad(source, "method", record["method"], _FOREIGN[record["method"]])
     return kind, None if schema is None else str(schema), version, notes
+
+
+def _foreign(method) -> bool:
+    """Whether ``method`` names a result that holds no model for force (any JSON value: a list is no method)."""
+    return isinstance(method, str) and method in _FOREIGN
 
 
 def _infer_kind(record: dict, source: str) -> str:
@@ -148,7 +153,7 @@ def _infer_kind(record: dict, source: str) -> str:
     if "baseline_fit" in record:
         return "diagnose"
     method = record.get("method")
-    if method in _FOREIGN:
+    if _foreign(method):
         raise _bad(source, "method", method, _FOREIGN[method])
     if "rig" in record or "truth" in record:
         raise _bad(source, "rig", record.get("rig"), "a virtual rig's truth, not a fitted model (fit the data "
@@ -268,7 +273,7 @@ def check(mf: ModelFile, bearing: Bearing) -> None:
             effect = effect_by_name(spec["name"])
             for piece in spec.get("off", []):
                 effect = effect.without(piece)
-        except (ValueError, AttributeError) as exc:
+        except (ValueError, AttributeError, TypeError) as exc:     # (TypeError: "off" not a list of names)
             raise _bad(src, key, spec.get("name"), str(exc).split("\n")[0]) from None
         held = spec.get("held", {})
         if not isinstance(held, dict):

@@ -153,8 +153,10 @@ def protocol_of(path: Path, bearing):
             e = dict(e)
             effects.append(effect_by_name(e.pop("name", ""), bearing=bearing, **e))
         return proto_mod.from_dict(desc, rotor_kg=bearing.rotor_mass), effects
-    except (ValueError, TypeError, KeyError) as exc:
-        fail(f"--protocol {path}: {exc}")
+    except KeyError as exc:
+        fail(f"--protocol {path}: a table lacks the key {exc} (see ambfit.rig.protocol.from_dict for the keys)")
+    except (ValueError, TypeError, AttributeError) as exc:    # (AttributeError: a table where a value belongs)
+        fail(f"--protocol {path}: {exc}; a table or a value of the wrong kind (see ambfit.rig.protocol.from_dict)")
 
 
 def within_limits(spec, proto, effects, allow: bool, currents=None):
