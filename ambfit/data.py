@@ -288,6 +288,21 @@ def group_labels(column: pd.Series) -> pd.Series:
     return column if pd.api.types.is_integer_dtype(column) else column.astype(str)
 
 
+def joint_codes(*keys, own_missing: bool = False) -> np.ndarray:
+    """Rows numbered by several key columns at once (arrays or Series of one length), in order of first appearance:
+    rows equal in every key share a number.  A missing key (NaN, None) puts its row in no group (-1), or with
+    ``own_missing`` in a group of the missing value."""
+    code = np.zeros(len(keys[0]), dtype=np.int64)
+    for key in keys:
+        part, _ = pd.factorize(key, use_na_sentinel=not own_missing)
+        width = int(part.max(initial=0)) + 1
+        if int(code.max(initial=0)) >= 2**62 // width:          # (dense again before the product could overflow)
+            code[code >= 0] = pd.factorize(code[code >= 0])[0]
+        code = np.where((code >= 0) & (part >= 0), code * width + part, -1)
+    code[code >= 0] = pd.factorize(code[code >= 0])[0]
+    return code
+
+
 def load_groups(df: pd.DataFrame) -> pd.Series:
     """The static-load group of each row: ``load_id`` and axis, or experiment and axis when no ``load_id``."""
     if "load_id" in df.columns:

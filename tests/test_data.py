@@ -195,3 +195,18 @@ def test_row_order_functions_follow_their_definitions(n, seed, with_experiment):
     np.testing.assert_array_equal(D.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
     for got, want in zip(D.other_axis_currents(df), _other_by_definition(df)):
         np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["a", "b", None, "1"]), st.sampled_from([1.0, 2.0, float("nan")]),
+                          st.sampled_from(["v", "w"])), min_size=1, max_size=40))
+def test_joint_codes_number_rows_as_a_groupby_does(rows):
+    """joint_codes is pandas' groupby(sort=False).ngroup() over the keys: groups in order of first appearance, a row
+    with a missing key in none (-1), or with own_missing in the group of the missing value."""
+    from ambfit.data import joint_codes
+
+    df = pd.DataFrame(rows, columns=["e", "i", "a"])
+    want = df.groupby(["e", "i", "a"], sort=False).ngroup().to_numpy()
+    np.testing.assert_array_equal(joint_codes(df["e"], df["i"], df["a"]), np.where(np.isnan(want), -1, want))
+    want = df.groupby(["e", "i", "a"], sort=False, dropna=False).ngroup().to_numpy()
+    np.testing.assert_array_equal(joint_codes(df["e"], df["i"], df["a"], own_missing=True), want)

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit._recent import Recent
-from ambfit.data import Dataset, load_groups, readings
+from ambfit.data import Dataset, joint_codes, load_groups, readings
 from ambfit.physics.model import Readings
 
 
@@ -247,28 +247,20 @@ def _slicer(prob: Problem):
     return rows
 
 
-def _numbered(joined: pd.DataFrame, name: str, set_id: np.ndarray, missing: int | None = None) -> np.ndarray:
-    """Column ``name`` as integers unique to each data set and label, so that no label is shared between data
-    sets; a missing label is ``missing``, or (None) a label of its own."""
-    if name not in joined:
-        return set_id.astype(np.int64)
-    codes, uniques = pd.factorize(joined[name], use_na_sentinel=missing is not None)
-    return np.where(codes >= 0, set_id.astype(np.int64) * (len(uniques) + 1) + codes, missing or 0)
+def _numbered(joined: pd.DataFrame, name: str, set_id: np.ndarray) -> np.ndarray:
+    """Column ``name`` as integers unique to each data set and label (a missing label is one of its own), so that no
+    label is shared between data sets."""
+    return joint_codes(set_id, joined[name], own_missing=True) if name in joined else set_id.astype(np.int64)
 
 
 def _joined_groups(joined: pd.DataFrame, set_id: np.ndarray):
     """The rows' load groups (:func:`ambfit.data.load_groups`, numbered per data set): ``(codes, labels)`` in order
-    of first appearance, each label its own data set's."""
-    # (a missing label names no group, as in :func:`ambfit.data.load_groups`)
-    base = _numbered(joined, "load_id" if "load_id" in joined else "experiment", set_id, missing=-1)
-    key = np.where(base >= 0, base * 2 + (joined["axis"] == "w").to_numpy(), -1)
-    codes, keys = pd.factorize(key)
-    codes = np.where(key >= 0, codes, -1)
-    first = np.full(len(keys), len(key))
+    of first appearance, each label its own data set's; a missing label names no group (-1), as there."""
+    label = next((joined[c] for c in ("load_id", "experiment") if c in joined), None)
+    codes = joint_codes(set_id, *([] if label is None else [label]), joined["axis"])
+    first = np.full(int(codes.max(initial=-1)) + 1, len(codes))
     np.minimum.at(first, codes[codes >= 0], np.nonzero(codes >= 0)[0])
-    labels = load_groups(joined.iloc[first[keys >= 0]])
-    lookup = np.cumsum(keys >= 0) - 1                  # (a missing label's key is dropped from the labels)
-    return np.where(codes >= 0, lookup[np.maximum(codes, 0)], -1), pd.Index(labels.to_numpy())
+    return codes, pd.Index(load_groups(joined.iloc[first]).to_numpy())
 
 
 def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):

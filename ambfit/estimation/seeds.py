@@ -13,7 +13,7 @@ import jax
 import numpy as np
 import pandas as pd
 
-from ambfit.data import group_labels
+from ambfit.data import group_labels, joint_codes
 from ambfit.estimation.closed_form.equations import POSITION_TOLERANCE, eq6, eq7
 from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, SCALE_LOAD
 from ambfit.estimation.problem import Meta, Problem
@@ -34,12 +34,7 @@ def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray]]:
         return []
     keys = [group_labels(df["experiment"]) if "experiment" in df else None,
             df["iteration"] if "iteration" in df else None, df["axis"]]
-    code = np.zeros(n, dtype=np.int64)
-    # (experiment, iteration, axis) numbered as one key, in order of first appearance; a missing label: no group
-    for key in filter(lambda k: k is not None, keys):
-        part, uniques = pd.factorize(key)
-        code = np.where((code >= 0) & (part >= 0), code * (len(uniques) + 1) + part, -1)
-    code[code >= 0] = pd.factorize(code[code >= 0])[0]
+    code = joint_codes(*(k for k in keys if k is not None))      # a missing label: in no group
     n_groups = int(code.max(initial=-1)) + 1
     if n_groups == 0:
         return []
