@@ -11,6 +11,7 @@ import pandas as pd
 from ambfit.diagnosis.heldout import Candidate
 from ambfit.diagnosis.residuals import NoiseFloor, Where
 from ambfit.estimation.results import FitResult
+from ambfit.physics.bearing import AXES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,8 +92,8 @@ class Diagnosis:
             "goodness_of_fit": self.baseline.goodness_of_fit(),
             "parameter_gap": self.parameter_gap,
         }
-        if self.blind_spot():
-            rec["blind_spot"] = self.blind_spot()
+        if blind := self.blind_spot():
+            rec["blind_spot"] = blind
         if self.best_pair is not None:
             rec["best_pair"] = self.best_pair
         if self.families is not None:
@@ -201,8 +202,8 @@ class Diagnosis:
             if floor is not None:
                 text += f"; the readings' noise alone gives {100 * floor:.2f} % RMS"
         text += "".join(f"\n{line}" for line in self.findings())
-        if self.blind_spot():
-            text += f"\n{self.blind_spot()}"
+        if blind := self.blind_spot():
+            text += f"\n{blind}"
         if self.best_pair is not None:
             bp = self.best_pair
             text += (f"\nbest pair: {bp['effect']} (held-out excess {bp['heldout_excess_after']:.2f}, shrink "
@@ -259,7 +260,7 @@ class Diagnosis:
         if self.verdict != "none" or self.operating is None or "bias_A" not in self.operating:
             return None
         op = self.operating
-        biases = {ax: np.unique(np.round(op.loc[op["axis"] == ax, "bias_A"].to_numpy(float), 9)) for ax in ("v", "w")}
+        biases = {ax: np.unique(np.round(op.loc[op["axis"] == ax, "bias_A"].to_numpy(float), 9)) for ax in AXES}
         if all(len(b) >= 3 for b in biases.values() if len(b)):
             return None
         bending = [e for e in ("saturation", "iron_reluctance", "leakage") if e in self.confounded_with]
