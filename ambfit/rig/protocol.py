@@ -266,6 +266,38 @@ def rich(
     return concat(*parts, dwell_s=dwell_s)
 
 
+def serpentine(
+    biases: Sequence[float] = (1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6), span=(40e-6, 30e-6), n_positions=(5, 3),
+    masses_kg: Sequence[float] = (0.0, 0.5, 1.0, 1.5), rotor_kg: float = 1.0, *, seed: int = 0,
+    experiment: str = "serpentine", dwell_s: float = 5.0, center=(0.0, 0.0),
+) -> Protocol:
+    """A design as a user might run it: set-points on a grid walked as a serpentine, biases in shuffled order.
+
+    Under each known load (rotor plus ``masses_kg``) the rotor visits a ``n_positions = (n_v, n_w)`` grid over
+    ``center ± span`` [m] row by row, each row of v set-points run in the opposite direction to the one before
+    (a boustrophedon: neighbouring readings are neighbouring positions), and at each set-point applies every
+    bias of ``biases`` [A] in an order shuffled afresh (from ``seed``), so the approach to each operating point
+    differs from reading to reading instead of the up-and-down sweep of :func:`rich`.
+
+    Examples
+    --------
+    >>> len(serpentine())   # 4 loads x 15 set-points x 7 biases: 840 rows of data
+    420
+    """
+    rng = np.random.default_rng(seed)
+    vs = center[0] + np.linspace(-span[0], span[0], n_positions[0])
+    ws = center[1] + np.linspace(-span[1], span[1], n_positions[1])
+    points = [(v, w) for j, w in enumerate(ws) for v in (vs if j % 2 == 0 else vs[::-1])]
+    parts, loads = [], {}
+    for j, m in enumerate(masses_kg):
+        lid = f"m{j}"
+        loads[lid] = Load.gravity(rotor_kg + m, known=True)
+        for p in points:
+            order = [(b, b) for b in rng.permutation(np.asarray(biases, dtype=float))]
+            parts.append(_steps([p], order, load=lid, experiment=experiment, iteration=j + 1))
+    return _build(parts, loads, dwell_s=dwell_s)
+
+
 def from_dict(spec: dict, *, rotor_kg: float = PAPER_BEARING.rotor_mass) -> Protocol:
     """A protocol from a plain description (as read from TOML by ``ambfit simulate``).
 

@@ -35,6 +35,10 @@ from ambfit.physics.model import BearingParams, Readings, evaluate
 from ambfit.rig.protocol import Protocol
 
 _BISECTION_STEPS = 110  # halves a 40 A bracket below one ulp of the current
+_COUPLED_ROUNDS = 12
+"""Rounds of the axes' fixed-point iteration when an effect couples them through their currents: a coupling
+of a few per cent of the own-current sensitivity shrinks the error by that factor per round, and the force
+residual check (``FORCE_TOLERANCE_N``) catches a coupling too strong to converge."""
 FORCE_TOLERANCE_N = 1e-9
 """Largest force residual [N] the rig accepts at an equilibrium."""
 
@@ -173,33 +177,48 @@ class Simulation:
 
 
 def _solve_steps(params_by_step, readings_template, loads, effects, bearing, amplifier_limit, m0):
-    """Scan over steps; each step solves both axes' control currents by bisection."""
+    """Scan over steps; each step solves both axes' control currents by bisection.
+
+    When an effect couples the axes through their currents (``needs_other_axis``), each axis is solved with
+    the other's currents of the previous round, for ``_COUPLED_ROUNDS`` rounds (a fixed-point iteration that
+    contracts as fast as the coupling is weak); without one there is a single round and no other-axis currents.
+    """
+    coupled = any(getattr(e, "needs_other_axis", False) for e in effects)
 
     def step(m_prev, inp):
         g0, x0, k, x, y, bias, t, temp, load = inp
         params = BearingParams(g0, x0, k)
 
-        def force_at(ic):
+        def force_at(ic, other):
             it = jnp.maximum(bias + ic, 0.0)
             ib = jnp.maximum(bias - ic, 0.0)
             r = Readings(axis=jnp.arange(2), i_top=it, i_bottom=ib, x=x, y=y, bias=bias,
-                         time=jnp.full(2, t), temperature=temp, dir_top=jnp.zeros(2), dir_bottom=jnp.zeros(2))
+                         time=jnp.full(2, t), temperature=temp, dir_top=jnp.zeros(2), dir_bottom=jnp.zeros(2),
+                         i_top_other=None if other is None else jnp.maximum(bias + other, 0.0)[::-1],
+                         i_bottom_other=None if other is None else jnp.maximum(bias - other, 0.0)[::-1])
             f, ctx = evaluate(params, r, effects, bearing=bearing, physical=True,
                               m_prev_top=m_prev[:, 0], m_prev_bottom=m_prev[:, 1])
             return f - load, ctx, it, ib
 
-        def bisect(_, lohi):
-            lo, hi = lohi
-            mid = 0.5 * (lo + hi)
-            r = force_at(mid)[0]
-            return jnp.where(r > 0, lo, mid), jnp.where(r > 0, mid, hi)
+        def solve(other):
+            def bisect(_, lohi):
+                lo, hi = lohi
+                mid = 0.5 * (lo + hi)
+                r = force_at(mid, other)[0]
+                return jnp.where(r > 0, lo, mid), jnp.where(r > 0, mid, hi)
 
-        # Within the amplifier range each coil current lies in [0, amplifier_limit].
-        span = jnp.maximum(amplifier_limit - bias, 0.0)
-        lo, hi = jax.lax.fori_loop(0, _BISECTION_STEPS, bisect, (-span, span))
-        rlo, rhi = force_at(lo)[0], force_at(hi)[0]
-        ic = jnp.where(jnp.abs(rlo) < jnp.abs(rhi), lo, hi)
-        res, ctx, it, ib = force_at(ic)
+            # Within the amplifier range each coil current lies in [0, amplifier_limit].
+            span = jnp.maximum(amplifier_limit - bias, 0.0)
+            lo, hi = jax.lax.fori_loop(0, _BISECTION_STEPS, bisect, (-span, span))
+            rlo, rhi = force_at(lo, other)[0], force_at(hi, other)[0]
+            return jnp.where(jnp.abs(rlo) < jnp.abs(rhi), lo, hi)
+
+        if coupled:
+            ic = jax.lax.fori_loop(0, _COUPLED_ROUNDS, lambda _, ic: solve(ic), jnp.zeros(2))
+            res, ctx, it, ib = force_at(ic, ic)
+        else:
+            ic = solve(None)
+            res, ctx, it, ib = force_at(ic, None)
         m_new = jnp.stack([ctx.m_top, ctx.m_bottom], axis=1)
         return m_new, (res, it, ib)
 
