@@ -19,7 +19,7 @@ SEPARATE_BY = {
     "leakage": "a bias sweep with known loads (the rich preset; a constant leakage is part of k)",
     "hysteresis": "approaching each set-point from both directions (biases up and down)",
     "cross_coupling": "moving the other axis while this one is perturbed",
-    "thermal_drift": "readings over a range of time and temperature",
+    "thermal_drift": "readings over a range of temperature (temperature_C) or, without one, of time (time_s)",
 }
 """The experiment that shows each effect, for the message of an effect the data do not determine."""
 

@@ -282,6 +282,7 @@ def _physical(protocol: Protocol, effects: Sequence[Effect]) -> tuple[np.ndarray
 def simulate(
     spec: RigSpec, protocol: Protocol, effects: Sequence[Effect] = (), noise: Noise = Noise(), *,
     seed: int | np.random.Generator = 0, state: RigState | None = None, ambient_C: float = 22.0,
+    thermometer: bool = True,
 ) -> Simulation:
     """Run ``protocol`` on the rig and return the recorded data in the contract format.
 
@@ -302,6 +303,10 @@ def simulate(
         demagnetised rig at t = 0.
     ambient_C : float
         Ambient temperature [°C].
+    thermometer : bool
+        Record the bearing temperature (``temperature_C``).  Without, the data have no temperature column and
+        the effects see none, as a fit of the data will: a thermal drift then acts through time
+        (:class:`~ambfit.physics.effects.ThermalDrift`'s rates, counted from the rig's clock zero).
 
     Raises
     ------
@@ -314,7 +319,7 @@ def simulate(
     state = state or RigState()
     n = len(protocol)
     time = state.time + protocol.time
-    temp = _temperature(effects, time, ambient_C)
+    temp = _temperature(effects, time, ambient_C) if thermometer else np.full(n, np.nan)
     shifts = np.array([protocol.assemblies[a] for a in protocol.assembly], dtype=float).reshape(n, 2)
     base = spec.params()
     g0 = np.broadcast_to(np.asarray(base.g0), (n, 2))
@@ -366,6 +371,8 @@ def simulate(
     w_m = x_m[:, 1] + pos_noise[:, 1]
 
     data = _records(protocol, bias, it_m, ib_m, v_m, w_m, sets, tt, temp, noise)
+    if not thermometer:
+        data = data.drop(columns="temperature_C")
     truth = {
         "rig": spec.name,
         "params": {str(a): spec.params(protocol.assemblies[a]).as_dict_um() for a in sorted(protocol.assemblies)},

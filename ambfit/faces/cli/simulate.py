@@ -77,6 +77,10 @@ def simulate(
     seed: Annotated[int, typer.Option(callback=number(0), help="Seed of the sensor noise.")] = 0,
     truth: Annotated[Path | None, typer.Option(help="Also write the truth (parameters, effects, noise) "
                                                "as JSON here.")] = None,
+    temperature: Annotated[bool, typer.Option(
+        "--temperature/--no-temperature", help="Record the bearing temperature (temperature_C). Without it a "
+                                               "thermal_drift acts through time (its rates dg_dt, dx0_dt [m/s]), "
+                                               "as on a rig with a clock but no thermometer.")] = True,
     allow_beyond_limits: Annotated[bool, typer.Option(
         "--allow-beyond-limits", help="Run steps that put the rotor beyond the bearing's back-up clearance (from "
                                       "the bearing centre: set-point plus the rig's true origin) or drive a coil "
@@ -112,7 +116,7 @@ def simulate(
                 center=center, iterations=iterations, loads=spec.loads)
         within_limits(spec, proto, effects, allow_beyond_limits)
         sim = rig.simulate(spec, proto, effects, rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6),
-                           seed=seed)
+                           seed=seed, thermometer=temperature)
         within_limits(spec, proto, effects, allow_beyond_limits, sim.physical_currents)
     except (ValueError, OSError, tomllib.TOMLDecodeError, rig.RigError) as exc:
         fail(str(exc))

@@ -1,0 +1,133 @@
+"""Thermal drift where no temperature is measured: the drift acts through time (issue 23, item 4).
+
+Reference values come from the rig's truth (the rates it was given), not from earlier runs.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import ambfit
+from ambfit import data as data_mod
+from ambfit import diagnosis, rig
+from ambfit.faces.cli import app
+from ambfit.physics import effects as E
+from ambfit.physics.model import BearingParams, Readings, evaluate
+from ambfit.rig import protocol as P
+
+NOISE = rig.Noise(0.6e-3, 0.1e-6)
+# rates within ThermalDrift.RANGES (the heating curve's initial slope times the temperature coefficients):
+# over the rich protocol's 700 s the gaps drift 1.4-2.1 µm and the origins 7-10 µm
+TRUE_RATES = {"dg_dt": (3e-9, -2e-9), "dx0_dt": (1.5e-8, -1e-8)}
+Z_MAX = 3.0
+"""A rate is recovered when it lies within this many of its standard errors of the truth (a 0.3 % chance miss
+per rate at a fixed seed)."""
+
+
+@pytest.fixture(scope="module")
+def timed():
+    """Rich-design rig data with the drift in time and no temperature column."""
+    truth = E.ThermalDrift(**{k: jnp.asarray(v) for k, v in TRUE_RATES.items()})
+    return rig.simulate(rig.PAPER_RIG, P.rich(), [truth], NOISE, seed=3, thermometer=False).data
+
+
+def _row(effect, time, temperature=None):
+    r = Readings.build(axis=[0], i_top=[1.6], i_bottom=[1.2], x=[5e-6], time=[time],
+                       temperature=None if temperature is None else [temperature])
+    return evaluate(BearingParams(jnp.asarray([775e-6, 763e-6]), jnp.asarray([30e-6, -10e-6]),
+                                  jnp.asarray([3.4e-6, 3.4e-6])), r, (effect,))[1]
+
+
+def test_without_temperature_the_drift_is_linear_in_time_and_with_one_time_is_ignored():
+    td = E.ThermalDrift(dg_dT=0.2e-6, dx0_dT=1e-6, dg_dt=jnp.asarray([3e-9, 0.0]),
+                        dx0_dt=jnp.asarray([1e-8, -2e-8]))
+    ctx = _row(td, 600.0)
+    assert float(ctx.g0[0]) == pytest.approx(775e-6 + 3e-9 * 600, rel=1e-12)
+    assert float(ctx.x0[0]) == pytest.approx(30e-6 + 1e-8 * 600, rel=1e-12)
+    assert float(ctx.y0[0]) == pytest.approx(-10e-6 - 2e-8 * 600, rel=1e-12)     # the other axis' rate
+    ctx = _row(td, 600.0, temperature=32.0)          # a measured temperature: its law alone
+    assert float(ctx.g0[0]) == pytest.approx(775e-6 + 0.2e-6 * 10, rel=1e-12)
+    assert float(ctx.x0[0]) == pytest.approx(30e-6 + 1e-6 * 10, rel=1e-12)
+
+
+def test_the_rig_without_thermometer_writes_no_temperature_and_drifts_in_time():
+    proto = P.grid([(0.0, 0.0)] * 6, [1.4], dwell_s=100.0)
+    eff = [E.ThermalDrift(dg_dt=jnp.asarray(0.0), dx0_dt=jnp.asarray(1e-8))]
+    d = rig.simulate(rig.PAPER_RIG, proto, eff, rig.NOISE_FREE, thermometer=False).data
+    assert "temperature_C" not in d.columns and "time_s" in d.columns
+    v = d[d.axis == "v"]
+    # the origin grows with time: the top gap closes, less top current is needed at each later reading
+    assert np.all(np.diff(v.i_top_A.to_numpy()) < 0)
+    assert "temperature_C" in rig.simulate(rig.PAPER_RIG, proto, eff, rig.NOISE_FREE).data.columns
+
+
+def test_time_counts_from_each_experiments_first_reading(timed):
+    """The fitted gap and origin are those at the experiment's start, wherever the clock's zero is."""
+    late = timed.assign(time_s=timed.time_s + 1.7e9)         # a Unix clock
+    t = np.asarray(data_mod.readings(late).time)
+    assert np.array_equal(t, timed.time_s.to_numpy() - timed.time_s.min())
+    # two experiments, the second on a clock that restarts: each counts from its own first reading
+    two = late.assign(experiment=np.where(np.arange(len(late)) < 140, "a", "b"))
+    t2 = np.asarray(data_mod.readings(two).time)
+    assert t2[0] == 0.0 and t2[140] == 0.0
+    a = ambfit.fit(timed, effects=(E.ThermalDrift(),))
+    b = ambfit.fit(late, effects=(E.ThermalDrift(),))
+    np.testing.assert_allclose(b.values, a.values, rtol=1e-9)
+    np.testing.assert_allclose(b.std, a.std, rtol=1e-9)
+
+
+def test_fit_recovers_the_drift_rates_from_time_alone(timed):
+    res = ambfit.fit(timed, effects=(E.ThermalDrift(),))
+    assert res.converged and res.well_conditioned
+    got = dict(zip(res.names, zip(res.values, res.std)))
+    for name, truth in TRUE_RATES.items():
+        for ax, true in zip("vw", truth):
+            value, std = got[f"thermal_drift.{name}[{ax}]"]
+            assert abs(value - true) < Z_MAX * std, (name, ax, value, true, std)
+            assert std < abs(true) / 3          # determined by the data, not by the prior
+    ideal = ambfit.fit(timed)
+    assert res.chi2 / res.dof < 1.5 < ideal.chi2 / ideal.dof
+
+
+def test_diagnose_names_thermal_drift_on_time_alone(timed):
+    d = diagnosis.diagnose(timed).to_json()
+    assert d["ranking"][0]["effect"] == "thermal_drift"
+    assert d["verdict"] == "thermal_drift"
+    assert d["shrink"] > 0.8          # the ideal law's held-out excess shrinks (attribution target, 0.8)
+
+
+class _TemperatureOnly(E.ThermalDrift):
+    """The temperature law alone: what ThermalDrift fitted before it had a time law."""
+
+    def ranges(self):
+        return {k: v for k, v in type(self).RANGES.items() if k in ("dg_dT", "dx0_dT")}
+
+
+def test_with_a_temperature_column_the_time_rates_change_nothing():
+    truth = E.ThermalDrift(dg_dT=jnp.asarray([0.3e-6, 0.2e-6]), dx0_dT=jnp.asarray([1.5e-6, -1e-6]))
+    d = rig.simulate(rig.PAPER_RIG, P.rich(), [truth], NOISE, seed=5).data
+    assert "temperature_C" in d.columns
+    both = ambfit.fit(d, effects=(E.ThermalDrift(),))
+    alone = ambfit.fit(d, effects=(_TemperatureOnly(),))
+    assert both.converged and alone.converged
+    got = dict(zip(both.names, zip(both.values, both.std)))
+    assert set(got) - set(alone.names) == {f"thermal_drift.{n}[{ax}]" for n in ("dg_dt", "dx0_dt") for ax in "vw"}
+    for name, value, std in zip(alone.names, alone.values, alone.std):
+        # the rates' Jacobian columns are zero: the same solve to round-off
+        assert got[name][0] == pytest.approx(value, rel=1e-7, abs=1e-15), name
+        assert got[name][1] == pytest.approx(std, rel=1e-7), name
+    for name, (lo, hi) in E.ThermalDrift.RANGES.items():
+        if name.endswith("_dt"):
+            for ax in "vw":    # unseen: at the prior's centre (zero, signed) with the prior's width
+                assert got[f"thermal_drift.{name}[{ax}]"] == (0.0, pytest.approx(hi, rel=1e-9))
+    assert both.chi2 == pytest.approx(alone.chi2, rel=1e-9)
+
+
+def test_cli_simulates_without_temperature(tmp_path):
+    csv = tmp_path / "d.csv"
+    r = CliRunner().invoke(app, ["simulate", "-o", str(csv), "--preset", "table2", "--iterations", "1",
+                                 "--effect", "thermal_drift:dx0_dt=1e-8", "--no-temperature"])
+    assert r.exit_code == 0, r.output
+    d = data_mod.read_csv(csv).frame
+    assert "temperature_C" not in d.columns and "time_s" in d.columns
