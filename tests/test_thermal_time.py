@@ -131,3 +131,21 @@ def test_cli_simulates_without_temperature(tmp_path):
     assert r.exit_code == 0, r.output
     d = data_mod.read_csv(csv).frame
     assert "temperature_C" not in d.columns and "time_s" in d.columns
+
+
+def test_identification_names_only_the_drift_law_the_data_cannot_see(timed):
+    """A law no reading uses cannot make the solver wander; an effect the data do not see at all still can."""
+    from ambfit.estimation import conditioning
+    from ambfit.estimation.identification import undetermined_text
+
+    shares = conditioning.effect_identification(timed, (E.ThermalDrift(),))
+    assert set(shares) == {f"thermal_drift.{n}[{ax}]" for n in ("dg_dt", "dx0_dt") for ax in "vw"}
+    assert max(shares.values()) < 0.01 and not undetermined_text(shares)
+    hot = rig.simulate(rig.PAPER_RIG, P.rich(), [E.ThermalDrift()], NOISE, seed=5).data
+    shares = conditioning.effect_identification(hot, (E.ThermalDrift(),))
+    assert {n.split(".")[1].split("[")[0] for n in shares} == {"dg_dT", "dx0_dT"}
+    assert not undetermined_text(shares)
+    blind = timed.drop(columns="time_s")            # neither time nor temperature: the drift is unseen
+    shares = conditioning.effect_identification(blind, (E.ThermalDrift(),))
+    assert len(shares) == 8 and min(shares.values()) > 0.99
+    assert "readings over a range of temperature" in undetermined_text(shares)

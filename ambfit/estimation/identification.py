@@ -45,7 +45,10 @@ def prior_shares(prob: Problem, meta: Meta, model: Model, start) -> dict:
     effects at their prior centre).  With the data's information ``J^T J`` (scaled parameters) and the unit prior of
     each effect coordinate, the posterior variance of a coordinate, ``[(J^T J + P)^-1]_jj`` in ``(0, 1]``, is the
     share of the prior's variance the data leave: near 1 the data do not determine that parameter, and a solver
-    that looks for it wanders.  Returns ``{parameter name: share}`` for every effect parameter.
+    that looks for it wanders.  Returns ``{parameter name: share}`` for every effect parameter, except those of
+    a law no reading uses while the data see another parameter of the same effect (the rates of
+    :class:`~ambfit.physics.effects.ThermalDrift` on data with a temperature): their Jacobian column is zero,
+    the prior pins them at its centre and the solver cannot wander along them.
     """
     if not model.n:
         return {}
@@ -55,4 +58,6 @@ def prior_shares(prob: Problem, meta: Meta, model: Model, start) -> dict:
     info[-model.n:, -model.n:] += np.eye(model.n)          # q ~ N(0, 1): the effects' weak priors
     share = np.diag(np.linalg.pinv(info))[-model.n:]
     names = free_names(meta, free_mask(prob, meta, model), model)[-model.n:]
-    return {n: float(v) for n, v in zip(names, share)}
+    unused = ~np.any(jac[:, -model.n:] != 0.0, axis=0)
+    seen = {n.split(".")[0] for n, u in zip(names, unused) if not u}
+    return {n: float(v) for n, v, u in zip(names, share, unused) if not (u and n.split(".")[0] in seen)}
