@@ -304,9 +304,8 @@ def simulate(
     ambient_C : float
         Ambient temperature [°C].
     thermometer : bool
-        Record the bearing temperature (``temperature_C``).  Without, the data have no temperature column and
-        the effects see none, as a fit of the data will: a thermal drift then acts through time
-        (:class:`~ambfit.physics.effects.ThermalDrift`'s rates, counted from the rig's clock zero).
+        Record the bearing temperature (``temperature_C``); without, the effects see none, as a fit of the data
+        will, and a :class:`~ambfit.physics.effects.ThermalDrift` acts through time (from the rig's clock zero).
 
     Raises
     ------
@@ -370,9 +369,8 @@ def simulate(
     v_m = x_m[:, 0] + pos_noise[:, 0]  # the same position sample is recorded with both axes' rows
     w_m = x_m[:, 1] + pos_noise[:, 1]
 
-    data = _records(protocol, bias, it_m, ib_m, v_m, w_m, sets, tt, temp, noise)
-    if not thermometer:
-        data = data.drop(columns="temperature_C")
+    data = _records(protocol, bias, it_m, ib_m, v_m, w_m, sets, tt, temp, noise).drop(
+        columns=[] if thermometer else ["temperature_C"])
     truth = {
         "rig": spec.name,
         "params": {str(a): spec.params(protocol.assemblies[a]).as_dict_um() for a in sorted(protocol.assemblies)},
