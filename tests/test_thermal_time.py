@@ -149,3 +149,14 @@ def test_identification_names_only_the_drift_law_the_data_cannot_see(timed):
     shares = conditioning.effect_identification(blind, (E.ThermalDrift(),))
     assert len(shares) == 8 and min(shares.values()) > 0.99
     assert "readings over a range of temperature" in undetermined_text(shares)
+
+
+def test_parameters_no_reading_depends_on_take_no_degree_of_freedom():
+    """On data with a temperature column the time law's four rates have no reading to act on: χ²'s degrees of freedom
+    drop by the four temperature coefficients only (its p-value and an estimated noise would be off otherwise)."""
+    data = rig.simulate(rig.PAPER_RIG, P.rich(), [E.ThermalDrift()], seed=5).data
+    assert "temperature_C" in data
+    ideal = ambfit.fit(data, throw=False)
+    drift = ambfit.fit(data, effects=(E.ThermalDrift(),), throw=False)
+    assert len(drift.names) - len(ideal.names) == 8
+    assert drift.dof == ideal.dof - 4

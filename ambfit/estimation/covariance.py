@@ -146,7 +146,10 @@ def _measure(members, sols, probs, metas, model, hows, thresholds, out, extras=N
     cov_s = np.where((cond < 1e15)[:, None, None], cov_s, np.inf)
     weight = masks**2                              # 1, a robust loss's weight, or 0 for a left-out row
     chi2 = np.sum(np.where(used, weight * z**2, 0.0), axis=1)
-    dof = used.sum(axis=1) - int(free.sum())
+    # (a parameter no used reading depends on, an effect's law the data never exercise, is held by its prior alone
+    # and takes no degree of freedom)
+    seen = np.any((j[:, :masks.shape[1]] != 0) & used[:, :, None], axis=1)
+    dof = used.sum(axis=1) - seen.sum(axis=1)
     if meta.noise_estimated:
         cov_s = cov_s * (chi2 / dof)[:, None, None]
     scale, offset = si_scale(probs[idx[0]], model)
