@@ -146,3 +146,17 @@ def test_table2_diagnosis_says_it_cannot_see_saturation():
     assert rec["verdict"] == "none"
     assert "cannot see saturation" in rec["blind_spot"] and "bias sweep" in rec["blind_spot"]
     assert "1.4/1.6 A" in rec["blind_spot"] and rec["blind_spot"] in dg.verdict_text()
+
+
+def test_an_unexplained_verdict_still_reports_the_best_models_force_check(saturated):
+    """Issue 23: when no candidate explains the data, force measurement still learns how well the best one predicts
+    left-out known loads (``force_check.best``), beside the ideal law's."""
+    others = [cls() for name, cls in E.EFFECTS.items() if name not in ("saturation",)]
+    diag = gap.diagnose(saturated, candidates=others)
+    rec = diag.to_json()
+    assert rec["verdict"] == "unexplained"
+    best = rec["force_check"]["best"]
+    # the best single effect (pairs are not verdicts by default), a model with effects, on the same left-out loads
+    assert best["model"] in {r["effect"] for r in rec["ranking"]} and "+" not in best["model"]
+    assert best["n_loads"] == rec["force_check"]["ideal"]["n_loads"]
+    assert 0 < best["rms_rel"] and "the best candidate, not the verdict" in diag.verdict_text()

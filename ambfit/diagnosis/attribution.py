@@ -212,7 +212,9 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
         best_pair=best_pair, families=families, law=law, discrepancy=disc,
         force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy, max_steps,
-                                  _fold_fits([ideal] + ranking, disc), each) if check_force else None)
+                                  _fold_fits([ideal] + ranking, disc), each,
+                                  best_fit=best.fit if best is not None and verdict_fit is None else None)
+        if check_force else None)
 
 
 def _budget(effects, max_steps: int) -> int:
@@ -232,12 +234,14 @@ def _fold_fits(cands, disc) -> dict:
 
 
 def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True, max_steps: int = 60,
-                  fitted=None, each=None) -> dict | None:
+                  fitted=None, each=None, best_fit=None) -> dict | None:
     """Contract section 3's ``force_check``: leave-one-load-out for the ideal law, the verdict's model and the
     discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
     effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis; a left-out
     load that is one of the diagnosis' folds reuses that fold's refit (``fitted``, by model name).  ``each``: how
-    each check's left-out loads are run (:class:`_Each`; default one after the other)."""
+    each check's left-out loads are run (:class:`_Each`; default one after the other).  ``best_fit``: the best
+    candidate's fit when no model is the verdict (``unexplained``): its check is reported as ``best``, so force
+    measurement can judge the model that removes most of the excess even when it does not remove all of it."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
@@ -246,6 +250,9 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
     jobs = [((), base, discrepancy and not with_effects, max_steps)]
     if with_effects:
         jobs.append((verdict_fit.effects, verdict_fit, discrepancy, _budget(verdict_fit.effects, max_steps)))
+    with_best = best_fit is not None and bool(best_fit.effects)
+    if with_best:
+        jobs.append((best_fit.effects, best_fit, False, _budget(best_fit.effects, max_steps)))
 
     def check(job):
         effects, fitted_all, with_discrepancy, steps = job
@@ -257,6 +264,7 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
 
     # one check after the other, each spreading its left-out loads over the threads
     ideal, *verdict = [check(job) for job in jobs]
+    best = verdict.pop() if with_best else None
     if isinstance(ideal, FitError):
         return {"method": "leave-one-load-out", "error": str(ideal)}
     if ideal is None:
@@ -272,4 +280,8 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
         out["verdict"] = {"model": verdict_fit.model, **{k: v[k] for k in keys}}
         if "discrepancy" in v:
             out["discrepancy"] = v["discrepancy"]
+    if isinstance(best, FitError):
+        out["best"] = {"model": best_fit.model, "error": str(best)}
+    elif best is not None:
+        out["best"] = {"model": best_fit.model, **{k: best[k] for k in keys}}
     return out

@@ -192,9 +192,10 @@ class Diagnosis:
             fc = self.force_check
             text += (f"\nforce check (each of {fc['ideal']['n_loads']} known loads left out and predicted): ideal law "
                      f"{100 * fc['ideal']['rms_rel']:.2f} % RMS ({100 * fc['ideal']['max_rel']:.2f} % worst)")
-            if "verdict" in fc and "error" not in fc["verdict"]:
-                text += (f", {fc['verdict']['model']} {100 * fc['verdict']['rms_rel']:.2f} % RMS "
-                         f"({100 * fc['verdict']['max_rel']:.2f} % worst)")
+            for key, what in (("verdict", ""), ("best", " (the best candidate, not the verdict)")):
+                if key in fc and "error" not in fc[key]:
+                    text += (f", {fc[key]['model']}{what} {100 * fc[key]['rms_rel']:.2f} % RMS "
+                             f"({100 * fc[key]['max_rel']:.2f} % worst)")
             if "discrepancy" in fc:
                 text += (f", {fc['discrepancy']['model']} {100 * fc['discrepancy']['rms_rel']:.2f} % RMS "
                          f"({100 * fc['discrepancy']['max_rel']:.2f} % worst)")
