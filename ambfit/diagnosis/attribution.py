@@ -42,7 +42,7 @@ def default_candidates(data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> 
 
 
 def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing = PAPER_BEARING,
-             floor_tolerance: float = 1.0, min_shrink: float = 0.5, pairs: bool = True, pair_verdict: bool = False,
+             floor_tolerance: float = 1.0, min_shrink: float = 0.5, pairs: bool = True, pair_verdict: bool = True,
              max_steps: int = 60, baseline: FitResult | None = None, progress=None, check_force: bool = True,
              discrepancy: bool = True, threads: int = 2, **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
@@ -53,8 +53,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     removes at least ``min_shrink`` of the excess *and* leaves the held-out residuals
     within ``floor_tolerance`` of the floor; when no single effect does, the best single
     plus each other candidate are tried the same way (``pairs=True``) and a pair can be
-    the verdict (``pair_verdict=True``, else it is reported as ``best_pair``); otherwise
-    ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
+    the verdict (``pair_verdict=True``, the default: real bearings often carry two effects at once; with False the
+    pair is only reported as ``best_pair``); otherwise ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
     ``baseline`` is the ideal fit of these data when the caller already has it.  ``progress``, if given, is
     called as ``progress("candidate effects", done, total)`` after each model's held-out fits (from a worker
     thread).  ``threads``: how many fits run at once (each compiled solve releases the interpreter while it runs;

@@ -174,7 +174,8 @@ def diagnose(
     bearing: BearingOption = None,
     accept_implausible: AcceptOption = False,
     pair_verdict: Annotated[bool, typer.Option(help="Let a pair of effects be the verdict when no single one "
-                                               "explains the data (off: the pair is reported as best_pair).")] = False,
+                                               "explains the data (--no-pair-verdict: the pair is only reported as "
+                                               "best_pair).")] = True,
     report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
                                                 "(residuals against the most structured variable, before and "
                                                 "after adding the verdict effect).")] = None,
