@@ -13,6 +13,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
+from ambfit.physics.effects.magnetic import play_coils
 from ambfit.physics.stages import Effect, _ax, _set
 
 
@@ -157,13 +158,7 @@ class MinorLoopHysteresis(Effect):
     stateful: ClassVar[bool] = True
 
     def coil(self, ctx):
-        h = _ax(self.width, ctx.axis)
-
-        def play(i, p_prev, direction):
-            return jnp.where(jnp.isnan(p_prev), i - h * direction, jnp.clip(p_prev, i - h, i + h))
-
-        return _set(ctx, m_top=play(ctx.m_top, ctx.m_prev_top, ctx.dir_top),
-                    m_bottom=play(ctx.m_bottom, ctx.m_prev_bottom, ctx.dir_bottom))
+        return play_coils(ctx, self.width)          # the play's output p, as the library's hysteresis keeps it
 
     def magnetising(self, i, p, axis):
         """The magnetising current [A] of coil current ``i`` and play output ``p`` [A]."""

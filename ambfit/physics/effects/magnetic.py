@@ -187,8 +187,16 @@ class Hysteresis(Effect):
         return jnp.clip(m_prev, i - h, i + h)
 
     def coil(self, ctx):
-        h = _ax(self.width, ctx.axis)
-        def one(i, m_prev, direction):
-            return jnp.where(jnp.isnan(m_prev), i - h * direction, jnp.clip(m_prev, i - h, i + h))
-        return _set(ctx, m_top=one(ctx.m_top, ctx.m_prev_top, ctx.dir_top),
-                    m_bottom=one(ctx.m_bottom, ctx.m_prev_bottom, ctx.dir_bottom))
+        return play_coils(ctx, self.width)
+
+
+def play_coils(ctx, width):
+    """Both coils' states after a play operator of half-width ``width`` [A] (scalar or per axis): the previous state
+    ``m_prev`` clipped to ``[i - width, i + width]``, or without one (a fit) ``i - width * direction``."""
+    h = _ax(width, ctx.axis)
+
+    def one(i, m_prev, direction):
+        return jnp.where(jnp.isnan(m_prev), i - h * direction, jnp.clip(m_prev, i - h, i + h))
+
+    return _set(ctx, m_top=one(ctx.m_top, ctx.m_prev_top, ctx.dir_top),
+                m_bottom=one(ctx.m_bottom, ctx.m_prev_bottom, ctx.dir_bottom))
