@@ -103,38 +103,38 @@ def results_at(sols: Sequence[Solution], probs: Sequence[Problem], metas: Sequen
         key = (free.tobytes(), np.shape(sol.jac), tuple(meta.load_groups), meta.noise_source, meta.k_free)
         groups.setdefault(key, []).append((s, free, np.asarray(prob.mask, dtype=float)))
     for members in groups.values():
-        idx = [s for s, _, _ in members]
-        why = _problems(np.stack([m for _, _, m in members]) > 0, int(members[0][1].sum()),
-                        np.stack([np.asarray(sols[s].z) for s in idx]), np.stack([np.asarray(sols[s].jac) for s in idx]),
-                        np.stack([np.asarray(sols[s].theta) for s in idx]),
+        idx = np.array([s for s, _, _ in members])
+        free = members[0][1]
+        masks = np.stack([m for _, _, m in members])
+        theta, z, jac = (np.stack([np.asarray(getattr(sols[s], f)) for s in idx]) for f in ("theta", "z", "jac"))
+        why = _problems(masks > 0, int(free.sum()), z, jac, theta,
                         [extras[s].get("rows") if extras is not None else None for s in idx])
         for s, problem in zip(idx, why):
             out[s] = problem
-        members = [m for m, problem in zip(members, why) if problem is None]
-        if members:
-            _measure(members, sols, probs, metas, model, hows, thresholds, out, extras)
+        ok = np.array([problem is None for problem in why])
+        if ok.any():
+            _measure([int(s) for s in idx[ok]], free, masks[ok], theta[ok], z[ok], jac[ok][:, :, free], sols, probs, metas, model,
+                     hows, thresholds, out, extras)
     return out
 
 
-def _measure(members, sols, probs, metas, model, hows, thresholds, out, extras=None):
-    """Covariance, conditioning and χ² of a group of alike solutions (see :func:`results_at`), into ``out``."""
-    idx = [s for s, _, _ in members]
-    free = members[0][1]
+def _measure(idx, free, masks, theta, z, j, sols, probs, metas, model, hows, thresholds, out, extras=None):
+    """Covariance, conditioning and χ² of a group of alike solutions (see :func:`results_at`), into ``out``:
+    solutions ``idx`` with their stacked row weights, estimates, standardized residuals and free Jacobian columns
+    ``j[sets, rows + priors, free]``."""
     meta = metas[idx[0]]
     names = free_names(meta, free, model)
-    masks = np.stack([m for _, _, m in members])
     used = masks > 0
-    theta = np.stack([np.asarray(sols[s].theta) for s in idx])
-    z = np.stack([np.asarray(sols[s].z) for s in idx])
-    j = np.stack([np.asarray(sols[s].jac)[:, free] for s in idx])             # [sets, rows + priors, free]
     norms = np.linalg.norm(j, axis=1)
     js = j / np.where(norms > 0, norms, 1.0)[:, None, :]
     try:
         _, sv, vt = np.linalg.svd(js, full_matrices=False)
     except np.linalg.LinAlgError:
         if len(idx) > 1:                           # one data set's SVD failed: measure the others without it
-            for member in members:
-                _measure([member], sols, probs, metas, model, hows, thresholds, out, extras)
+            for b, s in enumerate(idx):
+                one = slice(b, b + 1)
+                _measure([s], free, masks[one], theta[one], z[one], j[one], sols, probs, metas, model, hows,
+                         thresholds, out, extras)
             return
         out[idx[0]] = FitError("the fit's Jacobian could not be decomposed (SVD did not converge): the readings "
                                "span values the force law cannot handle; check units and extreme values (ambfit check)")
