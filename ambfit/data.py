@@ -3,8 +3,8 @@
 ``DATA-CONTRACT.md`` section 1 defines the columns.  :func:`read_csv` checks every
 row where the data enter and raises :class:`DataError` naming the file, row,
 column and offending value; it keeps extra columns untouched so that
-:func:`write_csv` writes back everything it read.  :func:`readings` turns a
-checked table into SI arrays for the model.
+:func:`write_csv` writes back everything it read.  :func:`ambfit.rows.readings`
+turns a checked table into SI arrays for the model.
 
 Rows are numbered from 1 for the first data row; the CSV line is one more
 (the header is line 1).
@@ -321,77 +321,3 @@ def write_csv(data: Dataset | pd.DataFrame, path: str | os.PathLike) -> None:
 
     frame = data.frame if isinstance(data, Dataset) else data
     write_text(path, frame.to_csv(index=False, na_rep="", float_format=None))
-
-
-def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -> np.ndarray:
-    """Direction (+1 rising, -1 falling) from which each reading's coil current was reached.
-
-    Derived from the order of rows: within each experiment and axis, the sign of the
-    change from the previous reading; a change below ``threshold`` [A] keeps the
-    previous direction; the first reading counts as rising (from zero current).
-    """
-    n = len(df)
-    if n == 0:
-        return np.zeros(0)
-    exp = group_labels(df["experiment"]) if "experiment" in df.columns else pd.Series("", index=df.index)
-    code = df.groupby([exp, df["axis"]], sort=False, dropna=False).ngroup().to_numpy()
-    order = np.argsort(code, kind="stable")              # each group's rows together, in file order
-    i, c = df[column].to_numpy(float)[order], code[order]
-    step = np.diff(i, prepend=np.nan)
-    first = np.r_[True, c[1:] != c[:-1]]
-    with np.errstate(invalid="ignore"):
-        d = np.where(first, 1.0, np.where(np.abs(step) >= threshold, np.sign(step), np.nan))
-    # a small change keeps the previous direction: carry the last set value forward (each group starts with one)
-    last = np.where(np.isnan(d), 0, np.arange(n))
-    np.maximum.accumulate(last, out=last)
-    out = np.empty(n)
-    out[order] = d[last]
-    return out
-
-
-def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-    """The other axis' ``(i_top_A, i_bottom_A)`` read at the same moment as each row (NaN where none).
-
-    Rows of both axes taken at one moment share ``time_s`` (and ``experiment``, contract section 1);
-    without a ``time_s`` column every entry is NaN.
-    """
-    n = len(df)
-    nan = np.full(n, np.nan)
-    if "time_s" not in df.columns:
-        return nan, nan.copy()
-    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.full(n, "")
-    t = df["time_s"].to_numpy(float)
-    ax = (df["axis"] == "w").to_numpy().astype(int)
-    timed = ~np.isnan(t)
-    # each moment (experiment, time) numbered; the first row of each moment and axis is the one read
-    moment = np.full(n, -1)
-    if timed.any():
-        moments = pd.DataFrame({"e": exp[timed], "t": t[timed]}).groupby(["e", "t"], sort=False, dropna=False)
-        moment[timed] = moments.ngroup()
-    first = np.full((moment.max(initial=-1) + 2, 2), -1)   # (a last row of -1s for the untimed rows)
-    rows = np.nonzero(timed)[0][::-1]                  # in reverse, so that the first row of each is kept
-    first[moment[rows], ax[rows]] = rows
-    partner = first[moment, 1 - ax]
-    it, ib = df["i_top_A"].to_numpy(float), df["i_bottom_A"].to_numpy(float)
-    return np.where(partner >= 0, it[partner], np.nan), np.where(partner >= 0, ib[partner], np.nan)
-
-
-def readings(data: Dataset | pd.DataFrame):
-    """The rows as :class:`ambfit.physics.model.Readings` in SI units; time counts from the first reading of each
-    row's experiment (one clock holds within an experiment, contract section 1), wherever the clock's zero is."""
-    from ambfit.physics.model import Readings
-
-    df = data.frame if isinstance(data, Dataset) else data
-    ax = (df["axis"] == "w").to_numpy().astype(int)
-    v = df["v_um"].to_numpy(float) * 1e-6
-    w = df["w_um"].to_numpy(float) * 1e-6
-    t = df["time_s"].astype(float) if "time_s" in df.columns else None
-    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(len(df))
-    return Readings.build(
-        axis=ax, i_top=df["i_top_A"].to_numpy(float), i_bottom=df["i_bottom_A"].to_numpy(float),
-        x=np.where(ax == 0, v, w), y=np.where(ax == 0, w, v), bias=df["bias_A"].to_numpy(float),
-        time=None if t is None else (t - t.groupby(exp).transform("min")).to_numpy(),
-        temperature=df["temperature_C"].to_numpy(float) if "temperature_C" in df.columns else None,
-        dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
-        **dict(zip(("i_top_other", "i_bottom_other"), other_axis_currents(df))),
-    )

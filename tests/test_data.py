@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 
 from ambfit import data as D
 from ambfit import rig
+from ambfit import rows as R
 from ambfit.rig import protocol as P
 
 
@@ -125,7 +126,7 @@ def test_file_level_errors(tmp_path):
 
 def test_readings_in_si_units(table, tmp_path):
     ds = D.read_csv(_write(table, tmp_path))
-    r = D.readings(ds)
+    r = R.readings(ds)
     w = table.axis.to_numpy() == "w"
     np.testing.assert_allclose(np.asarray(r.x)[w], table.w_um.to_numpy()[w] * 1e-6)
     np.testing.assert_allclose(np.asarray(r.y)[w], table.v_um.to_numpy()[w] * 1e-6)
@@ -134,7 +135,7 @@ def test_readings_in_si_units(table, tmp_path):
 
 def test_approach_direction_follows_the_order():
     df = pd.DataFrame({"axis": ["v"] * 5, "i_top_A": [1.0, 1.2, 1.4, 1.2, 1.0], "experiment": "e"})
-    np.testing.assert_array_equal(D.approach_direction(df, "i_top_A"), [1, 1, 1, -1, -1])
+    np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), [1, 1, 1, -1, -1])
 
 
 def test_a_zero_current_read_through_its_noise_is_accepted(table, tmp_path):
@@ -192,8 +193,8 @@ def test_row_order_functions_follow_their_definitions(n, seed, with_experiment):
                        "i_top_A": np.round(rng.normal(1.5, 0.004, n), 4), "i_bottom_A": rng.normal(1.5, 0.1, n)})
     if with_experiment:
         df["experiment"] = rng.choice(["a", "b"], n)
-    np.testing.assert_array_equal(D.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
-    for got, want in zip(D.other_axis_currents(df), _other_by_definition(df)):
+    np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
+    for got, want in zip(R.other_axis_currents(df), _other_by_definition(df)):
         np.testing.assert_array_equal(got, want)
 
 
@@ -210,3 +211,15 @@ def test_joint_codes_number_rows_as_a_groupby_does(rows):
     np.testing.assert_array_equal(joint_codes(df["e"], df["i"], df["a"]), np.where(np.isnan(want), -1, want))
     want = df.groupby(["e", "i", "a"], sort=False, dropna=False).ngroup().to_numpy()
     np.testing.assert_array_equal(joint_codes(df["e"], df["i"], df["a"], own_missing=True), want)
+
+
+def test_play_states_follow_the_play_operator():
+    # width 0.15 A: the current rises from zero to 1.0 (state +1), falls 0.1 (inside the band: (0.9 - 0.85) / 0.15),
+    # falls 0.3 more (the play follows: -1), rises 0.1 ((0.7 - 0.75) / 0.15), stays; experiment b starts from zero
+    df = pd.DataFrame({"axis": ["v"] * 6, "experiment": ["a"] * 5 + ["b"],
+                       "i_top_A": [1.0, 0.9, 0.6, 0.7, 0.7, 0.1]})
+    s = R.play_states(df, "i_top_A", [0.15, 1e-6])
+    np.testing.assert_allclose(s[:, 0], [1.0, (0.9 - 0.85) / 0.15, -1.0, (0.7 - 0.75) / 0.15,
+                                         (0.7 - 0.75) / 0.15, 0.1 / 0.15])
+    # a vanishing width is the approach direction
+    np.testing.assert_allclose(s[:, 1], R.approach_direction(df, "i_top_A", threshold=1e-9))

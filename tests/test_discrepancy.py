@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from ambfit import rig
-from ambfit.data import readings
 from ambfit.diagnosis.discrepancy import LOG_BAYES_CLEAR
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.estimation.fit import fit
 from ambfit.estimation.measure import FittedModel, force_check, predict
 from ambfit.physics import effects as E
 from ambfit.rig import protocol
+from ambfit.rows import readings
 
 HEAD = ("g_v0", "g_w0", "v0", "w0", "k_v", "k_w")
 

@@ -11,12 +11,13 @@ import pytest
 from typer.testing import CliRunner
 
 import ambfit
-from ambfit.data import other_axis_currents, read_csv, readings
+from ambfit.data import read_csv
 from ambfit.estimation.core import Model
 from ambfit.estimation.measure import FittedModel, force_check, predict
 from ambfit.faces.cli import app
 from ambfit.physics.effects import MagneticCircuit, Saturation
 from ambfit.physics.model import BearingParams, Readings, evaluate, ideal_force
+from ambfit.rows import other_axis_currents, readings
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT / "data" / "paper_table2.csv"

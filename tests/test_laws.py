@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from ambfit import rig
-from ambfit.data import other_axis_currents
 from ambfit.physics.effects import CurrentOffset, Hysteresis, Saturation, ThermalDrift
 from ambfit.physics.model import BearingParams, Readings, evaluate, ideal_force
 from ambfit.rig import laws, protocol
+from ambfit.rows import other_axis_currents
 
 PARAMS = BearingParams.from_values((775e-6, 763e-6), (33.3e-6, -11.3e-6), (3.4e-6, 3.4e-6))
 

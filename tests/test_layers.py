@@ -20,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "ambfit"
 LAYERS = (
     ("helpers", ("ambfit._recent", "ambfit._jaxcache", "ambfit._output")),
     ("physics", ("ambfit.physics",)),
-    ("infrastructure", ("ambfit.checks", "ambfit.data", "ambfit.engine", "ambfit.workers")),
+    ("infrastructure", ("ambfit.checks", "ambfit.data", "ambfit.rows", "ambfit.engine", "ambfit.workers")),
     ("rig", ("ambfit.rig",)),
     ("estimation", ("ambfit.estimation",)),
     ("diagnosis", ("ambfit.diagnosis",)),

@@ -14,10 +14,11 @@ import pytest
 from typer.testing import CliRunner
 
 import ambfit
-from ambfit.data import read_csv, readings
+from ambfit.data import read_csv
 from ambfit.estimation import model_file
 from ambfit.estimation.measure import FittedModel, ModelFileError
 from ambfit.faces.cli import app
+from ambfit.rows import readings
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT / "data" / "paper_table2.csv"

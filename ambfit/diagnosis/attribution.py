@@ -32,8 +32,8 @@ from ambfit.physics.bearing import PAPER_BEARING, Bearing
 def default_candidates(data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> list:
     """Every contract effect; plus the magnetic circuit of the whole bearing when the bearing description gives
     the lamination's B-H curve and every row has the other axis' currents read at the same moment."""
-    from ambfit.data import other_axis_currents
     from ambfit.physics.effects import EFFECTS, MagneticCircuit, effect_by_name
+    from ambfit.rows import other_axis_currents
 
     cands = [effect_by_name(name, bearing=bearing) for name in EFFECTS]
     if bearing.b_curve and np.isfinite(other_axis_currents(data)[0]).all():

@@ -22,11 +22,12 @@ import dataclasses
 import numpy as np
 import pandas as pd
 
-from ambfit.data import Dataset, approach_direction
+from ambfit.data import Dataset
 from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.model import pole_gaps
+from ambfit.rows import approach_direction
 
 
 @dataclasses.dataclass(frozen=True)

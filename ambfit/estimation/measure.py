@@ -46,7 +46,8 @@ def predict(result: FitResult, data, *, rows: Readings | None = None) -> np.ndar
     """The force [N] the fitted model gives for every row of ``data`` (its own axis, both axes' currents),
     at the fit's gap, origin, k and effect parameters.  Rows of an axis whose k was not identified are NaN.
     ``rows``: ``data``'s readings when the caller has them (pairing the axes by time is the slow part)."""
-    from ambfit.data import Dataset, readings
+    from ambfit.data import Dataset
+    from ambfit.rows import readings
 
     df = data.frame if isinstance(data, Dataset) else data
     vals = dict(zip(result.names, result.values))

@@ -20,8 +20,9 @@ import numpy as np
 import pandas as pd
 
 from ambfit._recent import Recent
-from ambfit.data import Dataset, joint_codes, load_groups, readings
+from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
+from ambfit.rows import readings
 
 
 class Problem(eqx.Module):

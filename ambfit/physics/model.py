@@ -99,16 +99,16 @@ class Readings(eqx.Module):
         Commanded bias current [A].
     time : array[n]
         Time of the reading [s] (zeros when unknown); from a contract table, counted from the first reading
-        of its experiment (:func:`ambfit.data.readings`), on the virtual rig its clock.
+        of its experiment (:func:`ambfit.rows.readings`), on the virtual rig its clock.
     temperature : array[n]
         Bearing temperature [°C] (NaN when unknown).
     dir_top, dir_bottom : array[n]
         Direction from which each coil current was approached: +1 rising, -1 falling,
         0 unknown (derived from the order of readings, see
-        :func:`ambfit.data.approach_direction`).
+        :func:`ambfit.rows.approach_direction`).
     i_top_other, i_bottom_other : array[n] or None
         The other axis' coil currents at the same moment [A] (the row of the other axis with the
-        same ``experiment`` and ``time_s``, :func:`ambfit.data.other_axis_currents`); NaN where
+        same ``experiment`` and ``time_s``, :func:`ambfit.rows.other_axis_currents`); NaN where
         there is none.  Only effects coupling the axes through the stator need them.
     """
 

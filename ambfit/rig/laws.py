@@ -180,7 +180,7 @@ class CurrentCoupling(Effect):
     Flux of the other horseshoe closes partly through this axis' poles (the biased poles of an 8-pole bearing
     sit 22.5° apart), so this axis' coils see ``m_top = i_top + beta c'`` and ``m_bottom = i_bottom - beta c'``
     with ``c' = (i_top' - i_bottom') / 2`` the other axis' control current (read at the same moment,
-    :func:`ambfit.data.other_axis_currents`): the force-current gain ``k_i`` gains a cross term ``beta k_i``
+    :func:`ambfit.rows.other_axis_currents`): the force-current gain ``k_i`` gains a cross term ``beta k_i``
     (Schweitzer and Maslen 2009, sec. 4.4; Meeker, Maslen and Noh 1996).  ``beta`` = 2-6 %.  The library's
     ``cross_coupling`` acts through the other axis' *position*.  Rows without the other axis' currents get none.
     """

@@ -79,7 +79,7 @@ def force(
     if missing_k:
         fail(f"{model}: k_{' and k_'.join(missing_k)} not identified in this model (it was fitted without known "
              "loads on that axis): it gives gap and origin, not forces", 3)
-    from ambfit.data import readings
+    from ambfit.rows import readings
 
     if any(getattr(e, "needs_other_axis", False) for e in fm.effects):
         r = readings(frame)

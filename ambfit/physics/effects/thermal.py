@@ -28,7 +28,7 @@ class ThermalDrift(Effect):
 
         g0 = g0 + dg_dt t,              x0 = x0 + dx0_dt t                  (dg_dt, dx0_dt in m/s)
 
-    where ``t`` counts from the first reading of the row's experiment (:func:`ambfit.data.readings`; the
+    where ``t`` counts from the first reading of the row's experiment (:func:`ambfit.rows.readings`; the
     contract holds ``time_s`` to one clock within an experiment only), so the fitted gap and origin are those at
     the start of each experiment, and nothing depends on where the clock's zero is.  A row with neither is taken
     at ``ref_C``, i.e. without drift.

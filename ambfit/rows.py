@@ -1,0 +1,118 @@
+"""What each reading's history and companions are: its run of readings, the direction and path by which its coil
+currents were reached, the other axis' currents read at the same moment, and the rows as the model's readings.
+
+The order of rows within each experiment and axis is the order in which the readings were taken (contract
+section 1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ambfit.data import Dataset, group_labels
+
+
+def runs(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Each (experiment, axis) run of readings in file order: ``(order, first)``, the row numbers run by run and
+    whether each of them starts its run (a coil's history is that of its run's readings)."""
+    exp = group_labels(df["experiment"]) if "experiment" in df.columns else pd.Series("", index=df.index)
+    code = df.groupby([exp, df["axis"]], sort=False, dropna=False).ngroup().to_numpy()
+    order = np.argsort(code, kind="stable")              # each run's rows together, in file order
+    c = code[order]
+    return order, np.r_[True, c[1:] != c[:-1]] if len(c) else np.zeros(0, bool)
+
+
+def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -> np.ndarray:
+    """Direction (+1 rising, -1 falling) from which each reading's coil current was reached.
+
+    Derived from the order of rows: within each experiment and axis, the sign of the
+    change from the previous reading; a change below ``threshold`` [A] keeps the
+    previous direction; the first reading counts as rising (from zero current).
+    """
+    n = len(df)
+    if n == 0:
+        return np.zeros(0)
+    order, first = runs(df)
+    i = df[column].to_numpy(float)[order]
+    step = np.diff(i, prepend=np.nan)
+    with np.errstate(invalid="ignore"):
+        d = np.where(first, 1.0, np.where(np.abs(step) >= threshold, np.sign(step), np.nan))
+    # a small change keeps the previous direction: carry the last set value forward (each group starts with one)
+    last = np.where(np.isnan(d), 0, np.arange(n))
+    np.maximum.accumulate(last, out=last)
+    out = np.empty(n)
+    out[order] = d[last]
+    return out
+
+
+def play_states(df: pd.DataFrame, column: str, widths) -> np.ndarray:
+    """Where each reading's coil current sits in the dead band of a play operator of each half-width: array[n, w],
+    ``(i - p) / width`` in [-1, 1] (+1: the current has risen at least ``width`` since it last turned).
+
+    The play's output ``p = clip(p_prev, i - width, i + width)`` follows the current through each run's readings
+    in file order (:func:`runs`), from zero current before the first reading.  A sum of plays of several
+    widths is the Prandtl-Ishlinskii model of hysteresis with memory (Mayergoyz, *Mathematical Models of
+    Hysteresis*, 1991, ch. 1); the narrowest play's state is the approach direction (:func:`approach_direction`).
+    """
+    widths = np.asarray(widths, dtype=float)
+    out = np.zeros((len(df), len(widths)))
+    if len(df) == 0:
+        return out
+    order, first = runs(df)
+    i = df[column].to_numpy(float)[order]
+    p = np.zeros(len(widths))
+    for r, (now, new) in enumerate(zip(i, first)):       # a recursion: each output needs the one before
+        if new:
+            p = np.zeros(len(widths))
+        p = np.clip(p, now - widths, now + widths)
+        out[order[r]] = (now - p) / widths
+    return out
+
+
+def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The other axis' ``(i_top_A, i_bottom_A)`` read at the same moment as each row (NaN where none).
+
+    Rows of both axes taken at one moment share ``time_s`` (and ``experiment``, contract section 1);
+    without a ``time_s`` column every entry is NaN.
+    """
+    n = len(df)
+    nan = np.full(n, np.nan)
+    if "time_s" not in df.columns:
+        return nan, nan.copy()
+    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.full(n, "")
+    t = df["time_s"].to_numpy(float)
+    ax = (df["axis"] == "w").to_numpy().astype(int)
+    timed = ~np.isnan(t)
+    # each moment (experiment, time) numbered; the first row of each moment and axis is the one read
+    moment = np.full(n, -1)
+    if timed.any():
+        moments = pd.DataFrame({"e": exp[timed], "t": t[timed]}).groupby(["e", "t"], sort=False, dropna=False)
+        moment[timed] = moments.ngroup()
+    first = np.full((moment.max(initial=-1) + 2, 2), -1)   # (a last row of -1s for the untimed rows)
+    rows = np.nonzero(timed)[0][::-1]                  # in reverse, so that the first row of each is kept
+    first[moment[rows], ax[rows]] = rows
+    partner = first[moment, 1 - ax]
+    it, ib = df["i_top_A"].to_numpy(float), df["i_bottom_A"].to_numpy(float)
+    return np.where(partner >= 0, it[partner], np.nan), np.where(partner >= 0, ib[partner], np.nan)
+
+
+def readings(data: Dataset | pd.DataFrame):
+    """The rows as :class:`ambfit.physics.model.Readings` in SI units; time counts from the first reading of each
+    row's experiment (one clock holds within an experiment, contract section 1), wherever the clock's zero is."""
+    from ambfit.physics.model import Readings
+
+    df = data.frame if isinstance(data, Dataset) else data
+    ax = (df["axis"] == "w").to_numpy().astype(int)
+    v = df["v_um"].to_numpy(float) * 1e-6
+    w = df["w_um"].to_numpy(float) * 1e-6
+    t = df["time_s"].astype(float) if "time_s" in df.columns else None
+    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(len(df))
+    return Readings.build(
+        axis=ax, i_top=df["i_top_A"].to_numpy(float), i_bottom=df["i_bottom_A"].to_numpy(float),
+        x=np.where(ax == 0, v, w), y=np.where(ax == 0, w, v), bias=df["bias_A"].to_numpy(float),
+        time=None if t is None else (t - t.groupby(exp).transform("min")).to_numpy(),
+        temperature=df["temperature_C"].to_numpy(float) if "temperature_C" in df.columns else None,
+        dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
+        **dict(zip(("i_top_other", "i_bottom_other"), other_axis_currents(df))),
+    )
