@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ambfit import rig
-from ambfit.diagnosis.discrepancy import LOG_BAYES_CLEAR
+from ambfit.diagnosis.signatures import LOG_BAYES_CLEAR
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.estimation.fit import fit
 from ambfit.estimation.measure import FittedModel, force_check, predict

@@ -4,8 +4,10 @@ For the baseline (the ideal law) and for each candidate effect, the model is fit
 by :func:`ambfit.fit` with each fold held out (block cross-validation over
 operating regions) and scored on it: ``excess = sqrt(max(mean(z^2) - 1, 0))`` of the
 pooled held-out standardized residuals (contract section 3; :mod:`ambfit.diagnosis.heldout`).
-The verdict is the candidate that removes the structure; ``shrink = 1 - excess_after /
-excess_before``.  :func:`diagnose` returns a :class:`~ambfit.diagnosis.results.Diagnosis`.
+The verdict names the families that remove the structure: a library law or a pair of them, or a family's law
+widened by its signature (:mod:`ambfit.diagnosis.signatures`), graded by what it leaves
+(:mod:`ambfit.diagnosis.verdict`); ``shrink = 1 - excess_after / excess_before``.  :func:`diagnose` returns a
+:class:`~ambfit.diagnosis.results.Diagnosis`.
 """
 
 from __future__ import annotations
@@ -18,12 +20,14 @@ import pandas as pd
 
 from ambfit.data import Dataset, load_groups
 from ambfit.diagnosis.circuit_families import circuit_families
-from ambfit.diagnosis.discrepancy import SIGNATURES, _discrepancy, _law_differs
+from ambfit.diagnosis.discrepancy import _discrepancy
 from ambfit.diagnosis.heldout import Candidate, excess, folds, heldout_residuals
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
+from ambfit.diagnosis.signatures import Signature, signatures
 from ambfit.diagnosis.threads import _Each
+from ambfit.diagnosis.verdict import Judge, choose_law, confounded, family_names
 from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
@@ -47,27 +51,31 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
              discrepancy: bool = True, threads: int = 2, **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
-    Verdict: ``none`` when the baseline's held-out residuals sit on the noise floor
-    (excess below ``floor_tolerance`` and no structured region); otherwise the best
-    candidate (default: every effect in :data:`ambfit.physics.effects.EFFECTS`) if it
-    removes at least ``min_shrink`` of the excess *and* leaves the held-out residuals
-    within ``floor_tolerance`` of the floor; when no single effect does, the best single
-    plus each other candidate are tried the same way (``pairs=True``) and a pair can be
-    the verdict (``pair_verdict=True``, the default: real bearings often carry two effects at once; with False the
-    pair is only reported as ``best_pair``); otherwise ``unexplained``.  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
+    Verdict (:mod:`ambfit.diagnosis.verdict` gives the thresholds): ``none`` when the baseline's held-out
+    residuals sit on the noise floor (excess below ``floor_tolerance`` and no structured region).  Otherwise the
+    best candidate (default: every effect in :data:`ambfit.physics.effects.EFFECTS`) if it *explains* the data
+    (removes at least ``min_shrink`` of the excess, or reaches the floor where the ideal law does not, and leaves
+    less than ``floor_tolerance``); when no single effect reaches the floor, the best single plus each other
+    candidate are tried the same way (``pairs=True``), and a pair is the verdict when no single explains or the pair
+    is significantly better (``pair_verdict=True``, the default: real bearings often carry two effects at once;
+    with False the pair is only reported as ``best_pair``).  ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit;
     ``baseline`` is the ideal fit of these data when the caller already has it.  ``progress``, if given, is
     called as ``progress("candidate effects", done, total)`` after each model's held-out fits (from a worker
     thread).  ``threads``: how many fits run at once (each compiled solve releases the interpreter while it runs;
     1: one after another, the same results to round-off).  A model's fold refits leave out the readings its fit
     of every row named outliers (one outlier test per model; that fit saw the held-out rows too).
 
-    **A family whose law differs from the library's**: when the verdict would be ``unexplained`` and the best
-    single candidate has a residual signature of its own
-    (:data:`~ambfit.diagnosis.discrepancy.SIGNATURES`: hysteresis, residuals that depend on the approach
-    direction; cross-coupling, residuals that depend on the other axis), that signature's group of the
-    discrepancy basis is fitted on the candidate's residuals.  When the data want it clearly (log Bayes factor
-    above :data:`~ambfit.diagnosis.discrepancy.LOG_BAYES_CLEAR`) and the candidate with it explains the
-    held-out data, the family is the verdict; ``law`` says how much the library's own law left.
+    **A family whose law differs from the library's**: when no law reaches the floor, every family's law is
+    widened by its signature (:mod:`ambfit.diagnosis.signatures`: the discrepancy's groups of the variables the
+    family acts through) and scored on the same folds.  A family whose signature the data want clearly and whose
+    widened law explains the data (when no law does, or reaching the floor when the law does not) is the verdict;
+    ``law`` says how much the library's own law leaves, and the families sharing its signature that explain the
+    data too are listed as confounded.
+
+    **Graded**: when nothing explains the data, the model that removes most of the excess (a law, a pair or a
+    widened law) is the verdict if it removes at least ``min_shrink``, with ``grade`` saying what it leaves (noise
+    units, at the floor or not); ``unexplained`` only when nothing does.  The force check of the model that removes
+    most is always reported (``force_check.best`` when it is not the verdict's law).
 
     **The discrepancy** (``discrepancy=True``, :mod:`ambfit.estimation.discrepancy`): the ideal law and the
     verdict's model each get the nonparametric correction on the same folds; its held-out shrink is the
@@ -152,15 +160,10 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
     loc = where(df, base)
     on_floor = before < floor_tolerance and not loc.regions
 
-    def explains_after(after, shrunk):
-        return shrunk >= min_shrink and after < floor_tolerance
-
-    def explains(c):
-        return explains_after(c.after, c.shrink)
-
+    judge = Judge(len(ideal.heldout_z), ideal.score, floor_tolerance, min_shrink)
     ranking = sorted(singles, key=lambda c: c.score)
-    if not on_floor and ranking and not explains(ranking[0]) and pairs:
-        # no single effect removes the structure: forward selection, the best single plus each other candidate
+    if not on_floor and ranking and pairs and not (judge.explains(ranking[0]) and judge.at_floor(ranking[0])):
+        # no single effect reaches the floor: forward selection, the best single plus each other candidate
         first = ranking[0].effect
         best_single = next(e for e in cands if type(e).name == first)
         # the circuit already holds iron, fringing, leakage and coupling: it is not paired
@@ -171,49 +174,66 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         ranking.sort(key=lambda c: c.score)
     pair_list = [c for c in ranking if "+" in c.effect]
     singles = [c for c in ranking if "+" not in c.effect]
-    best = (ranking if pair_verdict else singles)[0] if (ranking if pair_verdict else singles) else None
+    model = None if on_floor else choose_law(judge, singles, pair_list, pair_verdict)
+    # each family's law widened by its signature, when no law reaches the floor: a law other than the library's
+    sigs = [] if on_floor or (model is not None and judge.at_floor(model)) else signatures(df, singles, noise, each)
+    clear = [s for s in sigs if s.clear]
+    laws = ranking if pair_verdict else singles
+    law = grade = None
     if on_floor:
-        verdict, ref = "none", float(np.mean(ideal.heldout_z**2))
-    elif best is not None and explains(best):
-        verdict, ref = best.effect, best.score
+        verdict = "none"
+        confounded_with = [c.effect for c in ranking if judge.close(c, ideal.score)]
     else:
-        verdict, ref = "unexplained", None
-    # sd of a mean of n squared standard normals is sqrt(2 / n); scaled by the level when above the floor
-    se = np.sqrt(2.0 / len(ideal.heldout_z)) * max(ref, 1.0) if ref is not None else np.inf
-    confounded = [] if ref is None else [c.effect for c in ranking if c.effect != verdict and abs(c.score - ref) < 3 * se]
+        if clear and judge.explains(clear[0]) and (model is None or (
+                judge.at_floor(clear[0]) and judge.better(clear[0], model))):
+            # a family's law widened by its signature: when no law explains, or it reaches the floor and they not;
+            # of families that share the signature and cannot be told apart by it, the one whose own law goes furthest
+            model = min((s for s in clear if s.groups == clear[0].groups and judge.close(s, clear[0].score)),
+                        key=lambda s: s.law.score)
+        if model is None:
+            # graded: the model that removes most of the excess, if it removes at least min_shrink of it
+            pool = sorted(laws + clear, key=lambda m: m.score)
+            model = pool[0] if pool and pool[0].shrink >= min_shrink else None
+        verdict = "+".join(family_names(model)) if model is not None else "unexplained"
+        confounded_with = [] if model is None else confounded(judge, model, laws + clear)
+        if model is not None:
+            by = "signature" if isinstance(model, Signature) else "pair" if "+" in model.effect else "law"
+            grade = judge.grade(model, by, family_names(model))
+        if isinstance(model, Signature):
+            law = model.to_json()
+            # the families whose laws widened by the same signature explain the data too: it cannot tell them apart
+            twins = [s.family for s in clear if s.groups == model.groups and judge.explains(s)]
+            confounded_with = [f for f in dict.fromkeys(confounded_with + twins) if f != model.family]
+    verdict_law = model.law if isinstance(model, Signature) else model
+    verdict_fit = verdict_law.fit if verdict_law is not None else None
     best_pair = None
     if pair_list:
         bp = pair_list[0]
         best_pair = {"effect": bp.effect, "heldout_excess_after": bp.after, "shrink": bp.shrink,
-                     "explains": bool(explains(bp))}
-    verdict_fit = next((c.fit for c in ranking if c.effect == verdict), None)
-    law = None
-    if verdict == "unexplained" and singles and singles[0].effect in SIGNATURES:
-        # the best family's law may differ from the library's: its signature, widened by the discrepancy
-        law = _law_differs(df, singles[0], before, noise)
-        if law["signature_clear"] and explains_after(law["heldout_excess_after"], law["shrink"]):
-            verdict, verdict_fit = singles[0].effect, singles[0].fit
-            confounded = []
-    disc = _discrepancy(df, ideal, next((c for c in ranking if c.effect == verdict), None), before, noise,
-                        progress, each) if discrepancy else None
+                     "explains": bool(judge.explains(bp))}
+    disc = _discrepancy(df, ideal, verdict_law, before, noise, progress, each) if discrepancy else None
     families = None
     if verdict == "magnetic_circuit":
         # the circuit is physics, the verdict names its families: each piece's contribution, largest first
         families = circuit_families(df, verdict_fit, bearing, **noise)
         named = [f["family"] for f in families if f["significant"]]
         verdict = "+".join(dict.fromkeys(named)) or verdict
+        if grade is not None:
+            grade["families"] = verdict.split("+")
+    # the force check of the model that removes most: the verdict's signature model, or the best law when none
+    best = model if isinstance(model, Signature) else singles[0] if singles and model is None and not on_floor \
+        else None
     return Diagnosis(
         baseline=base, noise_floor=noise_floor(base), where=loc, folds=fold_name, ideal=ideal, ranking=ranking,
-        verdict=verdict, confounded_with=confounded,
+        verdict=verdict, confounded_with=confounded_with,
         # for "unexplained" this is the best candidate's partial shrink; for "none" there is nothing to shrink
-        shrink=0.0 if verdict == "none" or best is None else (
-            law["shrink"] if law is not None and verdict == law["family"] else best.shrink),
+        shrink=0.0 if on_floor or not singles else (model.shrink if model is not None else singles[0].shrink),
         verdict_fit=verdict_fit, operating=operating_variables(df, base),
         parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
-        best_pair=best_pair, families=families, law=law, discrepancy=disc,
+        best_pair=best_pair, families=families, law=law, discrepancy=disc, grade=grade,
+        signatures=[s.to_json() for s in sigs] or None,
         force_check=_force_checks(df, base, verdict_fit, bearing, noise, discrepancy, max_steps,
-                                  _fold_fits([ideal] + ranking, disc), each,
-                                  best_fit=best.fit if best is not None and verdict_fit is None else None)
+                                  _fold_fits([ideal] + ranking, disc), each, best=best)
         if check_force else None)
 
 
@@ -234,37 +254,41 @@ def _fold_fits(cands, disc) -> dict:
 
 
 def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True, max_steps: int = 60,
-                  fitted=None, each=None, best_fit=None) -> dict | None:
+                  fitted=None, each=None, best=None) -> dict | None:
     """Contract section 3's ``force_check``: leave-one-load-out for the ideal law, the verdict's model and the
     discrepancy model (the verdict's model with the correction, or the ideal law's when the verdict has no
     effects), from the same refits.  Each refit gets the step budget its model had in the diagnosis; a left-out
     load that is one of the diagnosis' folds reuses that fold's refit (``fitted``, by model name).  ``each``: how
-    each check's left-out loads are run (:class:`_Each`; default one after the other).  ``best_fit``: the best
-    candidate's fit when no model is the verdict (``unexplained``): its check is reported as ``best``, so force
-    measurement can judge the model that removes most of the excess even when it does not remove all of it."""
+    each check's left-out loads are run (:class:`_Each`; default one after the other).  ``best``: the model that
+    removes most of the excess when it is not the verdict's law (a family's law widened by its signature, or the
+    best law when nothing is the verdict): its check is reported as ``best``, so force measurement can judge it
+    even when it does not reach the floor."""
     from ambfit.estimation.core import FitError
     from ambfit.estimation.measure import force_check
 
     with_effects = verdict_fit is not None and bool(verdict_fit.effects)
     fitted = fitted or {}
-    jobs = [((), base, discrepancy and not with_effects, max_steps)]
+    jobs = [((), base, discrepancy and not with_effects, max_steps, fitted.get(base.model, ()))]
     if with_effects:
-        jobs.append((verdict_fit.effects, verdict_fit, discrepancy, _budget(verdict_fit.effects, max_steps)))
-    with_best = best_fit is not None and bool(best_fit.effects)
-    if with_best:
-        jobs.append((best_fit.effects, best_fit, False, _budget(best_fit.effects, max_steps)))
+        jobs.append((verdict_fit.effects, verdict_fit, discrepancy, _budget(verdict_fit.effects, max_steps),
+                     fitted.get(verdict_fit.model, ())))
+    widened = isinstance(best, Signature)
+    best_fit = best.law.fit if widened else best.fit if best is not None else None
+    if best_fit is not None and best_fit.effects:
+        jobs.append((best_fit.effects, best_fit, best.groups if widened else False,
+                     _budget(best_fit.effects, max_steps), best.folds if widened else fitted.get(best_fit.model, ())))
 
     def check(job):
-        effects, fitted_all, with_discrepancy, steps = job
+        effects, fitted_all, with_discrepancy, steps, folds_ = job
         try:
             return force_check(df, effects, bearing=bearing, base=fitted_all, discrepancy=with_discrepancy,
-                               max_steps=steps, fitted=fitted.get(fitted_all.model, ()), each=each, **noise)
+                               max_steps=steps, fitted=folds_, each=each, **noise)
         except FitError as exc:
             return exc
 
     # one check after the other, each spreading its left-out loads over the threads
     ideal, *verdict = [check(job) for job in jobs]
-    best = verdict.pop() if with_best else None
+    best_check = verdict.pop() if len(jobs) > 1 + with_effects else None
     if isinstance(ideal, FitError):
         return {"method": "leave-one-load-out", "error": str(ideal)}
     if ideal is None:
@@ -280,8 +304,11 @@ def _force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = Tru
         out["verdict"] = {"model": verdict_fit.model, **{k: v[k] for k in keys}}
         if "discrepancy" in v:
             out["discrepancy"] = v["discrepancy"]
-    if isinstance(best, FitError):
-        out["best"] = {"model": best_fit.model, "error": str(best)}
-    elif best is not None:
-        out["best"] = {"model": best_fit.model, **{k: best[k] for k in keys}}
+    name = best.model if widened else best_fit.model if best_fit is not None else None
+    if isinstance(best_check, FitError):
+        out["best"] = {"model": name, "error": str(best_check)}
+    elif best_check is not None:
+        # a widened law's figures are those of the law with its signature's correction
+        figures = best_check["discrepancy"] if widened else best_check
+        out["best"] = {"model": name, **{k: figures.get(k, best_check[k]) for k in keys}}
     return out

@@ -42,6 +42,14 @@ class Diagnosis:
         Per-row operating variables (flux densities, positions, ...) the residuals are mapped against.
     parameter_gap : list[dict]
         Identified parameters against the bearing description.
+    law : dict or None
+        When the verdict's family was named by its signature: how much the library's law leaves and what the
+        law widened by the signature removes (:meth:`ambfit.diagnosis.signatures.Signature.to_json`).
+    grade : dict or None
+        What the verdict's model removes and leaves: noise units, at the floor or not, whether it explains the
+        data (:meth:`ambfit.diagnosis.verdict.Judge.grade`); None for ``none`` and ``unexplained``.
+    signatures : list[dict] or None
+        Every family's law widened by its signature, best first, when no law reached the floor.
     """
 
     baseline: FitResult
@@ -61,6 +69,8 @@ class Diagnosis:
     force_check: dict | None = None
     law: dict | None = None
     discrepancy: dict | None = None
+    grade: dict | None = None
+    signatures: list | None = None
 
     @property
     def residuals_before(self) -> np.ndarray:
@@ -106,6 +116,10 @@ class Diagnosis:
             rec["force_check"] = self.force_check
         if self.law is not None:
             rec["law"] = self.law
+        if self.grade is not None:
+            rec["grade"] = self.grade
+        if self.signatures is not None:
+            rec["signatures"] = self.signatures
         rec["steps"] = self.steps()
         if self.discrepancy is not None:
             rec["discrepancy"] = {k: v for k, v in self.discrepancy.items() if k not in ("fit", "host", "folds")}
@@ -171,6 +185,13 @@ class Diagnosis:
         else:
             text = (f"verdict: {self.verdict}; confounded with: {', '.join(self.confounded_with) or 'none'}; "
                     f"shrink {self.shrink:.3f}")
+        if self.grade is not None:
+            g = self.grade
+            text += (f"\n{g['model']} removes {g['removes']:.3f} of the held-out excess and leaves "
+                     f"{g['remainder']:.2f} noise units (mean z² {g['remainder_mean_z2']:.2f}; the floor reaches "
+                     f"{g['floor_mean_z2']:.2f}): " + ("at the noise floor" if g["at_floor"] else
+                                                      "it explains the data, not to the floor" if g["explains"] else
+                                                      "graded: part of the structure is left unexplained"))
         failed = [c.effect for c in self.ranking if not c.fit.converged]
         if failed:
             text += (f"\nnot converged within the candidate fits' step budget (scored as they stand): "
@@ -192,7 +213,7 @@ class Diagnosis:
             fc = self.force_check
             text += (f"\nforce check (each of {fc['ideal']['n_loads']} known loads left out and predicted): ideal law "
                      f"{100 * fc['ideal']['rms_rel']:.2f} % RMS ({100 * fc['ideal']['max_rel']:.2f} % worst)")
-            for key, what in (("verdict", ""), ("best", " (the best candidate, not the verdict)")):
+            for key, what in (("verdict", ""), ("best", " (the model that removes most of the excess)")):
                 if key in fc and "error" not in fc[key]:
                     text += (f", {fc[key]['model']}{what} {100 * fc[key]['rms_rel']:.2f} % RMS "
                              f"({100 * fc[key]['max_rel']:.2f} % worst)")

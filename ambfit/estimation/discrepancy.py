@@ -3,16 +3,8 @@
 The force is the physical model plus a smooth correction,
 ``F = F_model(theta) + delta(readings)``.  ``delta`` is a finite basis with a Gaussian prior on its
 coefficients, i.e. a degenerate Gaussian process (Rasmussen and Williams 2006, section 2.1), built from what
-shapes a horseshoe's force: its flux density and its gap.  For each horseshoe (top, bottom) with
-
-- ``b = (i / I_max) / (1 -+ xi)``: the nominal flux density relative to that at the coil limit and nominal gap,
-- ``xi = x cos(alpha) / g_nom``: the rotor displacement relative to the drawn gap,
-
-the correction is ``F_ref * (h(b_top, xi) - h(b_bottom, -xi))`` with ``h`` the monomials ``b^p xi^q``
-(``p <= 6``, ``q <= 3``), the same terms times the other axis' mean squared current (coupling through the
-stator, when the rows are paired by ``time_s``) and times the approach direction of each coil's current
-(hysteresis), separately per axis.  ``F_ref = k_geom (I_max / g_nom)^2`` is one horseshoe's force at the coil
-limit.
+shapes a horseshoe's force (:mod:`ambfit.estimation.basis`): by default its flux density and gap, the other
+axis, and the direction from which each coil current was approached; a family's signature groups on request.
 
 **Kept from swallowing gap, origin and k** (Plumlee 2017, "Bayesian calibration of computer models using
 orthogonal discrepancy", doi:10.1080/01621459.2016.1211016): the basis is projected onto the orthogonal
@@ -35,112 +27,13 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ambfit._recent import Recent
 from ambfit.data import Dataset, zero_based
+from ambfit.estimation.basis import GROUPS, Basis
 from ambfit.estimation.core import Model, build_problem, free_mask, noise_std, row_jacobian, si_scale
 from ambfit.estimation.results import FitResult
-from ambfit.physics.bearing import AXES, Bearing
 
-P_MAX = 6
-Q_MAX = 3
-GROUPS = ("shape", "coupling", "hysteresis")
-"""The basis' groups: the horseshoe law's shape in flux density and gap (saturation, iron, fringing, leakage);
-what depends on the other axis (its currents and position: coupling through the stator); what depends on the
-direction from which each coil current was approached (hysteresis).  Each group has its own prior scale."""
 TAU_GRID = np.logspace(-7, 2, 19)
 """Prior standard deviations tried for each group's coefficients (dimensionless: a fraction of ``F_ref``)."""
-
-
-_MATRICES = Recent(8)
-"""The last few basis matrices, by basis and readings (see :meth:`Basis.matrix`)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Basis:
-    """The discrepancy's basis functions, fixed by the bearing description (not by the fit)."""
-
-    i_ref: float
-    g_ref: float
-    cos_alpha: float
-    sin_alpha: float
-    f_ref: float
-    groups: tuple = GROUPS
-
-    @classmethod
-    def of(cls, bearing: Bearing, groups=GROUPS) -> Basis:
-        unknown = set(groups) - set(GROUPS)
-        if unknown:
-            raise ValueError(f"unknown discrepancy group(s) {sorted(unknown)}; the groups are {GROUPS}")
-        i_ref, g_ref = float(bearing.max_current), float(bearing.nominal_gap)
-        return cls(i_ref=i_ref, g_ref=g_ref, cos_alpha=float(bearing.cos_alpha), sin_alpha=float(bearing.sin_alpha),
-                   f_ref=float(bearing.force_constant() * (i_ref / g_ref) ** 2), groups=tuple(groups))
-
-    def _columns(self, bt, bb, xi, o, eta, dt, db) -> list[tuple[str, str, np.ndarray]]:
-        """``(group, term, values)`` of one axis' basis functions."""
-        mono = [(p, q) for p in range(P_MAX + 1) for q in range(Q_MAX + 1) if (p, q) != (0, 0)]
-
-        def horseshoes(p, q, top=1.0, bottom=1.0):
-            # the top horseshoe's b^p xi^q less the bottom one's (its displacement is -xi), each weighted
-            return top * bt**p * xi**q - bottom * bb**p * (-xi) ** q
-
-        cols = []
-        if "shape" in self.groups:
-            cols += [("shape", f"b^{p} xi^{q}", horseshoes(p, q)) for p, q in mono]
-        if "coupling" in self.groups:
-            cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", o * horseshoes(p, q))
-                     for p, q in mono if p in (0, 2)]
-            for r in (1, 2, 3):
-                cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
-                         ("coupling", f"eta^{r} (b_t^2 - b_b^2)", eta**r * (bt**2 - bb**2))]
-        if "hysteresis" in self.groups:
-            cols += [("hysteresis", f"direction b^{p} xi^{q}", horseshoes(p, q, dt, db))
-                     for p in range(5) for q in range(2)]
-        return cols
-
-    def _features(self, readings):
-        it, ib = np.asarray(readings.i_top) / self.i_ref, np.asarray(readings.i_bottom) / self.i_ref
-        xi = np.asarray(readings.x) * self.cos_alpha / self.g_ref
-        eta = np.asarray(readings.y) * self.sin_alpha / self.g_ref
-        ot, ob = getattr(readings, "i_top_other", None), getattr(readings, "i_bottom_other", None)
-        o = np.zeros_like(xi) if ot is None else np.nan_to_num(
-            0.5 * ((np.asarray(ot) / self.i_ref) ** 2 + (np.asarray(ob) / self.i_ref) ** 2))
-        dt, db = np.asarray(readings.dir_top, dtype=float), np.asarray(readings.dir_bottom, dtype=float)
-        return np.abs(it) / (1.0 - xi), np.abs(ib) / (1.0 + xi), xi, o, eta, dt, db
-
-    def terms(self) -> list[tuple[str, str]]:
-        """``(group, "axis: term")`` of every basis function, in column order."""
-        z = np.zeros(1)
-        one = self._columns(z, z, z, z, z, z, z)
-        return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self) | {"groups": list(self.groups), "p_max": P_MAX, "q_max": Q_MAX}
-
-    @classmethod
-    def from_json(cls, record: dict) -> Basis:
-        kw = {f.name: record[f.name] for f in dataclasses.fields(cls)}
-        return cls(**kw | {"groups": tuple(kw["groups"])})
-
-    def matrix(self, readings) -> np.ndarray:
-        """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis.
-
-        The last few readings' matrices are kept, by the readings' identity (a built problem's readings are
-        shared by every fit of its table: a diagnosis fits the discrepancy on one table 18 times)."""
-        key = (self, id(readings))
-        hit = _MATRICES.get(key)
-        if hit is not None:
-            return hit[1]
-        ax = np.asarray(readings.axis)
-        cols = np.stack([c for _, _, c in self._columns(*self._features(readings))], axis=1)
-        out = self.f_ref * np.concatenate([np.where((ax == a)[:, None], cols, 0.0) for a in range(len(AXES))],
-                                          axis=1)
-        out.flags.writeable = False
-        _MATRICES.put(key, (readings, out))     # holding the readings: their identity stays theirs while keyed
-        return out
-
-    def group_index(self) -> np.ndarray:
-        """Index into ``groups`` of every column."""
-        return np.array([self.groups.index(g) for g, _ in self.terms()])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,13 +81,14 @@ class Discrepancy:
     unconstrained_shift: dict
     row_noise_n: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
-    def correction(self, readings, sensitivity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def correction(self, readings, sensitivity: np.ndarray, frame=None) -> tuple[np.ndarray, np.ndarray]:
         """The correction [N] at other readings and its standard error.
 
         ``sensitivity``: ``dF/d(parameter)`` [N per SI unit] of the physical model at those readings, one
-        column per entry of :attr:`names` (the projection needs it).
+        column per entry of :attr:`names` (the projection needs it); ``frame``: their table, when the basis
+        follows each coil's path (its memory group).
         """
-        g = self.basis.matrix(readings) - np.asarray(sensitivity) @ self.projection
+        g = self.basis.matrix(readings, frame) - np.asarray(sensitivity) @ self.projection
         return g @ self.coef, np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, self.cov, g), 0.0))
 
     def largest(self, n: int = 5) -> list[dict]:
@@ -312,8 +206,8 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     the module docstring for why it need not be.
     """
     df = zero_based(data.frame if isinstance(data, Dataset) else data)
-    basis = Basis.of(result.bearing, groups)
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x)
+    basis = Basis.of(result.bearing, groups, prob.readings)
     model = Model.of(result.effects, result.bearing)
     theta = jnp.asarray(result.theta)
     n = len(df)
@@ -329,7 +223,7 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     else:
         w = np.ones(n)
     z = np.asarray(result.residuals)[:n]
-    b = basis.matrix(prob.readings) / s[:, None]
+    b = basis.matrix(prob.readings, df) / s[:, None]
     sw = np.sqrt(w)[:, None]
     # the basis' regression on the parameters' columns (weighted), and what is left: orthogonal to them
     a = np.linalg.lstsq(sw * jac, sw * b, rcond=None)[0]

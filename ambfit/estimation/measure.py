@@ -65,7 +65,7 @@ def _force(params, readings, effects, bearing):
 
 
 def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None, max_steps: int = 200,
-                discrepancy: bool = False, fitted=(), each=None, **fit_kw) -> dict | None:
+                discrepancy: bool | tuple = False, fitted=(), each=None, **fit_kw) -> dict | None:
     """Leave-one-load-out force measurement (contract sections 2 and 3, ``force_check``).
 
     Each distinct known load of an axis in turn is left out, the model (the ideal law plus ``effects``)
@@ -77,7 +77,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
 
     ``base`` is the fit of all rows with the same model (its estimate starts each refit).  With
     ``discrepancy``, each refit also gets the model-discrepancy term (:mod:`ambfit.estimation.discrepancy`)
-    fitted on the same rows, and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
+    fitted on the same rows (a tuple of groups: those of :mod:`ambfit.estimation.basis`, a family's signature;
+    True: the default groups), and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
     refits already made with the same model, start and settings, as ``(held-out rows mask, FitResult,
     Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose left-out rows are exactly one of
     these masks reuses that refit instead of repeating it.  ``each(fn, items)``, if given, maps the left-out loads
@@ -135,7 +136,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
             from ambfit.estimation.discrepancy import fit_discrepancy
 
             if d is None:
-                d = fit_discrepancy(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
+                d = fit_discrepancy(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"),
+                                    **({"groups": discrepancy} if isinstance(discrepancy, tuple) else {}))
             rd = (predicted[out] + d.row_correction_n[out] - load) / load
             entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
         return r, floor, entry, rd

@@ -1,0 +1,115 @@
+"""A family named by its signature, whatever its law: each library law widened by the variables its family acts through.
+
+A family of unmodelled physics changes the force through variables of its own (drift: time and temperature;
+hysteresis: the direction and path of each coil current; cross-coupling: the other axis; the flux families: flux
+density and gap per coil; the sensors: their readings; :data:`ambfit.estimation.basis.FAMILY_GROUPS`).  When a
+real bearing's law of that family differs from the library's, the library's law misses part of the structure,
+but the law *widened by its signature* (the discrepancy's groups of those variables, orthogonal to every fitted
+parameter: :mod:`ambfit.estimation.discrepancy`) reaches it.  Each family is scored so on the same held-out folds
+as the laws: its held-out excess, and how clearly the data want its signature (the groups' log Bayes factor).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+
+from ambfit.diagnosis.heldout import Candidate, excess, shrink
+
+LOG_BAYES_CLEAR = 10.0
+"""A signature is clearly in the residuals when the marginal likelihood wants one of its discrepancy groups by
+more than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995 scale; the FEM bearing, with
+no hysteresis, gives its direction group 3.3)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Signature:
+    """One family's library law widened by its signature, scored on held-out folds.
+
+    Attributes
+    ----------
+    law : Candidate
+        The family's library law (its fit of every row and its folds).
+    groups : tuple of str
+        The discrepancy groups of the family's signature.
+    log_bayes : dict
+        Each group's log Bayes factor on the law's residuals of every row.
+    heldout_z : array
+        Held-out standardized residuals of the widened law.
+    folds : tuple
+        ``(held-out mask, fit, discrepancy)`` per fold.
+    full : Discrepancy
+        The signature fitted on every row of the law's fit.
+    """
+
+    law: Candidate
+    groups: tuple
+    log_bayes: dict
+    heldout_z: np.ndarray
+    folds: tuple
+    full: object
+
+    @property
+    def family(self) -> str:
+        return self.law.effect
+
+    @property
+    def model(self) -> str:
+        return f"{self.family} widened by its {'+'.join(self.groups)} signature"
+
+    @property
+    def clear(self) -> bool:
+        return max(self.log_bayes.values(), default=0.0) > LOG_BAYES_CLEAR
+
+    @property
+    def score(self) -> float:
+        return float(np.mean(self.heldout_z**2))
+
+    @property
+    def after(self) -> float:
+        return excess(self.heldout_z)
+
+    @property
+    def shrink(self) -> float:
+        return shrink(self.law.before, self.after)
+
+    def to_json(self) -> dict:
+        return {"family": self.family, "signature": "+".join(self.groups),
+                "log_bayes": max(self.log_bayes.values(), default=0.0), "log_bayes_groups": self.log_bayes,
+                "signature_clear": self.clear, "heldout_excess_after": self.after, "shrink": self.shrink,
+                "score": self.score, "library_law_shrink": self.law.shrink, "library_law_leaves": 1.0 - self.law.shrink,
+                "library_law_excess_after": self.law.after,
+                "widened_by": f"the discrepancy's {' and '.join(repr(g) for g in self.groups)} terms (orthogonal to "
+                              "gap, origin, k and the law's parameters)",
+                "largest_terms": self.full.largest(3)}
+
+
+def widened(law: Candidate, df, groups, noise) -> Signature:
+    """``law`` widened by the discrepancy ``groups``: fitted on the rows each fold's fit used, scored on the fold."""
+    from ambfit.data import load_groups
+    from ambfit.diagnosis.heldout import heldout_residuals
+    from ambfit.estimation.discrepancy import fit_discrepancy
+
+    zs, folds_ = [], []
+    loads = load_groups(df).to_numpy()
+    for test, f in law.folds:
+        d = fit_discrepancy(f, df, groups=groups, **noise)          # on the rows the fold's fit used
+        zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
+                                    loads))
+        folds_.append((test, f, d))
+    full = fit_discrepancy(law.fit, df, groups=groups, **noise)
+    return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
+                     folds=tuple(folds_), full=full)
+
+
+def signatures(df, laws: list[Candidate], noise, each=None) -> list[Signature]:
+    """Every family's library law (``laws``: single-effect candidates) widened by its signature, best first.
+    ``each``: how the families are run (:class:`~ambfit.diagnosis.threads._Each`; default one after the other)."""
+    from ambfit.diagnosis.threads import _Each
+    from ambfit.estimation.basis import FAMILY_GROUPS
+
+    own = [c for c in laws if c.effect in FAMILY_GROUPS and c.folds]
+    tasks = [functools.partial(widened, c, df, FAMILY_GROUPS[c.effect], noise) for c in own]
+    return sorted((each or _Each(1))(lambda task: task(), tasks), key=lambda s: s.score)

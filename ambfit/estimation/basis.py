@@ -1,0 +1,199 @@
+"""The discrepancy's basis: smooth functions of what shapes a horseshoe's force, in groups by the physics they carry.
+
+For each horseshoe (top, bottom) with
+
+- ``b = (i / I_max) / (1 -+ xi)``: the nominal flux density relative to that at the coil limit and nominal gap,
+- ``xi = x cos(alpha) / g_nom``: the rotor displacement relative to the drawn gap,
+
+a column is a force ``F_ref * (weight_top * h(b_top, xi) - weight_bottom * h(b_bottom, -xi))``, separately per axis,
+with ``F_ref = k_geom (I_max / g_nom)^2`` one horseshoe's force at the coil limit.  Each family of unmodelled
+physics changes the force through variables of its own, its *signature* (:data:`FAMILY_GROUPS`):
+
+=================  ====================================================================================
+group              columns
+=================  ====================================================================================
+shape              ``b^p xi^q`` (``p <= 6``, ``q <= 3``): the law's shape in flux density and gap
+coupling           the same times the other axis' mean squared current; the other axis' position
+hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
+memory             each coil's state in plays of several widths (the path over several readings)
+drift              each coil's ``b^2``, ``b^2 xi`` times powers of time (and of temperature when read)
+current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
+position_sensor    the force's slope in position times powers of the position reading
+=================  ====================================================================================
+
+The columns of a group are what a smooth law of its variables, linearised about the ideal force, can add: a
+current-channel error ``di(i)`` changes a horseshoe's force by ``2 F di / i``, a position-sensor error ``dx(x)`` by
+``dF/dx dx``, a drift of gap or origin by ``dF/dg dg(t)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ambfit._recent import Recent
+from ambfit.physics.bearing import AXES, Bearing
+
+P_MAX = 6
+Q_MAX = 3
+GROUPS = ("shape", "coupling", "hysteresis")
+"""The basis' default groups, the ceiling of a diagnosis: the horseshoe law's shape in flux density and gap
+(saturation, iron, fringing, leakage); what depends on the other axis (its currents and position: coupling through
+the stator); what depends on the direction from which each coil current was approached (hysteresis).  Each group
+has its own prior scale."""
+SIGNATURE_GROUPS = ("memory", "drift", "current_sensor", "position_sensor")
+"""Further groups, each the signature of one family (see the module docstring)."""
+ALL_GROUPS = GROUPS + SIGNATURE_GROUPS
+
+FAMILY_GROUPS = {
+    "saturation": ("shape",), "iron_reluctance": ("shape",), "fringing": ("shape",), "leakage": ("shape",),
+    "cross_coupling": ("coupling",), "hysteresis": ("hysteresis", "memory"), "thermal_drift": ("drift",),
+    "current_offset": ("current_sensor",), "current_gain": ("current_sensor",), "position_gain": ("position_sensor",),
+}
+"""Each contract family's signature: the groups that carry what a law of its variables, other than the library's,
+could add (the flux families: flux density and gap per coil; hysteresis: the direction and path of each coil
+current; drift: time and temperature; the sensors: their readings)."""
+
+PLAY_WIDTHS = (0.01, 0.03, 0.06, 0.12)
+"""Half-widths of the memory group's plays, as fractions of ``I_max`` (30-360 mA on the paper's rig: from a few
+bias steps to the perturbation's span; the narrowest limit is the hysteresis group's direction)."""
+
+_MATRICES = Recent(8)
+"""The last few basis matrices, by basis and readings (see :meth:`Basis.matrix`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Basis:
+    """The discrepancy's basis functions, fixed by the bearing description and, for drift, the span of the data's
+    clock and thermometer (``t_ref`` [s], ``temp_ref``, ``temp_span`` [°C]; not by the fit)."""
+
+    i_ref: float
+    g_ref: float
+    cos_alpha: float
+    sin_alpha: float
+    f_ref: float
+    groups: tuple = GROUPS
+    t_ref: float = 1.0
+    temp_ref: float = 0.0
+    temp_span: float = 1.0
+
+    @classmethod
+    def of(cls, bearing: Bearing, groups=GROUPS, readings=None) -> Basis:
+        """The basis of ``bearing``; ``readings`` (those it will be fitted on) set the drift group's time and
+        temperature scales."""
+        unknown = set(groups) - set(ALL_GROUPS)
+        if unknown:
+            raise ValueError(f"unknown discrepancy group(s) {sorted(unknown)}; the groups are {ALL_GROUPS}")
+        i_ref, g_ref = float(bearing.max_current), float(bearing.nominal_gap)
+        scales = {}
+        if readings is not None and "drift" in groups:
+            t = np.asarray(readings.time, dtype=float)
+            temp = np.asarray(readings.temperature, dtype=float)
+            temp = temp[np.isfinite(temp)]
+            scales["t_ref"] = float(np.max(t, initial=0.0)) or 1.0
+            if temp.size:
+                scales |= {"temp_ref": float(temp.min()), "temp_span": float(np.ptp(temp)) or 1.0}
+        return cls(i_ref=i_ref, g_ref=g_ref, cos_alpha=float(bearing.cos_alpha), sin_alpha=float(bearing.sin_alpha),
+                   f_ref=float(bearing.force_constant() * (i_ref / g_ref) ** 2), groups=tuple(groups), **scales)
+
+    def _columns(self, f) -> list[tuple[str, str, np.ndarray]]:
+        """``(group, term, values)`` of one axis' basis functions from the features ``f`` (:meth:`_features`)."""
+        bt, bb, xi = f["bt"], f["bb"], f["xi"]
+        mono = [(p, q) for p in range(P_MAX + 1) for q in range(Q_MAX + 1) if (p, q) != (0, 0)]
+
+        def horseshoes(p, q, top=1.0, bottom=1.0):
+            # the top horseshoe's b^p xi^q less the bottom one's (its displacement is -xi), each weighted
+            return top * bt**p * xi**q - bottom * bb**p * (-xi) ** q
+
+        cols = []
+        if "shape" in self.groups:
+            cols += [("shape", f"b^{p} xi^{q}", horseshoes(p, q)) for p, q in mono]
+        if "coupling" in self.groups:
+            cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", f["o"] * horseshoes(p, q))
+                     for p, q in mono if p in (0, 2)]
+            eta = f["eta"]
+            for r in (1, 2, 3):
+                cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
+                         ("coupling", f"eta^{r} (b_t^2 - b_b^2)", eta**r * (bt**2 - bb**2))]
+        if "hysteresis" in self.groups:
+            cols += [("hysteresis", f"direction b^{p} xi^{q}", horseshoes(p, q, f["dt"], f["db"]))
+                     for p in range(5) for q in range(2)]
+        if "memory" in self.groups:
+            for j, w in enumerate(PLAY_WIDTHS):
+                st, sb = f["play_top"][:, j], f["play_bottom"][:, j]
+                cols += [("memory", f"play {w:g} I_max {coil} b{extra}", v)
+                         for coil, s, b, x in (("top", st, bt, xi), ("bottom", sb, bb, -xi))
+                         for extra, v in (("", s * b), ("^2", s * b**2), (" xi", s * b * x))]
+        if "drift" in self.groups:
+            clocks = [(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)] + [(f"T^{r}", f["theta"] ** r) for r in (1, 2)]
+            cols += [("drift", f"{name} {coil} b^2{extra}", c * v) for name, c in clocks
+                     for coil, v0 in (("top", bt**2), ("bottom", bb**2))
+                     for extra, v in (("", v0), (" xi", v0 * xi))]
+        if "current_sensor" in self.groups:
+            cols += [("current_sensor", f"{coil} b i^{r}", v * i**r)
+                     for coil, v, i in (("top", bt / (1.0 - xi), f["it"]), ("bottom", bb / (1.0 + xi), f["ib"]))
+                     for r in range(4)]
+        if "position_sensor" in self.groups:
+            slope = bt**2 / (1.0 - xi) + bb**2 / (1.0 + xi)
+            cols += [("position_sensor", f"dF/dx xi^{r}", slope * xi**r) for r in range(1, 5)]
+        return cols
+
+    def _features(self, readings, frame=None) -> dict:
+        it, ib = np.asarray(readings.i_top) / self.i_ref, np.asarray(readings.i_bottom) / self.i_ref
+        xi = np.asarray(readings.x) * self.cos_alpha / self.g_ref
+        ot, ob = getattr(readings, "i_top_other", None), getattr(readings, "i_bottom_other", None)
+        o = np.zeros_like(xi) if ot is None else np.nan_to_num(
+            0.5 * ((np.asarray(ot) / self.i_ref) ** 2 + (np.asarray(ob) / self.i_ref) ** 2))
+        f = {"it": np.abs(it), "ib": np.abs(ib), "bt": np.abs(it) / (1.0 - xi), "bb": np.abs(ib) / (1.0 + xi),
+             "xi": xi, "o": o, "eta": np.asarray(readings.y) * self.sin_alpha / self.g_ref,
+             "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
+        if "drift" in self.groups:
+            temp = (np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span
+            f |= {"tau": np.asarray(readings.time, dtype=float) / self.t_ref, "theta": np.nan_to_num(temp)}
+        if "memory" in self.groups:
+            from ambfit.rows import play_states
+
+            if frame is None:
+                raise ValueError("the discrepancy's 'memory' group needs the table of the readings (their order)")
+            widths = np.asarray(PLAY_WIDTHS) * self.i_ref
+            f |= {"play_top": play_states(frame, "i_top_A", widths),
+                  "play_bottom": play_states(frame, "i_bottom_A", widths)}
+        return f
+
+    def terms(self) -> list[tuple[str, str]]:
+        """``(group, "axis: term")`` of every basis function, in column order."""
+        z = np.zeros(1)
+        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "o", "eta", "dt", "db", "tau", "theta")}
+                            | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS)))})
+        return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self) | {"groups": list(self.groups), "p_max": P_MAX, "q_max": Q_MAX}
+
+    @classmethod
+    def from_json(cls, record: dict) -> Basis:
+        kw = {f.name: record[f.name] for f in dataclasses.fields(cls) if f.name in record}
+        return cls(**kw | {"groups": tuple(kw["groups"])})
+
+    def matrix(self, readings, frame=None) -> np.ndarray:
+        """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis.
+        ``frame``: the table the readings were made from (the memory group follows each coil's path through it).
+
+        The last few readings' matrices are kept, by the readings' identity (a built problem's readings are
+        shared by every fit of its table: a diagnosis fits the discrepancy on one table many times)."""
+        key = (self, id(readings), id(frame))
+        hit = _MATRICES.get(key)
+        if hit is not None:
+            return hit[2]
+        ax = np.asarray(readings.axis)
+        cols = np.stack([c for _, _, c in self._columns(self._features(readings, frame))], axis=1)
+        out = self.f_ref * np.concatenate([np.where((ax == a)[:, None], cols, 0.0) for a in range(len(AXES))],
+                                          axis=1)
+        out.flags.writeable = False
+        _MATRICES.put(key, (readings, frame, out))   # holding the inputs: their identity stays theirs while keyed
+        return out
+
+    def group_index(self) -> np.ndarray:
+        """Index into ``groups`` of every column."""
+        return np.array([self.groups.index(g) for g, _ in self.terms()])
