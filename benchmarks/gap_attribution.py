@@ -93,8 +93,24 @@ def one_case(item: tuple, seed) -> dict:
             "seconds": seconds}
     if name != "none" and rec["verdict"] == name:
         others = [cls() for n, cls in E.EFFECTS.items() if n != name]
-        case["verdict_without_truth"] = gap.diagnose(d, candidates=others).to_json()["verdict"]
+        w = gap.diagnose(d, candidates=others).to_json()
+        grade = w.get("grade") or {}
+        case["verdict_without_truth"] = w["verdict"]
+        case["without_truth"] = {"by": grade.get("by"), "explains": grade.get("explains"),
+                                 "signature": (w.get("law") or {}).get("signature")}
     return case
+
+
+def _honest_without_truth(case: dict) -> bool:
+    """With the true effect withheld, whether the verdict claims nothing false: ``unexplained``; graded, short of
+    explaining the data; or a family named by the signature the true effect shares, its law said to differ (the
+    flux families share one: flux density and gap per coil).  A library law said to explain the data is false."""
+    from ambfit.estimation.basis import FAMILY_GROUPS
+
+    w = case["without_truth"]
+    if case["verdict_without_truth"] == "unexplained" or w["explains"] is False:
+        return True
+    return w["by"] == "signature" and w["signature"] == "+".join(FAMILY_GROUPS[case["truth"]])
 
 
 def main():
@@ -141,6 +157,7 @@ def main():
                                        / args.per_effect),
         "withheld_from_library_unexplained": (sum(c["verdict_without_truth"] == "unexplained" for c in withheld)
                                               / max(len(withheld), 1)),
+        "withheld_from_library_honest": sum(map(_honest_without_truth, withheld)) / max(len(withheld), 1),
         "other_law_family_named": sum(c["verdict"] == c["family"] for c in other) / max(len(other), 1),
         "other_law_library_shrink_median": float(np.median([c["library_law_shrink"] for c in other
                                                             if c["library_law_shrink"] is not None] or [np.nan])),
@@ -171,8 +188,10 @@ def main():
            f"{summary['absorbed_parameter_gap_flagged']:.2f} | flags it |",
            f"| clean data: parameter-level gap flags a difference (false alarm) | "
            f"{summary['none_parameter_gap_flagged']:.2f} | low |",
-           f"| true effect withheld from the candidates: verdict `unexplained` | "
-           f"{summary['withheld_from_library_unexplained']:.2f} | ≥ 0.80 |",
+           f"| true effect withheld from the candidates: no false claim (`unexplained`, graded short of explaining, "
+           f"or named by the true family's signature with its law said to differ) | "
+           f"{summary['withheld_from_library_honest']:.2f} | ≥ 0.80 |",
+           f"| those: verdict `unexplained` | {summary['withheld_from_library_unexplained']:.2f} | |",
            f"| families whose law differs from the library's ({', '.join(OTHER_LAWS)}): family named | "
            f"{summary['other_law_family_named']:.2f} | 1.0 |",
            f"| those: held-out shrink of the library's own law (median) / with its signature widened | "

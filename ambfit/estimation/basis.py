@@ -13,7 +13,7 @@ physics changes the force through variables of its own, its *signature* (:data:`
 group              columns
 =================  ====================================================================================
 shape              ``b^p xi^q`` (``p <= 6``, ``q <= 3``): the law's shape in flux density and gap
-coupling           the same times the other axis' mean squared current; the other axis' position
+coupling           the same times the other axis' mean squared current; its control current; its position
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
 drift              each coil's ``b^2``, ``b^2 xi`` times powers of time (and of temperature when read)
@@ -55,9 +55,10 @@ FAMILY_GROUPS = {
 could add (the flux families: flux density and gap per coil; hysteresis: the direction and path of each coil
 current; drift: time and temperature; the sensors: their readings)."""
 
-PLAY_WIDTHS = (0.01, 0.03, 0.06, 0.12)
-"""Half-widths of the memory group's plays, as fractions of ``I_max`` (30-360 mA on the paper's rig: from a few
-bias steps to the perturbation's span; the narrowest limit is the hysteresis group's direction)."""
+PLAY_WIDTHS = (0.005, 0.01, 0.02, 0.035, 0.05, 0.07, 0.1, 0.15)
+"""Half-widths of the memory group's plays, as fractions of ``I_max`` (15-450 mA on the paper's rig: from the
+library's narrow play to the perturbation's span, about geometric; the narrowest limit is the hysteresis group's
+direction).  A play's state is not linear in its width: a law between two widths is expressed by their mix."""
 
 _MATRICES = Recent(8)
 """The last few basis matrices, by basis and readings (see :meth:`Basis.matrix`)."""
@@ -112,6 +113,11 @@ class Basis:
         if "coupling" in self.groups:
             cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", f["o"] * horseshoes(p, q))
                      for p, q in mono if p in (0, 2)]
+            # the other axis' control current, signed: a current-stiffness cross term (force per its current)
+            c, k_i = f["c"], bt / (1.0 - xi) + bb / (1.0 + xi)
+            cols += [("coupling", f"other-axis i_c {name}", c * v) for name, v in (
+                ("", np.ones_like(xi)), ("k_i", k_i), ("k_i xi", k_i * xi), ("(b_t - b_b)", bt - bb),
+                ("(b_t^2 + b_b^2)", bt**2 + bb**2), ("k_i i_c", k_i * c))]
             eta = f["eta"]
             for r in (1, 2, 3):
                 cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
@@ -145,8 +151,9 @@ class Basis:
         ot, ob = getattr(readings, "i_top_other", None), getattr(readings, "i_bottom_other", None)
         o = np.zeros_like(xi) if ot is None else np.nan_to_num(
             0.5 * ((np.asarray(ot) / self.i_ref) ** 2 + (np.asarray(ob) / self.i_ref) ** 2))
+        c = np.zeros_like(xi) if ot is None else np.nan_to_num(0.5 * (np.asarray(ot) - np.asarray(ob)) / self.i_ref)
         f = {"it": np.abs(it), "ib": np.abs(ib), "bt": np.abs(it) / (1.0 - xi), "bb": np.abs(ib) / (1.0 + xi),
-             "xi": xi, "o": o, "eta": np.asarray(readings.y) * self.sin_alpha / self.g_ref,
+             "xi": xi, "o": o, "c": c, "eta": np.asarray(readings.y) * self.sin_alpha / self.g_ref,
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
         if "drift" in self.groups:
             temp = (np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span
@@ -164,7 +171,7 @@ class Basis:
     def terms(self) -> list[tuple[str, str]]:
         """``(group, "axis: term")`` of every basis function, in column order."""
         z = np.zeros(1)
-        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "o", "eta", "dt", "db", "tau", "theta")}
+        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "o", "c", "eta", "dt", "db", "tau", "theta")}
                             | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS)))})
         return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
 
