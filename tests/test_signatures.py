@@ -111,6 +111,11 @@ def test_a_pair_wins_only_when_needed():
     close.effect = "saturation+leakage"
     assert choose_law(judge, [single], [close], pair_verdict=True) is single      # not significantly better
     assert confounded(judge, single, [single, close]) == ["saturation+leakage"]
+    # at the floor, every model at the floor is consistent with noise: none can be told from the verdict's
+    low, far = _model(0.9, 30.0), _model(1.0 + 2.8 * judge.se(), 30.0)
+    low.effect, far.effect = "fringing+current_gain", "position_gain"
+    assert not judge.close(far, low.score) and confounded(judge, low, [low, far]) == ["position_gain"]
+    assert confounded(judge, low, [low, _model(1.0 + 3.2 * judge.se(), 30.0)]) == []
 
 
 def test_memory_hysteresis_is_named_by_its_signature(design):

@@ -185,13 +185,6 @@ class Diagnosis:
         else:
             text = (f"verdict: {self.verdict}; confounded with: {', '.join(self.confounded_with) or 'none'}; "
                     f"shrink {self.shrink:.3f}")
-        if self.grade is not None:
-            g = self.grade
-            text += (f"\n{g['model']} removes {g['removes']:.3f} of the held-out excess and leaves "
-                     f"{g['remainder']:.2f} noise units (mean z² {g['remainder_mean_z2']:.2f}; the floor reaches "
-                     f"{g['floor_mean_z2']:.2f}): " + ("at the noise floor" if g["at_floor"] else
-                                                      "it explains the data, not to the floor" if g["explains"] else
-                                                      "graded: part of the structure is left unexplained"))
         failed = [c.effect for c in self.ranking if not c.fit.converged]
         if failed:
             text += (f"\nnot converged within the candidate fits' step budget (scored as they stand): "
@@ -233,8 +226,14 @@ class Diagnosis:
         return text
 
     def findings(self) -> list[str]:
-        """The law and discrepancy findings as sentences (part of :meth:`verdict_text`; the report shows them)."""
+        """The grade, law and discrepancy findings as sentences (part of :meth:`verdict_text`; the report shows them)."""
         out = []
+        if self.grade is not None:
+            g = self.grade
+            out.append(f"{g['model']} removes {g['removes']:.3f} of the held-out excess and leaves {g['remainder']:.2f} "
+                       f"noise units (mean z² {g['remainder_mean_z2']:.2f}; the floor reaches {g['floor_mean_z2']:.2f}): "
+                       + ("at the noise floor" if g["at_floor"] else "it explains the data, not to the floor"
+                          if g["explains"] else "graded: short of explaining, part of the structure is left"))
         if self.law is not None:
             lw = self.law
             named = self.verdict == lw["family"]

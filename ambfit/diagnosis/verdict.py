@@ -82,7 +82,10 @@ def choose_law(judge: Judge, singles: list, pairs: list, pair_verdict: bool):
 
 
 def confounded(judge: Judge, model, others: list) -> list[str]:
-    """The families of ``others`` whose held-out score cannot be told from ``model``'s, not ``model``'s own."""
+    """The families of ``others`` whose held-out score cannot be told from ``model``'s (within three standard
+    errors, or both at the noise floor: each is consistent with noise), not ``model``'s own."""
     own = "+".join(family_names(model))
-    names = ["+".join(family_names(o)) for o in others if judge.close(o, model.score)]
+    floor = judge.at_floor(model)
+    names = ["+".join(family_names(o)) for o in others
+             if judge.close(o, model.score) or (floor and judge.at_floor(o))]
     return [n for n in dict.fromkeys(names) if n != own]

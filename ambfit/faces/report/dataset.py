@@ -169,7 +169,7 @@ def _force_table(fc: dict | None):
     if fc is None or "error" in fc:
         return None
     rows = []
-    for key in ("ideal", "verdict", "discrepancy"):
+    for key in ("ideal", "verdict", "best", "discrepancy"):
         if key not in fc or "error" in fc[key]:
             continue
         e = fc[key]
