@@ -306,6 +306,20 @@ def test_models_solved_together_fit_as_each_alone():
             np.testing.assert_allclose(t, a, rtol=1e-6, atol=1e-9 * np.abs(a).max())
 
 
+def test_compiled_sets_nest_innermost_first():
+    """A model of the inner block's set is solved in it; one only in the outer block's, in that one; one in
+    neither, alone (a diagnosis compiles its pairs as a set of their own inside its singles' block)."""
+    singles = [core.Model.of(()), core.Model.of([E.Saturation()])]
+    pairs = [core.Model.of([E.Saturation(), E.Hysteresis()]), core.Model.of([E.Saturation(), E.CurrentOffset()])]
+    lone = core.Model.of([E.Hysteresis(), E.Leakage()])
+    with lm.compiled_together(singles):
+        with lm.compiled_together(pairs):
+            assert lm._members(pairs[1])[1] == 1 and len(lm._members(pairs[1])[0]) == len(pairs)
+            assert lm._members(singles[1])[1] == 1 and len(lm._members(singles[1])[0]) == len(singles)
+            assert lm._members(lone) == ((lone,), 0)
+        assert lm._members(pairs[0]) == ((pairs[0],), 0)
+
+
 def test_a_step_budget_is_a_traced_number_and_is_kept():
     """One compiled solve serves every budget: a budget of one step per round stops there and says so."""
     sim = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=jnp.asarray(1.3))], seed=4).data

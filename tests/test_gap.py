@@ -174,9 +174,25 @@ def test_the_best_models_force_check_is_always_reported(saturated):
     assert rec["grade"]["by"] == "signature" and best["model"] == rec["grade"]["model"]
     assert best["n_loads"] == ideal["n_loads"] and best["rms_rel"] < ideal["rms_rel"] / 3
     assert "the model that removes most of the excess" in diag.verdict_text()
+    _keys_are_documented(rec)
 
     diag = gap.diagnose(saturated, candidates=[E.PositionGain(), E.ThermalDrift()])
     rec = diag.to_json()
     assert rec["verdict"] == "unexplained"
     best = rec["force_check"]["best"]
     assert best["model"] in {r["effect"] for r in rec["ranking"]} and best["n_loads"] == ideal["n_loads"]
+
+
+def _keys_are_documented(rec: dict):
+    """Every key of a diagnose record is the contract's or listed in the shipped data-format document."""
+    import re
+    from pathlib import Path
+
+    import ambfit as package
+
+    doc = (Path(package.__file__).parent / "docs" / "data-format.md").read_text()
+    section = doc[doc.index("## What `ambfit diagnose --json` adds"):]
+    documented = {k.split(".")[0] for row in section.splitlines() if row.startswith("| `")
+                  for k in re.findall(r"`([a-z_.]+)`", row.split("|")[1])}
+    contract = {"baseline", "noise_floor", "where", "ranking", "verdict", "confounded_with", "shrink", "force_check"}
+    assert set(rec) - contract <= documented, set(rec) - contract - documented

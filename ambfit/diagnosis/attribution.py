@@ -12,6 +12,7 @@ widened by its signature (:mod:`ambfit.diagnosis.signatures`), graded by what it
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 
@@ -90,14 +91,15 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
     # the ideal law and every candidate share one compiled solve (a cold diagnosis is dominated by compiling)
     with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]), owned(df), \
-            _Each(threads) as each:
+            _Each(threads) as each, contextlib.ExitStack() as later:
         return _diagnose(df, cands, bearing=bearing, floor_tolerance=floor_tolerance, min_shrink=min_shrink,
                          pairs=pairs, pair_verdict=pair_verdict, max_steps=max_steps, baseline=baseline,
-                         progress=progress, check_force=check_force, discrepancy=discrepancy, noise=noise, each=each)
+                         progress=progress, check_force=check_force, discrepancy=discrepancy, noise=noise, each=each,
+                         later=later)
 
 
 def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_verdict, max_steps, baseline, progress,
-              check_force, discrepancy, noise, each) -> Diagnosis:
+              check_force, discrepancy, noise, each, later) -> Diagnosis:
     base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
     fold_name, tests = folds(df)
     groups = load_groups(df).to_numpy()
@@ -170,6 +172,11 @@ def _diagnose(df, cands, *, bearing, floor_tolerance, min_shrink, pairs, pair_ve
         partners = [e for e in cands if type(e).name != first and not getattr(e, "needs_other_axis", False)]
         if not getattr(best_single, "needs_other_axis", False):
             count["total"] += len(partners)
+            from ambfit.estimation.core import Model
+            from ambfit.estimation.lm import compiled_together
+
+            # the pairs as one compiled set of their own, for the rest of the diagnosis (``later`` closes it)
+            later.enter_context(compiled_together([Model.of((best_single, e), bearing) for e in partners]))
             ranking += heldout([(best_single, e) for e in partners], before)
         ranking.sort(key=lambda c: c.score)
     pair_list = [c for c in ranking if "+" in c.effect]

@@ -119,9 +119,11 @@ _TOGETHER: contextvars.ContextVar[tuple] = contextvars.ContextVar("ambfit_models
 @contextlib.contextmanager
 def compiled_together(models: Sequence[Model]):
     """Within this block, a solve of any model shaped like one of ``models`` runs the one compiled solve of
-    the whole set (one compilation instead of one per model; the fit is the same)."""
+    the whole set (one compilation instead of one per model; the fit is the same).  Blocks nest: a model not in
+    the inner block's set is looked up in the outer ones (a diagnosis' pairs, known only once its singles are
+    scored, are compiled as a set of their own while the singles keep theirs)."""
     models = tuple(models)
-    token = _TOGETHER.set((models, [_shape(m) for m in models]))      # the members' shapes, once per block
+    token = _TOGETHER.set(_TOGETHER.get() + ((models, [_shape(m) for m in models]),))   # shapes, once per block
     try:
         yield
     finally:
@@ -135,9 +137,8 @@ def _shape(model: Model):
 
 def _members(model: Model) -> tuple[tuple, int]:
     """The set ``model`` is solved in and its index there (itself alone outside :func:`compiled_together`)."""
-    if _TOGETHER.get():
-        group, shapes = _TOGETHER.get()
-        key = _shape(model)
+    key = _shape(model)
+    for group, shapes in reversed(_TOGETHER.get()):        # the innermost block first
         if key in shapes:
             i = shapes.index(key)
             return group[:i] + (model,) + group[i + 1:], i
