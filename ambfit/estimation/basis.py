@@ -13,7 +13,8 @@ physics changes the force through variables of its own, its *signature* (:data:`
 group              columns
 =================  ====================================================================================
 shape              ``b^p xi^q`` (``p <= 6``, ``q <= 3``): the law's shape in flux density and gap
-coupling           the same times the other axis' mean squared current; its control current; its position
+coupling           the same times the other axis' mean squared current; the other axis' position
+control            the other axis' signed control current times this axis' current stiffness
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
 drift              each coil's ``b^2``, ``b^2 xi`` times powers of time (and of temperature when read)
@@ -42,13 +43,13 @@ GROUPS = ("shape", "coupling", "hysteresis")
 (saturation, iron, fringing, leakage); what depends on the other axis (its currents and position: coupling through
 the stator); what depends on the direction from which each coil current was approached (hysteresis).  Each group
 has its own prior scale."""
-SIGNATURE_GROUPS = ("memory", "drift", "current_sensor", "position_sensor")
+SIGNATURE_GROUPS = ("control", "memory", "drift", "current_sensor", "position_sensor")
 """Further groups, each the signature of one family (see the module docstring)."""
 ALL_GROUPS = GROUPS + SIGNATURE_GROUPS
 
 FAMILY_GROUPS = {
     "saturation": ("shape",), "iron_reluctance": ("shape",), "fringing": ("shape",), "leakage": ("shape",),
-    "cross_coupling": ("coupling",), "hysteresis": ("hysteresis", "memory"), "thermal_drift": ("drift",),
+    "cross_coupling": ("coupling", "control"), "hysteresis": ("hysteresis", "memory"), "thermal_drift": ("drift",),
     "current_offset": ("current_sensor",), "current_gain": ("current_sensor",), "position_gain": ("position_sensor",),
 }
 """Each contract family's signature: the groups that carry what a law of its variables, other than the library's,
@@ -113,15 +114,16 @@ class Basis:
         if "coupling" in self.groups:
             cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", f["o"] * horseshoes(p, q))
                      for p, q in mono if p in (0, 2)]
-            # the other axis' control current, signed: a current-stiffness cross term (force per its current)
-            c, k_i = f["c"], bt / (1.0 - xi) + bb / (1.0 + xi)
-            cols += [("coupling", f"other-axis i_c {name}", c * v) for name, v in (
-                ("", np.ones_like(xi)), ("k_i", k_i), ("k_i xi", k_i * xi), ("(b_t - b_b)", bt - bb),
-                ("(b_t^2 + b_b^2)", bt**2 + bb**2), ("k_i i_c", k_i * c))]
             eta = f["eta"]
             for r in (1, 2, 3):
                 cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
                          ("coupling", f"eta^{r} (b_t^2 - b_b^2)", eta**r * (bt**2 - bb**2))]
+        if "control" in self.groups:
+            # the other axis' control current, signed: a current-stiffness cross term (force per its current)
+            c, k_i = f["c"], bt / (1.0 - xi) + bb / (1.0 + xi)
+            cols += [("control", f"other-axis i_c {name}", c * v) for name, v in (
+                ("", np.ones_like(xi)), ("k_i", k_i), ("k_i xi", k_i * xi), ("(b_t - b_b)", bt - bb),
+                ("(b_t^2 + b_b^2)", bt**2 + bb**2), ("k_i i_c", k_i * c))]
         if "hysteresis" in self.groups:
             cols += [("hysteresis", f"direction b^{p} xi^{q}", horseshoes(p, q, f["dt"], f["db"]))
                      for p in range(5) for q in range(2)]
