@@ -29,7 +29,7 @@ import numpy as np
 
 import ambfit
 from ambfit.data import read_csv
-from ambfit.diagnosis import circuit_families
+from ambfit.diagnosis import Rules, circuit_families
 from ambfit.estimation.measure import force_check, force_noise
 from ambfit.physics.circuit import MECParams
 from ambfit.physics.effects import MagneticCircuit
@@ -122,7 +122,7 @@ def main():
     out["times_s"]["diagnose (again, warm)"] = time.perf_counter() - t
     rec = dg.to_json()
     out["diagnose"] = {"verdict": dg.verdict, "shrink": dg.shrink, "heldout_excess_before": dg.heldout_excess_before,
-                       "families": dg.families, "ranking": [{"effect": c.effect, "shrink": c.shrink,
+                       "families": rec.get("families"), "ranking": [{"effect": c.effect, "shrink": c.shrink,
                                                              "heldout_excess_after": c.after} for c in dg.ranking],
                        "discrepancy": rec.get("discrepancy"), "parameter_gap": rec.get("parameter_gap")}
     args.out.mkdir(parents=True, exist_ok=True)
@@ -173,16 +173,16 @@ def main():
                 md.append(f"| {e['parameter']} | {e['identified']:.1f} | {e['nominal']:.0f} | {c['effect']}: "
                           f"{c['needs']} | {c.get('plausible', '–')} |")
         md.append("")
-    if dg.families:
+    if rec.get("families"):
         md += ["| circuit piece | family | χ² rise when off | bounds (refit not settled) | counts |",
                "|---|---|---|---|---|"]
         md += [f"| {f['piece']} | {f['family']} | {f['delta_chi2']:.0f} | "
                + ("settled" if f["delta_chi2_bounds"][0] == f["delta_chi2_bounds"][1] else
                   "{:.0f} – {:.0f}".format(*f["delta_chi2_bounds"]))
-               + f" | {'yes' if f['significant'] else 'no'} |" for f in dg.families]
+               + f" | {'yes' if f['significant'] else 'no'} |" for f in rec["families"]]
         md += ["", "Each piece switched off, the circuit refitted with the full model's noise weights held (every χ² "
                "weighs the readings alike). A refit runs until its χ² is settled (EDM below "
-               f"{100 * circuit_families.SETTLED_EDM:g} % of the threshold, {circuit_families.SIGNIFICANT_DCHI2:g} sd of χ²) or "
+               f"{100 * circuit_families.SETTLED_EDM:g} % of the threshold, {Rules().circuit_dchi2:g} sd of χ²) or "
                "its piece's significance is decided, taking its χ² to fall by at most "
                f"{circuit_families.EDM_MARGIN:g} EDMs more; iron_reluctance is the ideal-iron refit (started from the "
                "constant-permeability one, the nearer model) less the constant-permeability one."]

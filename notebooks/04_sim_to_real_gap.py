@@ -22,6 +22,7 @@ import pandas as pd
 
 import ambfit
 from ambfit import rig
+from ambfit.diagnosis import text
 from ambfit.faces import plots
 from ambfit.rig import protocol as P
 from ambfit.studies import paper_gap
@@ -36,7 +37,7 @@ sim = ambfit.simulate(rig.PAPER_RIG, P.rich(biases=(1.0, 1.4, 1.8, 2.2), masses_
                       [ambfit.Saturation(b_sat=1.2)], seed=4)
 dg = ambfit.diagnose(sim.data, candidates=[ambfit.Saturation(), ambfit.IronReluctance(), ambfit.Leakage(),
                                            ambfit.PositionGain()], pairs=False)
-print(dg.verdict_text())
+print(text.verdict(dg))
 print(f"held-out excess {dg.heldout_excess_before:.1f} noise units before")
 dg.to_dataframe()
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ambfit import rig
-from ambfit.diagnosis.signatures import LOG_BAYES_CLEAR
+from ambfit.diagnosis import Rules
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.estimation.fit import fit
 from ambfit.estimation.measure import FittedModel, force_check, predict
@@ -41,7 +41,7 @@ def test_discrepancy_carries_what_the_ideal_law_misses(saturated):
     z = res.residuals
     assert np.mean(z**2) > 20                        # saturation the ideal law cannot express
     assert np.mean((z + d.row_correction) ** 2) < 0.1 * np.mean(z**2)
-    assert d.log_bayes["shape"] > LOG_BAYES_CLEAR    # in the flux-density shape, where saturation acts
+    assert d.log_bayes["shape"] > Rules().log_bayes_clear    # in the flux-density shape, where saturation acts
 
 
 def test_clean_data_want_no_correction(clean):
@@ -117,11 +117,11 @@ def test_diagnosis_names_the_family_when_its_law_differs():
     data = rig.simulate(rig.PAPER_RIG, _design(), [RayleighHysteresis(ratio=np.array([0.01, 0.008]))], seed=5).data
     d = diagnosis.diagnose(data, check_force=False, pairs=False)
     assert d.verdict == "hysteresis", d.summary()
-    assert d.law["log_bayes"] > LOG_BAYES_CLEAR
-    assert d.law["library_law_shrink"] < 0.9 <= d.law["shrink"] == d.shrink
+    assert d.law.log_bayes_max > Rules().log_bayes_clear
+    assert d.law.law.shrink < 0.9 <= d.law.shrink == d.shrink
     rec = d.to_json()
     assert rec["law"]["family"] == "hysteresis" and "discrepancy_fit" in rec
-    assert [st["shrink"] for st in rec["steps"]] == [d.law["library_law_shrink"], d.law["shrink"]]
+    assert [st["shrink"] for st in rec["steps"]] == [d.law.law.shrink, d.law.shrink]
 
 
 def test_identify_writes_effects_and_discrepancy_into_the_model_for_ambfit_force(saturated, tmp_path):

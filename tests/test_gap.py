@@ -5,6 +5,7 @@ import pytest
 
 from ambfit import Bearing, rig
 from ambfit import diagnosis as gap
+from ambfit.diagnosis import text
 from ambfit.estimation import fit
 from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
@@ -160,7 +161,7 @@ def test_table2_diagnosis_says_it_cannot_see_saturation():
     rec = dg.to_json()
     assert rec["verdict"] == "none"
     assert "cannot see saturation" in rec["blind_spot"] and "bias sweep" in rec["blind_spot"]
-    assert "1.4/1.6 A" in rec["blind_spot"] and rec["blind_spot"] in dg.verdict_text()
+    assert "1.4/1.6 A" in rec["blind_spot"] and rec["blind_spot"] in text.verdict(dg)
 
 
 def test_the_best_models_force_check_is_always_reported(saturated):
@@ -173,7 +174,7 @@ def test_the_best_models_force_check_is_always_reported(saturated):
     best, ideal = rec["force_check"]["best"], rec["force_check"]["ideal"]
     assert rec["grade"]["by"] == "signature" and best["model"] == rec["grade"]["model"]
     assert best["n_loads"] == ideal["n_loads"] and best["rms_rel"] < ideal["rms_rel"] / 3
-    assert "the model that removes most of the excess" in diag.verdict_text()
+    assert "the model that removes most of the excess" in text.verdict(diag)
     _keys_are_documented(rec)
 
     diag = gap.diagnose(saturated, candidates=[E.PositionGain(), E.ThermalDrift()])

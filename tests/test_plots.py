@@ -124,7 +124,7 @@ def test_discrepancy_is_drawn_against_flux_density_per_axis_in_newtons():
     fit = types.SimpleNamespace(row_correction_n=np.array([0.01, 0.02, -0.03, 0.04]),
                                 row_noise_n=np.array([0.1, 0.1, 0.2, 0.2]))
     d = types.SimpleNamespace(operating=op, baseline=types.SimpleNamespace(residuals=np.array([1.0, 2.0, 3.0, 4.0])),
-                              discrepancy={"fit": fit, "host": types.SimpleNamespace(model="ideal")})
+                              ceiling=types.SimpleNamespace(fit=fit, host=types.SimpleNamespace(model="ideal")))
     ax = plots.plot_discrepancy(d)
     assert ax.get_xlabel().startswith("top-coil flux density [T]") and ax.get_ylabel() == "force [N]"
     got = {c.get_label(): c.get_offsets() for c in ax.collections}
@@ -133,7 +133,7 @@ def test_discrepancy_is_drawn_against_flux_density_per_axis_in_newtons():
     # the ideal law's misfit in newtons: load - force = -z * s
     np.testing.assert_allclose(got["w: ideal law's misfit (load - force)"], [[0.9, -0.6], [1.1, -0.8]])
     with pytest.raises(ValueError, match="no discrepancy"):
-        plots.plot_discrepancy(types.SimpleNamespace(discrepancy=None))
+        plots.plot_discrepancy(types.SimpleNamespace(ceiling=None))
 
 
 def test_ranking_has_one_bar_per_candidate_and_the_baseline():

@@ -184,10 +184,11 @@ def test_diagnosis_section_reads_the_typed_diagnosis(small_diagnosis):
 
 def test_diagnosis_section_is_structured_not_one_paragraph(small_diagnosis):
     """Issue 24: the Diagnosis was a run-on paragraph; now a verdict line, lists, and tables with their heads."""
+    from ambfit.diagnosis.checks import ForceCheck, ModelForce
     from ambfit.diagnosis.residuals import Region, Where
 
     regions = [Region("b_top_T", "v", 0.8, 0.9, 42, 7.5, 1.2), Region("time_s", "w", 0.0, 60.0, 12, -4.1, -1.2)]
-    fc = {"method": "leave-one-load-out", "ideal": {"rms_rel": 0.0058, "max_rel": 0.03, "noise_floor_rel": 0.001}}
+    fc = ForceCheck(ideal=ModelForce(rms_rel=0.0058, max_rel=0.03, noise_floor_rel=0.001))
     dg = dataclasses.replace(small_diagnosis, where=Where(small_diagnosis.where.tests, regions, 4.0), force_check=fc)
     html = str(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
     assert expanded(html)
@@ -210,8 +211,9 @@ def test_diagnosis_section_is_structured_not_one_paragraph(small_diagnosis):
 
 def test_diagnosis_section_on_the_noise_floor_says_so_with_no_empty_where(small_diagnosis):
     from ambfit.diagnosis.residuals import Where
+    from ambfit.diagnosis.verdict import Verdict
 
-    dg = dataclasses.replace(small_diagnosis, verdict="none", where=Where(small_diagnosis.where.tests, [], 4.0))
+    dg = dataclasses.replace(small_diagnosis, decision=Verdict("none"), where=Where(small_diagnosis.where.tests, [], 4.0))
     text = plain(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
     assert "Verdict: none: the residuals are consistent with noise." in text
     assert "Nowhere: no region of the operating space has residuals beyond the noise" in text

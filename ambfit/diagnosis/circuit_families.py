@@ -8,6 +8,8 @@ leakage, cross-coupling) the data need.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 
@@ -15,9 +17,40 @@ from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import Bearing
 
-SIGNIFICANT_DCHI2 = 3.0
-"""A piece of the circuit counts in the verdict when removing it raises χ² by more than this many of χ²'s
-standard deviations ``sqrt(2 dof)``."""
+
+@dataclasses.dataclass(frozen=True)
+class CircuitFamily:
+    """What one piece of the magnetic circuit contributes: the rise of χ² when it is switched off.
+
+    Attributes
+    ----------
+    piece, family : str
+        The circuit's piece and the contract family it stands for.
+    delta_chi2 : float
+        The rise of χ² as the refit stands; ``delta_chi2_bounds`` what it may still become.
+    significant : bool
+        Whether the rise clears the significance threshold (its lower bound does).
+    converged : bool
+        Whether the refit is settled (:data:`SETTLED_EDM`).
+    decided : bool
+        Whether the significance is (an undecided piece is not ``significant``).
+    edm : float
+    steps : int
+        The refit's EDM and step count.
+    """
+
+    piece: str
+    family: str
+    delta_chi2: float
+    delta_chi2_bounds: tuple
+    significant: bool
+    converged: bool
+    decided: bool
+    edm: float
+    steps: int
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self) | {"delta_chi2_bounds": list(self.delta_chi2_bounds)}
 
 SETTLED_EDM = 0.01
 """A refit with a piece switched off is settled when its EDM (the χ² a Gauss-Newton step would still gain) is
@@ -35,7 +68,7 @@ significant nor not is ``undecided`` and left out of the verdict."""
 
 
 def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_steps: int = 200, step: int = 20,
-                     **noise) -> list:
+                     significance: float = 3.0, **noise) -> list[CircuitFamily]:
     """What each piece of the magnetic circuit contributes, as contract families, largest first.
 
     Each piece is switched off in turn and the circuit refitted to the same rows with the full model's noise
@@ -46,16 +79,16 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     (the horseshoes' shared back iron).
 
     A refit runs ``step`` steps at a time (per reweighting round) until it is settled (:data:`SETTLED_EDM`) or
-    its piece's significance is decided (:data:`EDM_MARGIN`), at most ``max_steps`` steps in all.  Returns
-    ``[{"piece", "family", "delta_chi2", "delta_chi2_bounds", "significant", "converged", "decided", "edm",
-    "steps"}]``; ``converged`` says the refit is settled, ``decided`` that the significance is (an undecided piece
-    is not ``significant``); ``delta_chi2_bounds`` what the rise may still become.
+    its piece's significance is decided (:data:`EDM_MARGIN`), at most ``max_steps`` steps in all.  A piece is
+    significant when switching it off raises χ² by more than ``significance`` of χ²'s standard deviations
+    ``sqrt(2 dof)`` (:attr:`ambfit.diagnosis.verdict.Rules.circuit_dchi2`).  Returns one :class:`CircuitFamily`
+    per piece, largest rise first.
     """
     from ambfit.estimation.measure import force_noise
     from ambfit.physics.effects import MagneticCircuit
 
     mec = next(e for e in full.effects if isinstance(e, MagneticCircuit))
-    threshold = SIGNIFICANT_DCHI2 * np.sqrt(2.0 * max(full.dof, 1))
+    threshold = significance * np.sqrt(2.0 * max(full.dof, 1))
     names = {"saturation": "saturation", "iron": "iron_reluctance", "fringing": "fringing", "leakage": "leakage",
              "coupling": "cross_coupling"}
     held = force_noise(full, data, **noise)
@@ -100,10 +133,10 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     out = []
     for piece, f in refits.items():
         rise, lo, hi = bounds(piece)
-        out.append({"piece": piece, "family": names[piece], "delta_chi2": rise, "delta_chi2_bounds": [lo, hi],
-                    "significant": bool(lo > threshold), "converged": _settled(f, threshold),
-                    "decided": bool(decided(piece)), "edm": f.edm, "steps": spent[piece]})
-    return sorted(out, key=lambda r: -r["delta_chi2"])
+        out.append(CircuitFamily(piece=piece, family=names[piece], delta_chi2=rise, delta_chi2_bounds=(lo, hi),
+                                 significant=bool(lo > threshold), converged=_settled(f, threshold),
+                                 decided=bool(decided(piece)), edm=f.edm, steps=spent[piece]))
+    return sorted(out, key=lambda r: -r.delta_chi2)
 
 
 def _settled(f: FitResult, threshold: float) -> bool:

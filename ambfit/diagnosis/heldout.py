@@ -64,13 +64,39 @@ def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, g
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:
-    """One model's held-out score: the effects, the excess before and after, and its in-sample fit."""
+    """One model's held-out score: the effects, the excess before and after, and its in-sample fit.
+
+    Attributes
+    ----------
+    effect : str
+        The model's name: ``ideal``, an effect's, or ``+``-joined effects'.
+    heldout_z : array[n]
+        Standardized residuals of every fold's held-out readings, pooled.
+    before : float
+        The ideal law's held-out excess (noise units).
+    fit : FitResult
+        The model fitted to every row.
+    folds : tuple
+        ``(test mask, fit without those rows)`` per fold.
+    kind : {"ideal", "law", "pair"}
+        The ideal law, one library law, or a pair of them.
+    """
 
     effect: str
     heldout_z: np.ndarray
     before: float
     fit: FitResult
-    folds: tuple = ()           # (test mask, fit without those rows) per fold
+    folds: tuple = ()
+    kind: str = "law"
+
+    @property
+    def families(self) -> tuple[str, ...]:
+        """The families the model names."""
+        return tuple(self.effect.split("+"))
+
+    @property
+    def label(self) -> str:
+        return self.effect
 
     @property
     def after(self) -> float:

@@ -12,16 +12,10 @@ as the laws: its held-out excess, and how clearly the data want its signature (t
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 
 from ambfit.diagnosis.heldout import Candidate, excess, shrink
-
-LOG_BAYES_CLEAR = 10.0
-"""A signature is clearly in the residuals when the marginal likelihood wants one of its discrepancy groups by
-more than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995 scale; the FEM bearing, with
-no hysteresis, gives its direction group 3.3)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,17 +45,26 @@ class Signature:
     folds: tuple
     full: object
 
+    kind = "signature"
+
     @property
     def family(self) -> str:
         return self.law.effect
 
     @property
+    def families(self) -> tuple[str, ...]:
+        return (self.family,)
+
+    @property
     def model(self) -> str:
         return f"{self.family} widened by its {'+'.join(self.groups)} signature"
 
+    label = model
+
     @property
-    def clear(self) -> bool:
-        return max(self.log_bayes.values(), default=0.0) > LOG_BAYES_CLEAR
+    def log_bayes_max(self) -> float:
+        """How much the data want the signature: its groups' largest log Bayes factor."""
+        return max(self.log_bayes.values(), default=0.0)
 
     @property
     def score(self) -> float:
@@ -75,10 +78,11 @@ class Signature:
     def shrink(self) -> float:
         return shrink(self.law.before, self.after)
 
-    def to_json(self) -> dict:
+    def to_json(self, clear: bool) -> dict:
+        """The record; ``clear``: whether the data clearly want the signature (:meth:`Judge.clear`)."""
         return {"family": self.family, "signature": "+".join(self.groups),
-                "log_bayes": max(self.log_bayes.values(), default=0.0), "log_bayes_groups": self.log_bayes,
-                "signature_clear": self.clear, "heldout_excess_after": self.after, "shrink": self.shrink,
+                "log_bayes": self.log_bayes_max, "log_bayes_groups": self.log_bayes,
+                "signature_clear": clear, "heldout_excess_after": self.after, "shrink": self.shrink,
                 "score": self.score, "library_law_shrink": self.law.shrink, "library_law_leaves": 1.0 - self.law.shrink,
                 "library_law_excess_after": self.law.after,
                 "widened_by": f"the discrepancy's {' and '.join(repr(g) for g in self.groups)} terms (orthogonal to "
@@ -103,13 +107,3 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
     return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
                      folds=tuple(folds_), full=full)
 
-
-def signatures(df, laws: list[Candidate], noise, each=None) -> list[Signature]:
-    """Every family's library law (``laws``: single-effect candidates) widened by its signature, best first.
-    ``each``: how the families are run (:class:`~ambfit.diagnosis.threads._Each`; default one after the other)."""
-    from ambfit.diagnosis.threads import _Each
-    from ambfit.estimation.basis import FAMILY_GROUPS
-
-    own = [c for c in laws if c.effect in FAMILY_GROUPS and c.folds]
-    tasks = [functools.partial(widened, c, df, FAMILY_GROUPS[c.effect], noise) for c in own]
-    return sorted((each or _Each(1))(lambda task: task(), tasks), key=lambda s: s.score)

@@ -184,6 +184,7 @@ def diagnose(
     data, how far the gap shrinks, and how the identified parameters differ from the bearing as drawn."""
     from ambfit.data import DataError
     from ambfit.diagnosis import diagnose as run_diagnosis
+    from ambfit.diagnosis import text
     from ambfit.estimation.core import FitError
     from ambfit.faces.cli.progress import progress_bar
 
@@ -202,11 +203,11 @@ def diagnose(
         fail(str(exc))
     except FitError as exc:
         fail(str(exc), 3)
-    note(dg.floor_text())
-    show_table(dg.where_rows(), "where the model fails (largest first)", left=("region",))
-    show_table(dg.ranking_rows(), "candidate effects, held-out (best first)", left=("effect",))
-    note(dg.verdict_text())
-    for line in dg.flagged_parameters():
+    note(text.floor(dg))
+    show_table(text.where_rows(dg), "where the model fails (largest first)", left=("region",))
+    show_table(text.ranking_rows(dg), "candidate effects, held-out (best first)", left=("effect",))
+    note(text.verdict(dg))
+    for line in text.flagged_parameters(dg):
         note(line)
     if json_out is not None:
         write_json(dg.to_json(), json_out)

@@ -79,15 +79,15 @@ def plot_discrepancy(diagnosis, ax=None):
     ``diagnosis``: a :class:`ambfit.Diagnosis` fitted with ``discrepancy=True``.
     """
     ax = _axes(ax)
-    disc = diagnosis.discrepancy
-    if disc is None or disc.get("fit") is None:
+    disc = diagnosis.ceiling
+    if disc is None:
         raise ValueError("this diagnosis has no discrepancy term (diagnose(..., discrepancy=True))")
     op = diagnosis.operating
     b = op["b_top_T"].to_numpy()
     axis = op["axis"].to_numpy() if "axis" in op else np.zeros(len(b))
-    corr = disc["fit"].row_correction_n
-    host = disc["host"]
-    misfit_n = -diagnosis.baseline.residuals * disc["fit"].row_noise_n      # load - force [N]
+    corr = disc.fit.row_correction_n
+    host = disc.host
+    misfit_n = -diagnosis.baseline.residuals * disc.fit.row_noise_n      # load - force [N]
     for a, (name, colour) in enumerate((("v", "tab:blue"), ("w", "tab:orange"))):
         m = (axis == a) | (axis == name)
         if not np.any(m):

@@ -137,6 +137,8 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
     """Verdict, noise floor, ranking of the candidate effects, structured regions and flagged parameters.
 
     ``result``: :class:`~ambfit.diagnosis.Diagnosis`."""
+    from ambfit.diagnosis import text
+
     nf = result.noise_floor
     rows = []
     for c in result.ranking:
@@ -151,7 +153,7 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
         from ambfit.faces import plots
 
         bars = figure(plots.plot_ranking(result))
-        if result.discrepancy is not None and result.discrepancy.get("fit") is not None:
+        if result.ceiling is not None:
             correction = figure(plots.plot_discrepancy(result))
     rms_before = float(np.sqrt(result.ideal.score))
     return {"verdict": result.verdict, "confounded_with": list(result.confounded_with), "shrink": result.shrink,
@@ -159,27 +161,25 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
             "heldout_excess_before": result.heldout_excess_before, "heldout_rms_before": rms_before,
             "on_floor": not result.heldout_excess_before > 0, "folds": result.folds,
             "ranking": table(ranking, 3) if rows else None, "figure": bars, "where": regions,
-            "n_regions": len(result.where.regions), "flagged": result.flagged_parameters(),
-            "force_check": _force_table(result.force_check), "notes": result.findings(),
+            "n_regions": len(result.where.regions), "flagged": text.flagged_parameters(result),
+            "force_check": _force_table(result.force_check), "notes": text.findings(result),
             "discrepancy_figure": correction}
 
 
-def _force_table(fc: dict | None):
-    """Leave-one-load-out force measurement of each model as a table (percent of the known load)."""
-    if fc is None or "error" in fc:
+def _force_table(fc):
+    """Leave-one-load-out force measurement of each model (a :class:`~ambfit.diagnosis.checks.ForceCheck`) as a
+    table (percent of the known load)."""
+    if fc is None or fc.error is not None:
         return None
     rows = []
-    for key in ("ideal", "verdict", "best", "discrepancy"):
-        if key not in fc or "error" in fc[key]:
-            continue
-        e = fc[key]
-        rows.append({"model": e.get("model", "ideal"), "RMS per reading [%]": 100 * e["rms_rel"],
-                     "worst reading [%]": 100 * e["max_rel"],
-                     "RMS of each load's mean [%]": 100 * e["rms_rel_mean"] if "rms_rel_mean" in e else np.nan,
-                     "beyond the readings' noise [%]": 100 * e.get("model_error_rel", np.nan)})
-    floor = fc["ideal"].get("noise_floor_rel")
-    if floor is not None:
-        rows.append({"model": "the readings' noise alone", "RMS per reading [%]": 100 * floor,
+    for _, e in fc.models():
+        rows.append({"model": e.model or "ideal", "RMS per reading [%]": 100 * e.rms_rel,
+                     "worst reading [%]": 100 * e.max_rel,
+                     "RMS of each load's mean [%]": 100 * e.rms_rel_mean if e.rms_rel_mean is not None else np.nan,
+                     "beyond the readings' noise [%]": 100 * e.model_error_rel if e.model_error_rel is not None
+                     else np.nan})
+    if fc.ideal.noise_floor_rel is not None:
+        rows.append({"model": "the readings' noise alone", "RMS per reading [%]": 100 * fc.ideal.noise_floor_rel,
                      "worst reading [%]": np.nan, "RMS of each load's mean [%]": np.nan,
                      "beyond the readings' noise [%]": np.nan})
     return table(pd.DataFrame(rows), 3)

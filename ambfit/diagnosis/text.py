@@ -1,0 +1,182 @@
+"""What a diagnosis says, in sentences and table rows: every word a face shows of a
+:class:`~ambfit.diagnosis.results.Diagnosis`, written from its record in one place.
+
+:func:`summary` is ``str(diagnosis)``; the command line prints :func:`floor`, the rows of :func:`where_rows` and
+:func:`ranking_rows`, :func:`verdict` and :func:`flagged_parameters`; the report shows :func:`findings`.
+"""
+
+from __future__ import annotations
+
+import html as _html
+
+import numpy as np
+
+from ambfit.physics.bearing import AXES
+
+
+def floor(dg) -> str:
+    """The noise floor and the ideal law's held-out excess."""
+    nf = dg.noise_floor
+    return (f"noise floor ({nf.source}): mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}); "
+            f"held-out excess {dg.heldout_excess_before:.2f} noise units; folds: {dg.folds}")
+
+
+def ranking_rows(dg) -> list[dict]:
+    """The ranking as ``{column: text}`` rows (best first)."""
+    return [{"effect": r.effect, "held-out excess after": f"{r.heldout_excess_after:.2f}",
+             "shrink": f"{r.shrink:.3f}", "in-sample mean z²": f"{r.insample_mean_z2:.2f}",
+             "fit": "converged" if r.converged else "not converged"}
+            for r in dg.to_dataframe().itertuples()]
+
+
+def where_rows(dg, n: int = 8) -> list[dict]:
+    """The largest structured regions as ``{column: text}`` rows."""
+    return [{"region": w.describe(), "rows": str(w.rows), "z": f"{w.z:.1f}"} for w in dg.where.regions[:n]]
+
+
+def verdict(dg) -> str:
+    """The verdict with what it rests on: confounded models, the circuit's pieces, the force check, the findings,
+    the protocol's blind spot, the best pair."""
+    if dg.verdict == "none":
+        text = ("verdict: none (the ideal law's held-out residuals sit on the noise floor); these data cannot "
+                f"exclude: {', '.join(dg.confounded_with) or 'nothing'}")
+    else:
+        text = (f"verdict: {dg.verdict}; confounded with: {', '.join(dg.confounded_with) or 'none'}; "
+                f"shrink {dg.shrink:.3f}")
+    failed = [c.effect for c in dg.ranking if not c.fit.converged]
+    if failed:
+        text += (f"\nnot converged within the candidate fits' step budget (scored as they stand): "
+                 f"{', '.join(failed)}")
+    if dg.families is not None:
+        text += ("\nthe magnetic circuit of the whole bearing explains it; what each piece contributes (χ² rise "
+                 "when it is switched off): " + ", ".join(
+                     f"{f.piece} ({f.family}) {f.delta_chi2:.0f}" + family_note(f) for f in dg.families))
+    if dg.families is not None and dg.verdict_fit is not None:
+        vf = dg.verdict_fit
+        shown = [n for n in ("g_v0", "v0", "g_w0", "w0") if n in vf.names]
+        text += ("\nthe circuit's gap and origin [µm]: " + ", ".join(
+            f"{n} {vf.value(n) * 1e6:.2f} ± {vf.error(n) * 1e6:.2f}" for n in shown)
+            + f" (χ²/dof {vf.reduced_chi2:.2f}; the ideal law's are compared with the drawing below)")
+    fc = dg.force_check
+    if fc is not None and fc.error is not None:
+        text += f"\nforce check not possible: {fc.error}"
+    elif fc is not None:
+        text += (f"\nforce check (each of {fc.ideal.n_loads} known loads left out and predicted): ideal law "
+                 f"{100 * fc.ideal.rms_rel:.2f} % RMS ({100 * fc.ideal.max_rel:.2f} % worst)")
+        for check, what in ((fc.verdict, ""), (fc.best, " (the model that removes most of the excess)")):
+            if check is not None and check.error is None:
+                text += (f", {check.model}{what} {100 * check.rms_rel:.2f} % RMS "
+                         f"({100 * check.max_rel:.2f} % worst)")
+        if fc.discrepancy is not None:
+            text += (f", {fc.discrepancy.model} {100 * fc.discrepancy.rms_rel:.2f} % RMS "
+                     f"({100 * fc.discrepancy.max_rel:.2f} % worst)")
+        if fc.ideal.noise_floor_rel is not None:
+            text += f"; the readings' noise alone gives {100 * fc.ideal.noise_floor_rel:.2f} % RMS"
+    text += "".join(f"\n{line}" for line in findings(dg))
+    if blind := blind_spot(dg):
+        text += f"\n{blind}"
+    if dg.best_pair is not None:
+        bp = dg.best_pair
+        text += (f"\nbest pair: {bp.effect} (held-out excess {bp.heldout_excess_after:.2f}, shrink "
+                 f"{bp.shrink:.3f}{', explains the data' if bp.explains else ''})")
+    return text
+
+
+def findings(dg) -> list[str]:
+    """The grade, law and discrepancy findings as sentences (part of :func:`verdict`; the report shows them)."""
+    out = []
+    if dg.grade is not None:
+        g = dg.grade
+        out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "
+                   f"noise units (mean z² {g.remainder_mean_z2:.2f}; the floor reaches {g.floor_mean_z2:.2f}): "
+                   + ("at the noise floor" if g.at_floor else "it explains the data, not to the floor"
+                      if g.explains else "graded: short of explaining, part of the structure is left"))
+    if dg.law is not None:
+        lw = dg.law
+        signature = "+".join(lw.groups)
+        out.append(f"{lw.family}'s signature ({signature} terms) in its residuals: log Bayes factor "
+                   f"{lw.log_bayes_max:.1f} ({'clear' if dg.judge.clear(lw) else 'not clear'}); the library's "
+                   f"{lw.family} law shrinks the held-out excess by {lw.law.shrink:.3f}, widened by "
+                   f"that signature by {lw.shrink:.3f}"
+                   + (f": the family is {lw.family}, its law differs from the library's"
+                      if dg.verdict == lw.family else ""))
+    if dg.ceiling is not None:
+        dc = dg.ceiling
+        text = ("discrepancy (a smooth correction in flux density, gap, other axis and approach direction, "
+                "orthogonal to the fitted parameters) on the ideal law: it removes "
+                f"{dc.ideal.insample_shrink:.3f} of the excess in sample (the ceiling of what any such effect "
+                f"explains), {dc.ideal.shrink:.3f} held out")
+        if dc.verdict is not None:
+            text += f"; added to {dc.verdict.model}: {dc.verdict.shrink:.3f} held out"
+        out.append(text)
+    return out
+
+
+def flagged_parameters(dg) -> list[str]:
+    """Parameters against the drawing as sentences: flagged ones, and gaps that differ from the drawn number but
+    stay inside the drawing's tolerance (effective values, not flags)."""
+    out = []
+    for e in dg.parameter_gap:
+        if not e.get("differs", e["flagged"]):
+            continue
+        # plausible explanations first; an implausible one says why (e.g. beyond the calibration tolerance)
+        could = sorted(e.get("could_be", []), key=lambda c: c.get("plausible") is False)
+        why = "; ".join(f"{c['effect']} ({c['needs']}"
+                        + (f"; implausible: {c.get('note', 'beyond its physical range')})"
+                           if c.get("plausible") is False else ")") for c in could)
+        text = f"{e['parameter']}: identified {e['identified']:.4g} vs nominal {e['nominal']:.4g} ({e['z']:+.1f} sd)"
+        if "tolerance" in e and e["flagged"]:
+            text += f", beyond the drawing's ±{e['tolerance']:.3g} µm by {e['z_beyond_tolerance']:.1f} sd (flagged)"
+        elif "tolerance" in e:
+            text += (f", inside the drawing's ±{e['tolerance']:.3g} µm (machining and iron reluctance): an "
+                     "effective value, not flagged")
+        out.append(f"{text} - could be {why}")
+    return out
+
+
+def blind_spot(dg) -> str | None:
+    """What a ``none`` verdict cannot say: with fewer than three bias settings on an axis the force law's bend with
+    flux density is not seen, so effects that bend it would be read as effective gap, origin and k."""
+    if dg.verdict != "none" or dg.operating is None or "bias_A" not in dg.operating:
+        return None
+    op = dg.operating
+    biases = {ax: np.unique(np.round(op.loc[op["axis"] == ax, "bias_A"].to_numpy(float), 9)) for ax in AXES}
+    if all(len(b) >= 3 for b in biases.values() if len(b)):
+        return None
+    bending = [e for e in ("saturation", "iron_reluctance", "leakage") if e in dg.confounded_with]
+    if not bending:
+        return None
+    b = np.concatenate([op["b_top_T"].to_numpy(float), op["b_bottom_T"].to_numpy(float)])
+    shown = ", ".join(f"{ax}: {'/'.join(f'{x:g}' for x in v)} A" for ax, v in biases.items() if len(v))
+    return (f"this protocol cannot see {', '.join(bending)}: its biases ({shown}; flux density "
+            f"{np.nanmin(b):.2f}-{np.nanmax(b):.2f} T) are too few and too close for the force law's bend with "
+            "flux density to show, so any such effect is absorbed into the identified gap, origin and k "
+            "(values of this protocol, not of the bearing as drawn); to see it, run a bias sweep of three or more "
+            "biases up to the coil limit (ambfit simulate --preset rich is one)")
+
+
+def summary(dg) -> str:
+    """The whole diagnosis as text: floor, structured regions, ranking, verdict, flagged parameters."""
+    lines = [floor(dg)]
+    lines += [f"  where: {r.describe()} ({r.rows} rows, z {r.z:.1f})" for r in dg.where.regions[:5]]
+    lines += [f"  {c.effect:<32} excess after {c.after:.2f}, shrink {c.shrink:.3f}" for c in dg.ranking[:6]]
+    lines.append(verdict(dg))
+    lines += flagged_parameters(dg)
+    return "\n".join(lines)
+
+
+def html(dg) -> str:
+    """The verdict and the ranking as HTML (a notebook's view)."""
+    rows = "".join(f"<tr><td>{_html.escape(c.effect)}</td><td>{c.after:.2f}</td><td>{c.shrink:.3f}</td></tr>"
+                   for c in dg.ranking)
+    return (f"<b>{_html.escape(verdict(dg))}</b><table><tr><th>effect</th><th>held-out excess after</th>"
+            f"<th>shrink</th></tr>{rows}</table>")
+
+
+def family_note(f) -> str:
+    """What a circuit piece's χ² rise means: significant or not, or undecided with the range it may take."""
+    lo, hi = f.delta_chi2_bounds
+    if not f.decided:
+        return f" (undecided: between {lo:.0f} and {hi:.0f}, its refit not settled)"
+    return ("" if f.significant else " (not significant)") + ("" if f.converged else
+                                                             f" (refit not settled: {lo:.0f} to {hi:.0f})")

@@ -1,0 +1,97 @@
+"""The diagnosis record held against references (issue 30): a change that is meant to leave the diagnosis alone
+(a refactor, a faster route) must leave every key, string, flag and number of ``Diagnosis.to_json()`` as it was.
+
+The cases cover every way a verdict is reached: the bundled data (``none``, the protocol's blind spot), a library
+law, a pair, a family's law widened by its signature (explaining, and graded short of it), ``unexplained``, and the
+FEM development data (the magnetic circuit, its pieces as families).  Inputs are stored as they were simulated, so
+only the diagnosis is compared.  Keys must come in the same order, and strings, flags and integers must be equal.
+Numbers must agree to 1e-9 relative (1e-12 absolute): the references were made on one machine, and another
+processor's vector instructions may round the last bits differently.  On the machine that made them the records
+were byte-identical before and after the refactor.
+
+When a change is *meant* to change the diagnosis, regenerate the references and say so in the commit:
+
+    .venv/bin/python tests/test_diagnosis_golden.py --regenerate
+"""
+
+import gzip
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+REFS = HERE / "data" / "diagnosis"
+SHARED_FEM = HERE.parents[1] / "shared" / "fem"
+STAMP = ("schema", "kind", "ambfit_version")
+
+CASES = {
+    "paper_table2": (HERE.parent / "data" / "paper_table2.csv", None),
+    "law": (REFS / "rig_saturation.csv.gz", None),
+    "pair": (REFS / "hid_saturation_offset.csv.gz", None),
+    "signature": (REFS / "hid_coupling_currents.csv.gz", None),
+    "signature_graded": (REFS / "hid_drift_exponential.csv.gz", None),
+    "unexplained": (REFS / "hid_position_nonlinear.csv.gz", None),
+    "fem_dev": (SHARED_FEM / "fem_dev.csv", SHARED_FEM / "fem_dev.toml"),
+}
+
+
+def diagnosis_of(case: str, tmp: Path) -> dict:
+    import ambfit
+
+    data, bearing = CASES[case]
+    if not data.exists():
+        pytest.skip(f"{data} is not here")
+    if data.suffix == ".gz":
+        plain = tmp / data.stem
+        plain.write_bytes(gzip.decompress(data.read_bytes()))
+        data = plain
+    kw = {"bearing": ambfit.Bearing.from_toml(bearing)} if bearing is not None else {}
+    return ambfit.diagnose(ambfit.read_csv(data), **kw).to_json()
+
+
+def differences(got, want, path="") -> list[str]:
+    """Where ``got`` differs from ``want``: key order, types, strings and flags exactly, numbers to 1e-9."""
+    if isinstance(want, dict):
+        if not isinstance(got, dict) or list(got) != list(want):
+            return [f"{path}: keys {list(got) if isinstance(got, dict) else type(got).__name__} != {list(want)}"]
+        return [d for k in want for d in differences(got[k], want[k], f"{path}.{k}")]
+    if isinstance(want, list):
+        if not isinstance(got, list) or len(got) != len(want):
+            return [f"{path}: {got!r:.80} != {want!r:.80}"]
+        return [d for i, (g, w) in enumerate(zip(got, want)) for d in differences(g, w, f"{path}[{i}]")]
+    if isinstance(want, float) and isinstance(got, float):
+        same = (math.isnan(got) and math.isnan(want)) or math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-12)
+        return [] if same else [f"{path}: {got!r} != {want!r}"]
+    return [] if type(got) is type(want) and got == want else [f"{path}: {got!r:.80} != {want!r:.80}"]
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_diagnosis_is_what_it_was(case, tmp_path):
+    want = json.loads(gzip.decompress((REFS / f"{case}.json.gz").read_bytes()))
+    got = json.loads(json.dumps(diagnosis_of(case, tmp_path)))             # as the command line writes it
+    for key in STAMP:
+        got.pop(key), want.pop(key)
+    diff = differences(got, want)
+    assert not diff, f"{len(diff)} difference(s), first: " + "; ".join(diff[:5])
+
+
+def test_the_comparison_sees_a_changed_number_a_reordered_key_and_a_changed_word():
+    ref = {"a": 1.0, "b": {"c": [1, "x", True]}}
+    assert not differences(json.loads(json.dumps(ref)), ref)
+    assert differences({"a": 1.0 + 1e-6, "b": {"c": [1, "x", True]}}, ref)
+    assert differences({"b": {"c": [1, "x", True]}, "a": 1.0}, ref)
+    assert differences({"a": 1.0, "b": {"c": [1, "y", True]}}, ref)
+    assert differences({"a": 1.0, "b": {"c": [1, "x", 1]}}, ref)
+
+
+if __name__ == "__main__" and "--regenerate" in sys.argv:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in CASES:
+            (REFS / f"{name}.json.gz").write_bytes(gzip.compress(
+                (json.dumps(diagnosis_of(name, Path(tmp)), indent=2) + "\n").encode(), mtime=0))
+            print("wrote", REFS / f"{name}.json.gz")
