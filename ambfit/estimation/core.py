@@ -294,31 +294,6 @@ def jacobian(theta, prob: Problem, model: Model = IDEAL):
     return weighted(theta, measured(theta, prob, model), prob.mask, model.n)[1]
 
 
-@eqx.filter_jit
-def _unit_force(theta, prob: Problem, model: Model):
-    """The model's force with k = 1 on every row."""
-    p = unpack(theta, prob, model)
-    return _force(BearingParams(p.params.g0, p.params.x0, jnp.ones(2)), p.effects, prob, model)
-
-
-def seed_loads_and_k(theta, prob: Problem, model: Model = IDEAL):
-    """``theta`` with k (from the known loads) and the nuisance loads set to their best values at its gap and origin."""
-    a = np.asarray(prob.ax)
-    unit = np.asarray(_unit_force(jnp.asarray(theta), prob, model))
-    known, load, gidx = np.asarray(prob.known), np.asarray(prob.load), np.asarray(prob.gidx)
-    mask = np.asarray(prob.mask) > 0
-    theta = np.array(theta)
-    for ax in range(2):
-        sel = known & (a == ax) & mask
-        if sel.any() and np.sum(unit[sel] ** 2) > 0:
-            theta[4 + ax] = np.sum(load[sel] * unit[sel]) / np.sum(unit[sel] ** 2) / SCALE_HEAD[4]
-    k_used = np.where(np.asarray(prob.k_free), theta[4:6] * SCALE_HEAD[4], K_REFERENCE)
-    for j in range(prob.n_loads):
-        sel = gidx == j
-        theta[6 + j] = float(np.mean(k_used[a[sel]] * unit[sel])) / SCALE_LOAD
-    return theta
-
-
 def free_mask(prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
     """Which entries of theta are estimated: gap/origin of present axes, k where loads are known, loads, effects."""
     p = meta.axes_present
