@@ -33,6 +33,24 @@ def test_recovers_truth_on_noise_free_symmetric_designs(g_v, g_w, x_v, x_w, b1, 
         assert not est.rejected
 
 
+def test_readings_share_a_position_within_the_tolerance_and_each_group_prefers_its_set_points():
+    """One grouping serves the closed form's iterations and the fit's seeds (:func:`equations.position_labels`):
+    measured positions within ``POSITION_TOLERANCE`` (2 µm) are one position; a group whose every row has a
+    set-point is grouped by set-points, a group with one missing falls back to its measured positions."""
+    import pandas as pd
+
+    from ambfit.estimation.closed_form.equations import position_labels
+
+    df = pd.DataFrame({"axis": ["v"] * 4 + ["w"] * 4,
+                       "v_um": [-20.0, 20.0, -19.0, 21.5, 0.0, 0.0, 0.0, 0.0],
+                       "w_um": [0.0] * 4 + [5.0, 5.5, -5.0, 9.0],
+                       "v_set_um": [-20.0, 20.0, -20.0, 20.0] + [np.nan] * 4,
+                       "w_set_um": [np.nan] * 4 + [-5.0, -5.0, 5.0, np.nan]})
+    np.testing.assert_array_equal(position_labels(df, np.repeat([0, 1], 4)), [0, 1, 0, 1, 1, 1, 0, 2])
+    # alone, the v rows are one group as before; their measured positions 1.5 µm apart would be one position too
+    np.testing.assert_array_equal(position_labels(df.iloc[:4].drop(columns="v_set_um")), [0, 1, 0, 1])
+
+
 def test_several_position_pairs_use_least_squares():
     sim = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6, 40e-6)), noise=NF)
     sol = cf.solve_rows(sim.data[sim.data.axis == "v"])

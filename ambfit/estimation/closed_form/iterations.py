@@ -11,7 +11,7 @@ import pandas as pd
 
 from ambfit.data import Dataset
 from ambfit.estimation.closed_form import agreement
-from ambfit.estimation.closed_form.equations import POSITION_TOLERANCE, ClosedFormError, Solution, solve
+from ambfit.estimation.closed_form.equations import ClosedFormError, Solution, position_labels, solve
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
 MAX_RELATIVE_SEM = 0.05
@@ -95,32 +95,15 @@ def _mean_sem(values):
     return float(np.mean(v)), std / math.sqrt(v.size) if v.size > 1 else math.nan, std
 
 
-def _cluster_positions(x: np.ndarray, tol: float) -> np.ndarray:
-    order = np.argsort(x)
-    labels = np.empty(len(x), dtype=int)
-    lab, last = 0, None
-    for j in order:
-        if last is not None and x[j] - last > tol:
-            lab += 1
-        labels[j] = lab
-        last = x[j]
-    return labels
-
-
 def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solution:
     """Solve one iteration of one axis from its contract rows (see :func:`solve`).
 
-    Positions are grouped by the own-axis set-point column when present, else by
-    clustering the measured positions within ``POSITION_TOLERANCE``; replicated
+    Positions are the own-axis set-points when every row has one, else the measured positions clustered within
+    ``POSITION_TOLERANCE`` (:func:`~ambfit.estimation.closed_form.equations.position_labels`); replicated
     readings at one position and bias are averaged.
     """
-    axis = df["axis"].iloc[0]
-    own = f"{axis}_um"
-    set_col = f"{axis}_set_um"
-    if set_col in df.columns and df[set_col].notna().all():
-        labels = _cluster_positions(df[set_col].to_numpy(float) * 1e-6, 1e-9)
-    else:
-        labels = _cluster_positions(df[own].to_numpy(float) * 1e-6, POSITION_TOLERANCE)
+    own = f"{df['axis'].iloc[0]}_um"
+    labels = position_labels(df, set_point_tolerance=1e-9)     # a set-point is a commanded value: equal or not
     biases = np.unique(df["bias_A"].to_numpy(float))
     if len(biases) != 2:
         raise ClosedFormError(f"Eq. 6 needs exactly two bias settings per iteration, found {biases.tolist()} A")
