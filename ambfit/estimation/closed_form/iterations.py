@@ -275,7 +275,7 @@ def _reference_json(est: AxisEstimate) -> dict | None:
 
 
 def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
-             bearing: Bearing = PAPER_BEARING, cross_check: bool = True, reference=None) -> ClosedFormResult:
+             bearing: Bearing = PAPER_BEARING, reference=None) -> ClosedFormResult:
     """Closed-form identification of every iteration, averaged as in the paper's tables.
 
     Iterations are the (``experiment``, ``iteration``) groups of each axis (a file
@@ -283,11 +283,14 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     gets its own estimate; otherwise all iterations are pooled under ``"all"``.
     An iteration that cannot be solved is listed in ``rejected`` with the reason.
 
-    With ``cross_check`` (default) each estimate's rows are also fitted by least squares, and a mean that
-    differs from it by more than their errors allow fails the ``agrees_with_least_squares`` check
-    (:mod:`~ambfit.estimation.closed_form.agreement`: at higher noise Eq. 6-7's mean is biased).
-    ``reference`` gives that least-squares fit of all rows instead of fitting it (not with ``by_experiment``);
-    studies that compare with the truth themselves pass ``cross_check=False``.
+    ``reference`` is least squares on the same readings: a mean that differs from it by more than their errors
+    allow fails the ``agrees_with_least_squares`` check (:mod:`~ambfit.estimation.closed_form.agreement`: at
+    higher noise Eq. 6-7's mean is biased).  It is a function of an estimate's rows (all of them, or with
+    ``by_experiment`` each experiment's) that returns their fit or the error it raised, such as
+    ``lambda rows: ambfit.fit_many([rows], bearing=bearing)[0]``; or the fit of all rows itself (a
+    :class:`~ambfit.estimation.results.FitResult` or the error its fit raised; not with ``by_experiment``).
+    None (default): not compared, the check cannot be judged.  The closed form is a lower layer than least
+    squares (whose starts it gives): it does not fit by itself.
 
     Raises
     ------
@@ -302,6 +305,9 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     >>> round(est.g0 * 1e6, 6), round(est.x0 * 1e6, 6)
     (775.0, 33.3)
     """
+    if by_experiment and reference is not None and not callable(reference):
+        raise ValueError("reference: a fit of all rows cannot be compared with each experiment's closed form; "
+                         "with by_experiment pass a function of the rows that fits them")
     df = (data.frame if isinstance(data, Dataset) else data).copy()
     if "experiment" not in df.columns:
         df["experiment"] = "all"
@@ -313,12 +319,9 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     exp_keys = list(dict.fromkeys(df["experiment"])) if by_experiment else ["all"]
     for exp in exp_keys:
         sub_e = df if exp == "all" and not by_experiment else df[df["experiment"] == exp]
-        ls = None
-        if reference is not None and not by_experiment:
-            ls = reference
-        elif cross_check:
-            ls = agreement.least_squares(data if exp == "all" and not by_experiment else
-                                         sub_e.drop(columns="_it"), bearing)
+        ls = reference
+        if callable(reference):
+            ls = reference(data if exp == "all" and not by_experiment else sub_e.drop(columns="_it"))
         for ax in AXES:
             sub = sub_e[sub_e["axis"] == ax]
             if sub.empty:
