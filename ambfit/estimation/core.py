@@ -65,7 +65,17 @@ and it can stop late or never while the solution is already exact."""
 
 
 class FitError(RuntimeError):
-    """The fit did not converge or the design does not identify the parameters; the message says why."""
+    """The fit did not converge or the design does not identify the parameters; the message says why.
+
+    ``result`` is the :class:`~ambfit.estimation.results.FitResult` the fit failed on, when it got that far (as
+    emcee's ``AutocorrError`` carries ``tau``): its estimates, health and solver record are there to read, without
+    fitting again with ``throw=False``.  None when the fit stopped before it had a result (no readings, too few
+    readings for the parameters, a force law that is not finite at the estimate).
+    """
+
+    def __init__(self, message: str, result=None):
+        super().__init__(message)
+        self.result = result
 
 
 def param_scale(n_loads: int) -> np.ndarray:

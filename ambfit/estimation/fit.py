@@ -139,8 +139,8 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     Raises
     ------
     FitError
-        Not identifiable (checked first: an unidentifiable valley is what makes LM
-        run out of steps) or not converged; the message says why and what to do.
+        Not identifiable (checked first: an unidentifiable valley is what makes LM run out of steps) or not
+        converged; the message says why and what to do; its ``result`` is the fit's :class:`FitResult`, if any.
 
     Examples
     --------

@@ -34,7 +34,7 @@ def force(result: FitResult, axis: str, i_top, i_bottom, x, *, y=0.0, sigma_i: f
         raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
     if f"k_{axis}" not in result.names:
         raise FitError(f"the force on axis {axis} needs k_{axis}, which this fit could not identify "
-                       "(no known load on that axis)")
+                       "(no known load on that axis)", result=result)
     shape = np.broadcast(i_top, i_bottom, x, y).shape
     it, ib, xx, yy = (jnp.asarray(np.broadcast_to(v, shape), dtype=float).ravel() for v in (i_top, i_bottom, x, y))
     r = Readings.build(axis=jnp.full(it.shape, AXES.index(axis)), i_top=it, i_bottom=ib, x=xx, y=yy)

@@ -236,15 +236,15 @@ class FitResult:
         return [text for name, ok, text in self.checks() if ok is False and (include_k or name != "k_identified")]
 
     def raise_for_health(self) -> None:
-        """Raise :class:`ambfit.FitError` when the fit is not identifiable or not converged (adequacy is reported,
-        not raised: an inadequate model still has estimates worth reading)."""
+        """Raise :class:`ambfit.FitError`, carrying this result, when the fit is not identifiable or not converged
+        (adequacy is reported, not raised: an inadequate model still has estimates worth reading)."""
         from ambfit.estimation.core import FitError
 
         for name, ok, text in self.checks():
             if name in ("well_conditioned", "converged") and not ok:
-                raise FitError(text)
+                raise FitError(text, result=self)
             if name == "effects_identified" and ok is False and not self.converged:   # the cause of the failure
-                raise FitError(text)
+                raise FitError(text, result=self)
 
     def goodness_of_fit(self) -> dict:
         """Contract section 2's ``goodness_of_fit`` record."""
