@@ -38,6 +38,7 @@ import numpy as np
 
 from ambfit._recent import Recent
 from ambfit.estimation.problem import Meta, Problem, build_problem  # noqa: F401  (build_problem: the core's entry)
+from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
 from ambfit.physics.model import BearingParams, evaluate, ideal_force
@@ -52,7 +53,8 @@ K_REFERENCE = PAPER_BEARING.force_constant()
 # eigenvalue of J^T J was ~10, and lambda = 1 cost ~8 extra steps per solve.)
 SCALE_HEAD = np.array([1e-2, 1e-2, 1e-4, 1e-4, 1e-4, 1e-4])
 SCALE_LOAD = 100.0
-HEAD_NAMES = ("g_v0", "g_w0", "v0", "w0", "k_v", "k_w")
+HEAD_NAMES = GAPS + ORIGINS + FORCE_CONSTANTS
+"""The head of theta: gaps, origins, force constants (each pair v, w; :data:`ambfit.estimation.units.HEAD`)."""
 
 EDM_MAX = 1e-6
 """Convergence: the estimated distance to the minimum, ``EDM = r^T J (J^T J)^-1 J^T r`` (the χ² a

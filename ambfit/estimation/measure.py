@@ -17,6 +17,7 @@ import numpy as np
 
 from ambfit.estimation.fit import FitError, FitResult
 from ambfit.estimation.model_file import ModelFileError  # noqa: F401  (raised by FittedModel.from_json)
+from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.physics.bearing import AXES
 from ambfit.physics.model import BearingParams, Readings, evaluate
 
@@ -52,9 +53,9 @@ def predict(result: FitResult, data, *, rows: Readings | None = None) -> np.ndar
     df = data.frame if isinstance(data, Dataset) else data
     vals = dict(zip(result.names, result.values))
     nominal = result.bearing.nominal_gap
-    params = BearingParams(jnp.asarray([vals.get("g_v0", nominal), vals.get("g_w0", nominal)]),
-                           jnp.asarray([vals.get("v0", 0.0), vals.get("w0", 0.0)]),
-                           jnp.asarray([vals.get("k_v", np.nan), vals.get("k_w", np.nan)]))
+    params = BearingParams(jnp.asarray([vals.get(n, nominal) for n in GAPS]),
+                           jnp.asarray([vals.get(n, 0.0) for n in ORIGINS]),
+                           jnp.asarray([vals.get(n, np.nan) for n in FORCE_CONSTANTS]))
     return np.asarray(_force(params, readings(df) if rows is None else rows, result.effects, result.bearing))
 
 

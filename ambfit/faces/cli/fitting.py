@@ -173,19 +173,17 @@ def _status(record: dict, flags, accept: bool) -> str:
     return "ok"
 
 
-TABLE_PARAMS = (("g_v0", "um"), ("v0", "um"), ("g_w0", "um"), ("w0", "um"), ("k_v", "Nm2_per_A2"),
-                ("k_w", "Nm2_per_A2"))
-
-
 def _table_row(entry: dict) -> dict:
     """One ``--table`` row (file units in the column names, blank where a value does not apply)."""
+    from ambfit.estimation.units import CONTRACT_PARAMS
+
     params = entry.get("params", {})
     row = {"group": entry["group"], "file": entry.get("file", ""), "_value": entry.get("value"),
            "n_rows": entry.get("n_rows")}
-    for name, unit in TABLE_PARAMS:
-        p = params.get(f"{name}_{unit}", {})
-        row[f"{name}_{unit}"] = p.get("value")
-        row[f"{name}_std_{unit}"] = p.get("std")
+    for name, key, _ in CONTRACT_PARAMS:            # key: the name and its file unit, g_v0_um
+        p = params.get(key, {})
+        row[key] = p.get("value")
+        row[f"{name}_std{key[len(name):]}"] = p.get("std")
     gof = entry.get("goodness_of_fit", {})
     flags = entry.get("implausible", [])
     row |= {"reduced_chi2": entry.get("reduced_chi2"), "dof": entry.get("dof"), "p_value": gof.get("p_value"),
