@@ -114,37 +114,39 @@ class Model(eqx.Module):
     bearing: Bearing = eqx.field(static=True)
 
     @classmethod
-    def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING) -> Model:
-        """The model of ``effects`` (their ``ranges()`` fields free) on ``bearing``."""
+    def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING, fields: tuple | None = None) -> Model:
+        """The model of ``effects`` on ``bearing``, their ``ranges()`` fields free (shared by the two axes where the
+        class sets ``SHARED``); or the free ``fields`` given as ``(effect index, field name, shared)``: a model
+        file's estimates, which may include a field its class now holds."""
         effects = tuple(effects)
-        key = (tuple(map(id, effects)), bearing)
+        key = (tuple(map(id, effects)), bearing, fields)
         hit = _MODELS.get(key)
         if hit is not None:
             return hit[1]
-        model = cls._of(effects, bearing)
+        model = cls._of(effects, bearing, fields)
         _MODELS.put(key, (effects, model))      # holding the effects: their identities stay theirs while keyed
         return model
 
     @classmethod
-    def _of(cls, effects: tuple, bearing: Bearing) -> Model:
-        fields, centre, width = [], [], []
-        effects = list(effects)
-        for i, e in enumerate(effects):
-            shared = getattr(type(e), "SHARED", False)
-            for name, (lo, hi) in e.ranges().items():
-                if lo == hi:
-                    continue
-                fields.append((i, name, shared))
-                # a free field's value comes from q (build): one shape for every instance, so that a model of
-                # fitted effects runs the compiled solve of the same model with default ones
-                effects[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), effects[i],
-                                         jnp.broadcast_to(jnp.asarray(getattr(e, name), dtype=float), (2,)))
-                signed = name in type(e).SIGNED
-                c = 0.0 if signed else 0.5 * (lo + hi)
-                wd = hi if signed else max(hi - lo, 1e-12)
-                centre += [c] if shared else [c, c]
-                width += [wd] if shared else [wd, wd]
-        return cls(tuple(effects), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
+    def _of(cls, effects: tuple, bearing: Bearing, fields: tuple | None = None) -> Model:
+        if fields is None:
+            fields = tuple((i, name, getattr(type(e), "SHARED", False)) for i, e in enumerate(effects)
+                           for name, (lo, hi) in e.ranges().items() if lo != hi)
+        centre, width = [], []
+        built = list(effects)
+        for i, name, shared in fields:
+            e = effects[i]
+            lo, hi = (type(e).RANGES | e.ranges())[name]
+            # a free field's value comes from q (build): one shape for every instance, so that a model of
+            # fitted effects runs the compiled solve of the same model with default ones
+            built[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), built[i],
+                                   jnp.broadcast_to(jnp.asarray(getattr(e, name), dtype=float), (2,)))
+            signed = name in type(e).SIGNED
+            c = 0.0 if signed else 0.5 * (lo + hi)
+            wd = hi if signed else max(hi - lo, 1e-12)
+            centre += [c] if shared else [c, c]
+            width += [wd] if shared else [wd, wd]
+        return cls(tuple(built), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
                    jnp.asarray(width, dtype=float).reshape(-1), bearing)
 
     @property
