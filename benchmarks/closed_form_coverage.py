@@ -21,6 +21,7 @@ import numpy as np
 
 from ambfit import rig
 from ambfit.estimation import closed_form
+from ambfit.estimation.fit import fit_many
 from ambfit.rig import protocol
 
 
@@ -35,7 +36,7 @@ def run(scale: float, datasets: int) -> dict:
     for seed in range(datasets):
         sim = rig.simulate(spec, proto, noise=noise, seed=seed)
         try:
-            res = closed_form.identify(sim.data)
+            res = closed_form.identify(sim.data, reference=lambda rows: fit_many([rows])[0])
         except closed_form.ClosedFormError:
             failed += 1
             continue

@@ -41,7 +41,7 @@ def main():
     rejected = 0
     for seed in range(args.datasets):
         sim = rig.simulate(spec, proto, seed=seed)
-        res = closed_form.identify(sim.data, cross_check=False)
+        res = closed_form.identify(sim.data)
         for ax, gk, xk in (("v", "g_v0", "v0"), ("w", "g_w0", "w0")):
             est = res.estimates[("all", ax)]
             rejected += len(est.rejected)

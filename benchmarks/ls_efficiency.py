@@ -91,7 +91,7 @@ def main():
     for s in range(args.datasets):
         res = origin.search(spec, iterations=10, seed=10_000 + s, experiment="table2")
         data1.append(res.data)
-        est = closed_form.identify(res.data, cross_check=False).estimates
+        est = closed_form.identify(res.data).estimates
         for ax, gk, xk in (("v", "g_v0", "v0"), ("w", "g_w0", "w0")):
             e = est[("all", ax)]
             eq7[gk]["iter"] += [i.g0 for i in e.iterations.values()]

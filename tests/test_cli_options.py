@@ -97,3 +97,12 @@ def test_a_bad_protocol_file_is_one_line_naming_it(tmp_path, text, named):
     r = runner.invoke(app, ["simulate", "-o", str(tmp_path / "o.csv"), "--protocol", str(path)])
     assert r.exit_code == 2 and str(path.name) in r.output and named in r.output, r.output
     assert "Traceback" not in r.output
+
+
+def test_the_design_targets_are_the_head_parameters():
+    """``ambfit design --target`` offers the six head parameters.  The command line spells them itself (it imports
+    no estimation module until a command runs, so ``ambfit --help`` stays fast): held to the one table here."""
+    from ambfit.estimation.units import HEAD
+    from ambfit.faces.cli.explore import Target
+
+    assert sorted(t.value for t in Target) == sorted(HEAD)

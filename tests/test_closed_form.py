@@ -3,15 +3,22 @@
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from ambfit import rig
 from ambfit.estimation import closed_form as cf
+from ambfit.estimation.fit import fit_many
 from ambfit.rig import protocol as P
 
 NF = rig.NOISE_FREE
+
+
+def least_squares(rows):
+    """Least squares on the rows of a closed-form estimate, or the error its fit raised (the reference)."""
+    return fit_many([rows])[0]
 
 
 @given(
@@ -31,6 +38,22 @@ def test_recovers_truth_on_noise_free_symmetric_designs(g_v, g_w, x_v, x_w, b1, 
         assert abs(est.x0 - (x_v, x_w)[a]) < 1e-6 * (g_v, g_w)[a]
         assert est.k == pytest.approx(spec.force_constant, rel=1e-6)
         assert not est.rejected
+
+
+def test_readings_share_a_position_within_the_tolerance_and_each_group_prefers_its_set_points():
+    """One grouping serves the closed form's iterations and the fit's seeds (:func:`equations.position_labels`):
+    measured positions within ``POSITION_TOLERANCE`` (2 µm) are one position; a group whose every row has a
+    set-point is grouped by set-points, a group with one missing falls back to its measured positions."""
+    from ambfit.estimation.closed_form.equations import position_labels
+
+    df = pd.DataFrame({"axis": ["v"] * 4 + ["w"] * 4,
+                       "v_um": [-20.0, 20.0, -19.0, 21.5, 0.0, 0.0, 0.0, 0.0],
+                       "w_um": [0.0] * 4 + [5.0, 5.5, -5.0, 9.0],
+                       "v_set_um": [-20.0, 20.0, -20.0, 20.0] + [np.nan] * 4,
+                       "w_set_um": [np.nan] * 4 + [-5.0, -5.0, 5.0, np.nan]})
+    np.testing.assert_array_equal(position_labels(df, np.repeat([0, 1], 4)), [0, 1, 0, 1, 1, 1, 0, 2])
+    # alone, the v rows are one group as before; their measured positions 1.5 µm apart would be one position too
+    np.testing.assert_array_equal(position_labels(df.iloc[:4].drop(columns="v_set_um")), [0, 1, 0, 1])
 
 
 def test_several_position_pairs_use_least_squares():
@@ -100,7 +123,6 @@ def test_mean_and_standard_error_over_iterations():
 def test_by_experiment_and_contract_json():
     a = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.5), (20e-6,), iterations=3, experiment="1"), noise=NF)
     b = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), iterations=3, experiment="2"), noise=NF)
-    import pandas as pd
     res = cf.identify(pd.concat([a.data, b.data], ignore_index=True), by_experiment=True)
     js = res.to_json()
     assert js["method"] == "closed_form" and js["converged"] is True and js["n_rows"] == 48
@@ -124,7 +146,7 @@ def test_interval_uses_student_t_with_n_minus_1_dof():
     # ten iterations: the standard error is estimated from 9 dof, so 95 % is ± 2.262 sem (Student t table,
     # t(0.975, 9) = 2.2622), not the normal 1.96 that covered 88-91 % on the rig (closed_form_coverage.py)
     sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(iterations=10, center=(-33.3e-6, 11.3e-6)), seed=3)
-    res = cf.identify(sim.data, cross_check=False)
+    res = cf.identify(sim.data)
     for ax in "vw":
         est = res.estimates[("all", ax)]
         assert est.n == 10
@@ -143,15 +165,40 @@ def test_biased_mean_at_three_times_the_noise_is_flagged_not_returned():
     spec = rig.PAPER_RIG
     proto = P.paper_table2(iterations=10, center=(-spec.x0[0], -spec.x0[1]))
     sim = rig.simulate(spec, proto, noise=rig.Noise(1.8e-3, 0.3e-6), seed=40)
-    res = cf.identify(sim.data)
+    res = cf.identify(sim.data, reference=least_squares)
     est = res.estimates[("all", "w")]
     assert abs(est.g0 - spec.g0[1]) > 4 * est.g0_sem          # the case is really wrong beyond its error bar
     name, ok, text = next(c for c in est.checks() if c[0] == "agrees_with_least_squares")
     assert ok is False and "least squares" in text and "biased" in text
     assert not res.trusted and any("least squares" in h for h in res.health())
     # the paper's noise (another seed: at 1x the check fires on 1.7 % of data sets, seed 40 among them): no flag
-    clean = cf.identify(rig.simulate(spec, proto, seed=1).data)
+    clean = cf.identify(rig.simulate(spec, proto, seed=1).data, reference=least_squares)
     assert all(ok is not False for name, ok, _ in clean.checks() if name == "agrees_with_least_squares")
+    # the closed form does not fit by itself: without a reference the check cannot be judged, and says why
+    alone = cf.identify(sim.data).estimates[("all", "w")]
+    name, ok, text = next(c for c in alone.checks() if c[0] == "agrees_with_least_squares")
+    assert ok is None and "no least-squares reference" in text
+
+
+def test_each_experiment_is_compared_with_its_own_least_squares_fit():
+    # with by_experiment the reference is a function of the rows, called once per experiment; a fit of all rows
+    # cannot be compared with each experiment's mean and is refused
+    a = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), iterations=3, experiment="a"), seed=1).data
+    b = rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), iterations=3, experiment="b"), seed=2).data
+    both = pd.concat([a, b], ignore_index=True)
+    seen = []
+
+    def fit(rows):
+        seen.append(sorted(set(rows["experiment"])))
+        return least_squares(rows)
+
+    res = cf.identify(both, by_experiment=True, reference=fit)
+    assert seen == [["a"], ["b"]]
+    for (exp, ax), est in res.estimates.items():
+        own = least_squares(both[both.experiment == exp]).value(f"g_{ax}0")
+        assert est.reference.g0 == pytest.approx(own, rel=1e-9)
+    with pytest.raises(ValueError, match="by_experiment"):
+        cf.identify(both, by_experiment=True, reference=least_squares(both))
 
 
 def test_a_least_squares_solution_that_closes_a_pole_gap_is_refused():

@@ -333,6 +333,27 @@ def test_a_step_budget_is_a_traced_number_and_is_kept():
     assert full.result == optx.RESULTS.successful and int(full.steps) > lm.REWEIGHTINGS
 
 
+def test_the_solver_settings_are_arguments_that_share_one_program():
+    """``reweightings``, ``edm_round`` and ``rtol`` are arguments of the solve with the module's constants as
+    defaults, traced like the budget: other values run the same compiled program and do what they say."""
+    sim = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=jnp.asarray(1.3))], seed=4).data
+    prob, _ = core.build_problem(sim)
+    model = core.Model.of([E.Saturation()])
+    theta0 = np.concatenate([fit(sim, throw=False).theta, np.zeros(model.n)])
+    default = lm.solve(theta0, prob, model, max_steps=60)
+    program = lm._compiled(prob, (model,))[0]
+    compiled = program._cache_size()
+    same = lm.solve(theta0, prob, model, max_steps=60, reweightings=lm.REWEIGHTINGS, edm_round=lm.EDM_ROUND,
+                    rtol=lm.RTOL)
+    np.testing.assert_array_equal(same.theta, default.theta)
+    one = lm.solve(theta0, prob, model, max_steps=60, reweightings=1)
+    assert int(one.steps) < int(default.steps)
+    # an EDM stop that any point meets ends each round at its first step, which evaluates the round's start
+    loose = lm.solve(theta0, prob, model, max_steps=60, edm_round=np.inf)
+    assert int(loose.steps) == lm.REWEIGHTINGS and not loose.converged
+    assert program._cache_size() == compiled
+
+
 def test_a_model_is_built_once_per_set_of_effect_instances_and_bearing():
     from ambfit.physics.bearing import PAPER_BEARING
 
@@ -361,15 +382,12 @@ def test_a_table_owned_by_its_caller_is_hashed_once_and_a_changed_table_is_seen(
     assert float(changed.i_top[0]) == 1.70
 
 
-def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch):
+def test_the_written_out_levenberg_marquardt_takes_optimistix_steps():
     """The solve's iteration is optimistix's LevenbergMarquardt written out (one place evaluates the model).  One
     round with the weights held and our extra EDM stop off gives optimistix's iterates from a far start (150 µm off
     in gap, 60 µm in origin, the effect two prior widths off): the same point and result after 2, 3, 5 and 12
     steps, through rejected steps too.  Red when the trust region's step-size factors differ (measured: 3 for 3.5
     and 0.5 for 0.25 each fail it; an acceptance cutoff of 0.1 for 0.01 does not, no step here falls between)."""
-    import types
-
-    import equinox as eqx
     import optimistix as optx
 
     sim = rig.simulate(rig.PAPER_RIG, P.rich(), [E.Saturation(b_sat=jnp.asarray(1.3))], seed=4).data
@@ -380,13 +398,6 @@ def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch)
     theta0[:4] += np.array([150e-6, -150e-6, 60e-6, -60e-6]) / core.SCALE_HEAD[:4]
     theta0[-model.n:] = 2.0                    # the effect two prior widths off
     theta0 = jnp.asarray(theta0)
-    monkeypatch.setattr(lm, "REWEIGHTINGS", 1)
-    monkeypatch.setattr(lm, "EDM_ROUND", 0.0)
-    # a new function object of the same code, compiled afresh: it reads the patched constants (the library's own
-    # compiled solve may already hold a trace with them unpatched, from an earlier test)
-    code = lm._solve_in.__wrapped__
-    solve = eqx.filter_jit(types.FunctionType(code.__code__, code.__globals__, "solve", code.__defaults__,
-                                              code.__closure__))
     s0 = core.misfit(theta0, prob, model)[1]
 
     def residuals(theta, _):
@@ -394,7 +405,7 @@ def test_the_written_out_levenberg_marquardt_takes_optimistix_steps(monkeypatch)
 
     solver = optx.LevenbergMarquardt(rtol=lm.RTOL, atol=lm.RTOL)
     for budget in (2, 3, 5, 12):
-        ours = solve(theta0, prob, (model,), jnp.asarray(0), jnp.asarray(budget))
+        ours = lm.solve(theta0, prob, model, max_steps=budget, reweightings=1, edm_round=0.0)
         ref = optx.least_squares(residuals, solver, theta0, max_steps=budget, throw=False)
         assert ours.result == ref.result, budget
         assert int(ours.steps) == int(ref.stats["num_steps"]), budget

@@ -154,8 +154,9 @@ def test_force_measurement_with_uncertainty():
     loads = {"u": P.Load(5.0, 4.0, known=False)}
     unk = fit.fit(rig.simulate(rig.PAPER_RIG, P.perturbation((1.4, 1.6), (20e-6,), iterations=3, load="u",
                                                              loads=loads), seed=1).data)
-    with pytest.raises(fit.FitError, match="needs k_v"):
+    with pytest.raises(fit.FitError, match="needs k_v") as info:
         measure.force(unk, "v", 1.7, 1.3, 0.0)
+    assert info.value.result is unk
 
 
 @given(g=st.floats(600e-6, 950e-6), x0=st.floats(-50e-6, 50e-6), b=st.floats(1.0, 1.5),
@@ -176,6 +177,29 @@ def test_non_convergence_is_reported_not_silent():
         fit.fit(df, max_steps=1)   # one LM step per round from the grid start cannot reach the minimum
     assert "EDM" in str(info.value)
     assert fit.fit(df).converged   # with the default budget it does
+
+
+def test_a_fit_error_carries_the_result_it_failed_on():
+    """As emcee's AutocorrError carries tau: the result a failed fit reached is on its error, the same as
+    ``throw=False`` gives, and it survives pickling (a worker's error); an error raised before there was a
+    result carries None."""
+    import pickle
+
+    spec = rig.PAPER_RIG.with_truth(g0=(900e-6, 650e-6), x0=(-45e-6, 40e-6))
+    df = rig.simulate(spec, P.rich(), seed=2).data
+    with pytest.raises(fit.FitError, match="did not converge") as info:
+        fit.fit(df, max_steps=1)
+    failed = info.value.result
+    assert isinstance(failed, fit.FitResult) and not failed.converged
+    assert str(info.value) in failed.health()
+    np.testing.assert_array_equal(failed.values, fit.fit(df, max_steps=1, throw=False).values)
+    again = pickle.loads(pickle.dumps(info.value))
+    assert str(again) == str(info.value) and np.array_equal(again.result.values, failed.values)
+    loads = {"u": P.Load(5.0, 4.0, known=False)}
+    one = rig.simulate(rig.PAPER_RIG, P.grid([(10e-6, 10e-6)], [1.2, 1.4, 1.6], load="u", loads=loads), seed=0)
+    with pytest.raises(fit.FitError, match="no redundancy") as info:      # fewer readings than parameters
+        fit.fit(one.data)
+    assert info.value.result is None
 
 
 def test_pulls_are_unbiased_with_unit_variance_small_study():

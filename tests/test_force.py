@@ -1,6 +1,7 @@
 """Force measurement as a product: the fitted model's JSON, ``ambfit force``, leave-one-load-out checks,
 and the axis pairing and magnetic circuit the force needs on a real bearing."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -268,6 +269,12 @@ def test_a_model_file_keeps_held_parameters_and_reads_older_files_that_estimated
     default = FittedModel.from_state(state(head | fitted, {}), b)           # l_fe at 0.08 m: another force
     for fm in (new, old):
         np.testing.assert_allclose(fm.force(r)[0], want, rtol=1e-12)
+    # the older file's estimate of l_fe[v] keeps its error: its variance reaches the force on axis v (row 0) alone
+    cov = np.zeros((len(old.names),) * 2)
+    j = old.names.index("iron_reluctance.l_fe[v]")
+    cov[j, j] = (0.01) ** 2
+    s = dataclasses.replace(old, cov=cov).force(r)[1]
+    assert s[0] > 0 and s[1] == 0
     assert np.all(np.abs(default.force(r)[0] - want) > 1e-3 * np.abs(want))
     from ambfit.estimation.results import _held_fields
 

@@ -5,7 +5,9 @@ low-level infrastructure (``checks``, ``data``, ``engine``, ``workers``), ``rig`
 ``studies``, ``faces``.  A
 module may import from its own layer and the layers below it.  Every import counts, wherever it stands: at module
 level, inside a function, or under ``TYPE_CHECKING`` (a dependency that static analysers and readers follow all the
-same).  The source is read with :mod:`ast`, not imported, so the check is cheap and sees every import.
+same).  Within the estimation layer the closed form and the least-squares core lie below the fit pipeline and
+must not reach it, through any chain of imports.  The source is read with :mod:`ast`, not imported, so the check is
+cheap and sees every import.
 """
 
 from __future__ import annotations
@@ -155,3 +157,28 @@ def test_the_force_model_and_the_effects_do_not_import_each_other(a, b):
                    if m == src or m.startswith(src + ".") for t, _ in targets)
 
     assert not (reaches(a, b) and reaches(b, a)), f"{a} and {b} import each other"
+
+
+def reached(src: str, edges: dict) -> dict[str, list[str]]:
+    """Every module that the modules of ``src`` (a module or package) import, directly or through others, with the
+    chain of imports that gets there."""
+    todo = [(m, [m]) for m in sorted(edges) if m == src or m.startswith(src + ".")]
+    seen = {m: path for m, path in todo}
+    while todo:
+        m, path = todo.pop()
+        for t, _ in sorted(edges.get(m, ())):
+            if t not in seen:
+                seen[t] = path + [t]
+                todo.append((t, path + [t]))
+    return seen
+
+
+@pytest.mark.parametrize("low, high", [("ambfit.estimation.closed_form", "ambfit.estimation.fit"),
+                                       ("ambfit.estimation.core", "ambfit.estimation.fit"),
+                                       ("ambfit.estimation.lm", "ambfit.estimation.fit")])
+def test_the_closed_form_and_the_core_lie_below_the_fit_pipeline(low, high):
+    """Within the estimation layer the closed form (Eq. 5-7, whose solutions start every fit), the least-squares
+    core and its solve are below the fit pipeline: none of them imports it, directly or through other modules (a
+    function-level import counts: it hides the dependency from a reader, not from the program)."""
+    hits = {m: path for m, path in reached(low, graph()).items() if m == high or m.startswith(high + ".")}
+    assert not hits, f"{low} reaches {high}: " + "; ".join(" -> ".join(p) for p in hits.values())

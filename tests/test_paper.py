@@ -144,7 +144,7 @@ def test_eq7_gap_scatter_is_proportional_to_current_noise():
         g = []
         for seed in range(20):
             res = closed_form.identify(rig.simulate(rig.PAPER_RIG, proto, noise=rig.Noise(sigma_i, 0.1e-6),
-                                                    seed=seed).data, cross_check=False)
+                                                    seed=seed).data)
             g += [s.g0 for s in res.estimates[("all", "v")].iterations.values()]
         return np.std(g, ddof=1)
 

@@ -17,7 +17,7 @@ import numpy as np
 import optimistix as optx
 
 from ambfit.estimation.core import IDEAL, Model, Problem
-from ambfit.estimation.lm import FIRST_STEPS, Solution, solve
+from ambfit.estimation.lm import EDM_ROUND, FIRST_STEPS, REWEIGHTINGS, RTOL, Solution, solve
 
 ROW_BUCKET_MIN = 16
 """Shortest padded length; longer data sets are padded to the next power of two (16, 32, 64, 128, ... rows).
@@ -69,20 +69,23 @@ def pad(probs: Sequence[Problem], rows: int) -> Problem:
 
 
 @eqx.filter_jit
-def _vmapped(theta0, probs, model, max_steps) -> Solution:
-    return jax.vmap(lambda t, p: solve(t, p, model, max_steps=max_steps))(theta0, probs)
+def _vmapped(theta0, probs, model, max_steps, settings) -> Solution:
+    """:func:`solve` of a batch; ``settings`` (reweightings, EDM stop and tolerance) as arrays: traced, one program
+    for any values."""
+    return jax.vmap(lambda t, p: solve(t, p, model, max_steps=max_steps, **settings))(theta0, probs)
 
 
 def _text(ok: bool, result, b=None) -> str:
     return "successful" if ok else str(result if b is None else jax.tree.map(lambda a: a[b], result))
 
 
-def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, max_steps: int,
-                 size: int) -> list[Solution]:
+def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, max_steps: int, size: int, *,
+                 reweightings: int = REWEIGHTINGS, edm_round: float = EDM_ROUND, rtol: float = RTOL) -> list[Solution]:
     """:func:`solve` of each problem: alone at its own shape, or padded to its bucket and vmapped ``size`` at a
     time (the last batch padded with copies of its first problem).  NumPy leaves, ``result`` as text."""
+    settings = dict(reweightings=reweightings, edm_round=edm_round, rtol=rtol)
     if len(probs) == 1:
-        sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps)
+        sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps, **settings)
         return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
     out: list = [None] * len(probs)
     # (rows, nuisance loads): a start holds the six head entries, one per load, then the model's effect entries
@@ -101,7 +104,8 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
             starts[b, :6 + m], starts[b, 6 + loads:] = t[:6 + m], t[6 + m:]
         for i, part in enumerate(parts):
             batch = slice(i * size, (i + 1) * size)
-            sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model, max_steps)
+            sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model, max_steps,
+                           {k: np.asarray(v) for k, v in settings.items()})
             ok = np.asarray(sol.result == optx.RESULTS.successful)
             theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
                                                                             sol.jac_all, sol.z))
@@ -121,18 +125,22 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
 
 
 def solve_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model = IDEAL,
-               max_steps: int = 200) -> list[Solution]:
+               max_steps: int = 200, *, reweightings: int = REWEIGHTINGS, edm_round: float = EDM_ROUND,
+               rtol: float = RTOL) -> list[Solution]:
     """Every problem's solve by the schedule of a fit: ``FIRST_STEPS`` per round for the ideal law from its
     closed-form or grid start (``max_steps`` for a model with effects, which start further away), then
     ``max_steps`` once more for the problems not converged (a model with effects: while its budget is not spent,
-    since its effective-variance weights can move after the last round).  Returns one :class:`Solution` per problem (NumPy leaves, ``steps``
-    summed over the solves)."""
+    since its effective-variance weights can move after the last round).  ``reweightings``, ``edm_round`` and
+    ``rtol`` are :func:`ambfit.estimation.lm.solve`'s.  Returns one :class:`Solution` per problem (NumPy leaves,
+    ``steps`` summed over the solves)."""
+    settings = dict(reweightings=reweightings, edm_round=edm_round, rtol=rtol)
     first = max_steps if model.n else min(FIRST_STEPS, max_steps)
-    out = _solve_batch(list(thetas), list(probs), model, first, BATCH)
+    out = _solve_batch(list(thetas), list(probs), model, first, BATCH, **settings)
     again = [s for s, sol in enumerate(out)
              if not sol.converged and (max_steps > first or (model.n and sol.steps < max_steps))]
     if again:
-        more = _solve_batch([out[s].theta for s in again], [probs[s] for s in again], model, max_steps, BATCH_AGAIN)
+        more = _solve_batch([out[s].theta for s in again], [probs[s] for s in again], model, max_steps, BATCH_AGAIN,
+                            **settings)
         for s, sol in zip(again, more):
             out[s] = sol._replace(steps=out[s].steps + sol.steps)
     return out

@@ -38,6 +38,7 @@ import numpy as np
 
 from ambfit._recent import Recent
 from ambfit.estimation.problem import Meta, Problem, build_problem  # noqa: F401  (build_problem: the core's entry)
+from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
 from ambfit.physics.model import BearingParams, evaluate, ideal_force
@@ -52,7 +53,8 @@ K_REFERENCE = PAPER_BEARING.force_constant()
 # eigenvalue of J^T J was ~10, and lambda = 1 cost ~8 extra steps per solve.)
 SCALE_HEAD = np.array([1e-2, 1e-2, 1e-4, 1e-4, 1e-4, 1e-4])
 SCALE_LOAD = 100.0
-HEAD_NAMES = ("g_v0", "g_w0", "v0", "w0", "k_v", "k_w")
+HEAD_NAMES = GAPS + ORIGINS + FORCE_CONSTANTS
+"""The head of theta: gaps, origins, force constants (each pair v, w; :data:`ambfit.estimation.units.HEAD`)."""
 
 EDM_MAX = 1e-6
 """Convergence: the estimated distance to the minimum, ``EDM = r^T J (J^T J)^-1 J^T r`` (the χ² a
@@ -65,7 +67,17 @@ and it can stop late or never while the solution is already exact."""
 
 
 class FitError(RuntimeError):
-    """The fit did not converge or the design does not identify the parameters; the message says why."""
+    """The fit did not converge or the design does not identify the parameters; the message says why.
+
+    ``result`` is the :class:`~ambfit.estimation.results.FitResult` the fit failed on, when it got that far (as
+    emcee's ``AutocorrError`` carries ``tau``): its estimates, health and solver record are there to read, without
+    fitting again with ``throw=False``.  None when the fit stopped before it had a result (no readings, too few
+    readings for the parameters, a force law that is not finite at the estimate).
+    """
+
+    def __init__(self, message: str, result=None):
+        super().__init__(message)
+        self.result = result
 
 
 def param_scale(n_loads: int) -> np.ndarray:
@@ -102,37 +114,39 @@ class Model(eqx.Module):
     bearing: Bearing = eqx.field(static=True)
 
     @classmethod
-    def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING) -> Model:
-        """The model of ``effects`` (their ``ranges()`` fields free) on ``bearing``."""
+    def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING, fields: tuple | None = None) -> Model:
+        """The model of ``effects`` on ``bearing``, their ``ranges()`` fields free (shared by the two axes where the
+        class sets ``SHARED``); or the free ``fields`` given as ``(effect index, field name, shared)``: a model
+        file's estimates, which may include a field its class now holds."""
         effects = tuple(effects)
-        key = (tuple(map(id, effects)), bearing)
+        key = (tuple(map(id, effects)), bearing, fields)
         hit = _MODELS.get(key)
         if hit is not None:
             return hit[1]
-        model = cls._of(effects, bearing)
+        model = cls._of(effects, bearing, fields)
         _MODELS.put(key, (effects, model))      # holding the effects: their identities stay theirs while keyed
         return model
 
     @classmethod
-    def _of(cls, effects: tuple, bearing: Bearing) -> Model:
-        fields, centre, width = [], [], []
-        effects = list(effects)
-        for i, e in enumerate(effects):
-            shared = getattr(type(e), "SHARED", False)
-            for name, (lo, hi) in e.ranges().items():
-                if lo == hi:
-                    continue
-                fields.append((i, name, shared))
-                # a free field's value comes from q (build): one shape for every instance, so that a model of
-                # fitted effects runs the compiled solve of the same model with default ones
-                effects[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), effects[i],
-                                         jnp.broadcast_to(jnp.asarray(getattr(e, name), dtype=float), (2,)))
-                signed = name in type(e).SIGNED
-                c = 0.0 if signed else 0.5 * (lo + hi)
-                wd = hi if signed else max(hi - lo, 1e-12)
-                centre += [c] if shared else [c, c]
-                width += [wd] if shared else [wd, wd]
-        return cls(tuple(effects), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
+    def _of(cls, effects: tuple, bearing: Bearing, fields: tuple | None = None) -> Model:
+        if fields is None:
+            fields = tuple((i, name, getattr(type(e), "SHARED", False)) for i, e in enumerate(effects)
+                           for name, (lo, hi) in e.ranges().items() if lo != hi)
+        centre, width = [], []
+        built = list(effects)
+        for i, name, shared in fields:
+            e = effects[i]
+            lo, hi = (type(e).RANGES | e.ranges())[name]
+            # a free field's value comes from q (build): one shape for every instance, so that a model of
+            # fitted effects runs the compiled solve of the same model with default ones
+            built[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), built[i],
+                                   jnp.broadcast_to(jnp.asarray(getattr(e, name), dtype=float), (2,)))
+            signed = name in type(e).SIGNED
+            c = 0.0 if signed else 0.5 * (lo + hi)
+            wd = hi if signed else max(hi - lo, 1e-12)
+            centre += [c] if shared else [c, c]
+            width += [wd] if shared else [wd, wd]
+        return cls(tuple(built), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
                    jnp.asarray(width, dtype=float).reshape(-1), bearing)
 
     @property
@@ -292,31 +306,6 @@ def standardized(theta, prob: Problem, model: Model = IDEAL):
 def jacobian(theta, prob: Problem, model: Model = IDEAL):
     """Jacobian ``d r / d theta`` of :func:`residuals` [rows + effect priors, params] (scaled parameters)."""
     return weighted(theta, measured(theta, prob, model), prob.mask, model.n)[1]
-
-
-@eqx.filter_jit
-def _unit_force(theta, prob: Problem, model: Model):
-    """The model's force with k = 1 on every row."""
-    p = unpack(theta, prob, model)
-    return _force(BearingParams(p.params.g0, p.params.x0, jnp.ones(2)), p.effects, prob, model)
-
-
-def seed_loads_and_k(theta, prob: Problem, model: Model = IDEAL):
-    """``theta`` with k (from the known loads) and the nuisance loads set to their best values at its gap and origin."""
-    a = np.asarray(prob.ax)
-    unit = np.asarray(_unit_force(jnp.asarray(theta), prob, model))
-    known, load, gidx = np.asarray(prob.known), np.asarray(prob.load), np.asarray(prob.gidx)
-    mask = np.asarray(prob.mask) > 0
-    theta = np.array(theta)
-    for ax in range(2):
-        sel = known & (a == ax) & mask
-        if sel.any() and np.sum(unit[sel] ** 2) > 0:
-            theta[4 + ax] = np.sum(load[sel] * unit[sel]) / np.sum(unit[sel] ** 2) / SCALE_HEAD[4]
-    k_used = np.where(np.asarray(prob.k_free), theta[4:6] * SCALE_HEAD[4], K_REFERENCE)
-    for j in range(prob.n_loads):
-        sel = gidx == j
-        theta[6 + j] = float(np.mean(k_used[a[sel]] * unit[sel])) / SCALE_LOAD
-    return theta
 
 
 def free_mask(prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:

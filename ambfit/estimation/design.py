@@ -34,6 +34,7 @@ from ambfit.estimation.core import (
     to_theta,
 )
 from ambfit.estimation.fit import FitResult, fit
+from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
 
@@ -137,9 +138,9 @@ def _information_rows(res: FitResult, df: pd.DataFrame, **noise) -> tuple[np.nda
     model = Model.of((), res.bearing)
     vals = dict(zip(res.names, res.values))
     nominal = res.bearing.nominal_gap
-    g = np.array([vals.get("g_v0", nominal), vals.get("g_w0", nominal)])
-    x = np.array([vals.get("v0", 0.0), vals.get("w0", 0.0)])
-    k = np.array([vals.get("k_v", K_REFERENCE), vals.get("k_w", K_REFERENCE)])
+    g = np.array([vals.get(n, nominal) for n in GAPS])
+    x = np.array([vals.get(n, 0.0) for n in ORIGINS])
+    k = np.array([vals.get(n, K_REFERENCE) for n in FORCE_CONSTANTS])
     loads = np.array([vals.get(f"load[{grp}]", 0.0) for grp in meta.load_groups])
     th = jnp.asarray(to_theta(g, x, k, loads))
     it, ib = model_currents(th, prob, prob.bias, model)
@@ -173,8 +174,8 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     bearing = res.bearing
     if target not in res.names:
         raise ValueError(f"target {target!r} is not estimated here; choose one of {res.names}")
-    origin = np.array([res.value(n) if n in res.names else 0.0 for n in ("v0", "w0")])
-    idx = [res.names.index(n) for n in ("v0", "w0") if n in res.names]
+    origin = np.array([res.value(n) if n in res.names else 0.0 for n in ORIGINS])
+    idx = [res.names.index(n) for n in ORIGINS if n in res.names]
     cov = np.asarray(res.cov)[np.ix_(idx, idx)]
     margin = ORIGIN_MARGIN_SIGMAS * float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if idx else 0.0
     if max_radius_um is not None:
@@ -223,7 +224,7 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     jc = j[n0:].reshape(len(candidates), 2, -1)          # one step = two rows (v, w)
     step_info = np.einsum("cri,crj->cij", jc, jc)
     t = names.index(target)
-    sel_idx = [names.index(n) for n in names if n.startswith("g_") or n in ("v0", "w0")]
+    sel_idx = [names.index(n) for n in names if n in GAPS + ORIGINS]
 
     def score(m):
         if criterion == "A":

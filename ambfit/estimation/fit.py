@@ -74,6 +74,7 @@ from ambfit.estimation.identification import prior_shares
 from ambfit.estimation.outliers import screen, studentized
 from ambfit.estimation.problem import build_problems
 from ambfit.estimation.results import FitResult, Thresholds
+from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.effects import Effect
 
@@ -139,8 +140,8 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     Raises
     ------
     FitError
-        Not identifiable (checked first: an unidentifiable valley is what makes LM
-        run out of steps) or not converged; the message says why and what to do.
+        Not identifiable (checked first: an unidentifiable valley is what makes LM run out of steps) or not
+        converged; the message says why and what to do; its ``result`` is the fit's :class:`FitResult`, if any.
 
     Examples
     --------
@@ -366,8 +367,8 @@ def _initial(prob: Problem, meta: Meta, model: Model, start_from: FitResult) -> 
         return np.asarray(start_from.theta), start_from.start      # a refit of the same model (robust rounds)
     vals = dict(zip(start_from.names, start_from.values))
     nominal = model.bearing.nominal_gap
-    theta = to_theta([vals.get("g_v0", nominal), vals.get("g_w0", nominal)], [vals.get("v0", 0.0), vals.get("w0", 0.0)],
-                     [vals.get("k_v", K_REFERENCE), vals.get("k_w", K_REFERENCE)],
+    theta = to_theta([vals.get(n, nominal) for n in GAPS], [vals.get(n, 0.0) for n in ORIGINS],
+                     [vals.get(n, K_REFERENCE) for n in FORCE_CONSTANTS],
                      [vals.get(f"load[{g}]", 0.0) for g in meta.load_groups])
     if not meta.load_groups:
         theta = seeds.seed_loads_and_k(theta, prob, model.bearing)

@@ -1,16 +1,18 @@
 """The least-squares solve: Levenberg-Marquardt over the effective-variance residuals of one data set.
 
-:func:`solve` runs ``REWEIGHTINGS`` rounds of Levenberg-Marquardt, each with the effective-variance weights held
-at its start, then measures the solution (every row's Jacobian and standardized residual) with the same
-evaluation of the model, and returns a :class:`Solution`.  It is jit- and vmap-safe; many data sets are solved
-together by :mod:`ambfit.estimation.batches`.
+:func:`solve` runs ``reweightings`` rounds (default :data:`REWEIGHTINGS`) of Levenberg-Marquardt, each with the
+effective-variance weights held at its start, then measures the solution (every row's Jacobian and standardized
+residual) with the same evaluation of the model, and returns a :class:`Solution`.  It is jit- and vmap-safe; many
+data sets are solved together by :mod:`ambfit.estimation.batches`.
 
 The iteration is optimistix's ``LevenbergMarquardt`` written out (damped Newton steps with step size
 ``1/lambda`` by QR, its ``ClassicalTrustRegion``: accept when the loss falls by 1 % of the predicted reduction,
-step size x3.5 above 99 %, x0.25 on rejection; Cauchy termination at ``rtol = atol = RTOL``; its first step
-evaluates the start), plus a stop of ours when the round's EDM is below :data:`EDM_ROUND`.  Written out so that
-one place in the program evaluates the model (force, noise and Jacobian, :func:`ambfit.estimation.core.measured`):
-a round's start, each trial point and the solution; each further place is traced and compiled again.
+step size x3.5 above 99 %, x0.25 on rejection; Cauchy termination at ``rtol = atol``, default :data:`RTOL`; its
+first step evaluates the start), plus a stop of ours when the round's EDM is below ``edm_round`` (default
+:data:`EDM_ROUND`).  The three settings are arguments of :func:`solve`, traced like the step budget: any values run
+the same compiled program.  Written out so that one place in the program evaluates the model (force, noise and
+Jacobian, :func:`ambfit.estimation.core.measured`): a round's start, each trial point and the solution; each
+further place is traced and compiled again.
 """
 
 from __future__ import annotations
@@ -179,16 +181,17 @@ def distance(jac, r):
     return b @ jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(h), b)
 
 
-def _cauchy(y, y_diff, f, f_diff):
+def _cauchy(y, y_diff, f, f_diff, rtol):
     """Optimistix's Cauchy termination: both the step and the change of the residuals are small (max norm)."""
-    y_done = jnp.max(jnp.abs(y_diff) / (RTOL + RTOL * jnp.abs(y))) < 1
-    return y_done & (jnp.max(jnp.abs(f_diff) / (RTOL + RTOL * jnp.abs(f))) < 1)
+    y_done = jnp.max(jnp.abs(y_diff) / (rtol + rtol * jnp.abs(y))) < 1
+    return y_done & (jnp.max(jnp.abs(f_diff) / (rtol + rtol * jnp.abs(f))) < 1)
 
 
 @eqx.filter_jit
-def _solve_in(theta0, prob, models, index, budget) -> Solution:
-    """``REWEIGHTINGS`` rounds of at most ``budget`` steps (a traced number: every budget runs the same program),
-    then the measurements at the solution; see the module docstring."""
+def _solve_in(theta0, prob, models, index, budget, reweightings, edm_round, rtol) -> Solution:
+    """``reweightings`` rounds of at most ``budget`` steps, each stopped by the Cauchy test at ``rtol`` or an EDM
+    below ``edm_round`` (traced numbers: every value runs the same program), then the measurements at the solution;
+    see the module docstring."""
     n = max(m.n for m in models)
     p = theta0.shape[0]
     branches = [lambda th, m=m: measured(th, prob, m, p - n + m.n) for m in models]
@@ -199,7 +202,7 @@ def _solve_in(theta0, prob, models, index, budget) -> Solution:
     def body(c: _State) -> _State:
         # a round starts at the accepted point, measured when it was accepted: only trial points are evaluated
         f, s_now, jf = jax.lax.cond(c.start & c.have, lambda: c.at, lambda: measure(c.y_eval))
-        start, final = c.start, c.start & (c.round == REWEIGHTINGS)
+        start, final = c.start, c.start & (c.round == reweightings)
         s = jnp.where(start, s_now, c.s)                    # a round holds the weights of its start
         r_e, j_e = weighted(c.y_eval, (f, s, jf), prob.mask, n)
         # the trust region (a round's start is always accepted, its step size reset to 1)
@@ -209,9 +212,9 @@ def _solve_in(theta0, prob, models, index, budget) -> Solution:
         accept = start | (loss_diff <= 0.01 * predicted)
         good = ~start & (loss_diff < 0.99 * predicted) & (predicted < 0)
         step_size = jnp.where(start, 1.0, jnp.where(accept, jnp.where(good, 3.5, 1.0), 0.25) * c.step_size)
-        done = accept & _cauchy(c.y_eval, c.y_eval - y, r_e, r_e - r)
+        done = accept & _cauchy(c.y_eval, c.y_eval - y, r_e, r_e - r, rtol)
         y, r, jac = (jnp.where(accept, new, old) for new, old in ((c.y_eval, y), (r_e, r), (j_e, c.jac)))
-        done = done | (accept & (distance(jac, r) < EDM_ROUND))
+        done = done | (accept & (distance(jac, r) < edm_round))
         steps = jnp.where(start, 1, c.steps + 1)
         over = done | (steps >= budget)
         outcome = optx.RESULTS.where(done, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached)
@@ -268,16 +271,28 @@ def _compiled(prob: Problem, models: tuple):
     if program is None:
         raw = _solve_in.__wrapped__
 
-        def program(theta0, p_leaves, m_leaves, index, budget):
+        def program(theta0, p_leaves, m_leaves, index, *settings):
             ms = eqx.combine(jax.tree_util.tree_unflatten(m_tree, m_leaves), static)
-            return raw(theta0, jax.tree_util.tree_unflatten(p_tree, p_leaves), ms, index, budget)
+            return raw(theta0, jax.tree_util.tree_unflatten(p_tree, p_leaves), ms, index, *settings)
 
         program = _PROGRAMS.setdefault(program_key, jax.jit(program))
     return program, p_leaves, m_leaves
 
 
-def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS) -> Solution:
+def _settings(xp, max_steps, reweightings, edm_round, rtol) -> tuple:
+    """The solve's step budget and settings as arrays of ``xp`` (NumPy or JAX), of one dtype whatever the caller
+    passed, so that every value runs the same compiled program."""
+    return (xp.asarray(max_steps), xp.asarray(reweightings, dtype=int), xp.asarray(edm_round, dtype=float),
+            xp.asarray(rtol, dtype=float))
+
+
+def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_STEPS, *,
+          reweightings: int = REWEIGHTINGS, edm_round: float = EDM_ROUND, rtol: float = RTOL) -> Solution:
     """Levenberg-Marquardt from ``theta0`` (scaled), at most ``max_steps`` steps per round (jit- and vmap-safe).
+
+    ``reweightings`` rounds, each with the effective-variance weights of its start, stopped by optimistix's Cauchy
+    test at ``rtol`` or when its EDM is below ``edm_round`` (the defaults are the module's constants, with the
+    evidence that set them).  The step budget and these three are traced: any values run one compiled program.
 
     The solve of ``model`` runs in its set (see :func:`compiled_together`) and is cut back to the model's own
     entries.  Called with concrete values, the padding and the cutting are done in NumPy (each eager JAX operation
@@ -285,16 +300,17 @@ def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_ST
     """
     models, index = _members(model)
     pad = max(m.n for m in models) - model.n
+    settings = (max_steps, reweightings, edm_round, rtol)
     if isinstance(theta0, jax.core.Tracer) or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prob)):
         if pad:
             theta0 = jnp.concatenate([jnp.asarray(theta0), jnp.zeros(pad)])
-        sol = _solve_in(theta0, prob, models, jnp.asarray(index), jnp.asarray(max_steps))
+        sol = _solve_in(theta0, prob, models, jnp.asarray(index), *_settings(jnp, *settings))
     else:
         theta0 = np.asarray(theta0, dtype=float)
         if pad:
             theta0 = np.concatenate([theta0, np.zeros(pad)])
         program, p_leaves, m_leaves = _compiled(prob, models)
-        sol = program(theta0, p_leaves, m_leaves, np.asarray(index), np.asarray(max_steps))
+        sol = program(theta0, p_leaves, m_leaves, np.asarray(index), *_settings(np, *settings))
         sol = sol._replace(**{k: np.asarray(getattr(sol, k)) for k in ("theta", "steps", "edm", "jac", "jac_all", "z")})
     if pad:
         width, rows = sol.theta.shape[-1] - pad, sol.jac.shape[-2] - pad

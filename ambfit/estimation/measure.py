@@ -11,12 +11,13 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ambfit.estimation.core import HEAD_NAMES, Model, Problem, measured, si_scale, to_theta
 from ambfit.estimation.fit import FitError, FitResult
 from ambfit.estimation.model_file import ModelFileError  # noqa: F401  (raised by FittedModel.from_json)
+from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.physics.bearing import AXES
 from ambfit.physics.model import BearingParams, Readings, evaluate
 
@@ -34,7 +35,7 @@ def force(result: FitResult, axis: str, i_top, i_bottom, x, *, y=0.0, sigma_i: f
         raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
     if f"k_{axis}" not in result.names:
         raise FitError(f"the force on axis {axis} needs k_{axis}, which this fit could not identify "
-                       "(no known load on that axis)")
+                       "(no known load on that axis)", result=result)
     shape = np.broadcast(i_top, i_bottom, x, y).shape
     it, ib, xx, yy = (jnp.asarray(np.broadcast_to(v, shape), dtype=float).ravel() for v in (i_top, i_bottom, x, y))
     r = Readings.build(axis=jnp.full(it.shape, AXES.index(axis)), i_top=it, i_bottom=ib, x=xx, y=yy)
@@ -52,9 +53,9 @@ def predict(result: FitResult, data, *, rows: Readings | None = None) -> np.ndar
     df = data.frame if isinstance(data, Dataset) else data
     vals = dict(zip(result.names, result.values))
     nominal = result.bearing.nominal_gap
-    params = BearingParams(jnp.asarray([vals.get("g_v0", nominal), vals.get("g_w0", nominal)]),
-                           jnp.asarray([vals.get("v0", 0.0), vals.get("w0", 0.0)]),
-                           jnp.asarray([vals.get("k_v", np.nan), vals.get("k_w", np.nan)]))
+    params = BearingParams(jnp.asarray([vals.get(n, nominal) for n in GAPS]),
+                           jnp.asarray([vals.get(n, 0.0) for n in ORIGINS]),
+                           jnp.asarray([vals.get(n, np.nan) for n in FORCE_CONSTANTS]))
     return np.asarray(_force(params, readings(df) if rows is None else rows, result.effects, result.bearing))
 
 
@@ -262,63 +263,54 @@ class FittedModel:
         return cls(names=tuple(names), values=values, cov=cov, effects=tuple(effects), bearing=bearing, model=model,
                    discrepancy=disc)
 
-    def _params(self, theta):
-        """Bearing parameters and effects at the parameter vector ``theta`` (SI, ordered as ``names``)."""
-        v = dict(zip(self.names, theta))
+    def _model(self) -> tuple[Model, np.ndarray, list[int]]:
+        """The core's model of this one (the fields :attr:`names` estimates free, the others held at their values),
+        its scaled parameter vector here and the entry of it that each of :attr:`names` is."""
+        v = dict(zip(self.names, self.values))
+        fields = []                     # (effect, field, one value for both axes) as the file names them
+        for i, e in enumerate(self.effects):
+            for f in type(e).RANGES:
+                name = f"{type(e).name}.{f}"
+                if name in v:
+                    fields.append((i, f, True))
+                elif all(f"{name}[{ax}]" in v for ax in AXES):
+                    fields.append((i, f, False))
+        model = Model.of(self.effects, self.bearing, tuple(fields))
         nominal = self.bearing.nominal_gap
-        params = BearingParams(jnp.stack([v.get("g_v0", nominal), v.get("g_w0", nominal)]),
-                               jnp.stack([v.get("v0", 0.0), v.get("w0", 0.0)]),
-                               jnp.stack([v.get("k_v", jnp.nan), v.get("k_w", jnp.nan)]))
-        effects = []
-        for e in self.effects:
-            for field in type(e).RANGES:
-                shared = f"{type(e).name}.{field}"
-                if shared in v:
-                    e = _set_field(e, field, jnp.stack([v[shared], v[shared]]))
-                elif f"{shared}[v]" in v:
-                    e = _set_field(e, field, jnp.stack([v[f"{shared}[v]"], v[f"{shared}[w]"]]))
-            effects.append(e)
-        return params, tuple(effects)
+        head = to_theta([v.get(n, nominal) for n in GAPS], [v.get(n, 0.0) for n in ORIGINS],
+                        [v.get(n, np.nan) for n in FORCE_CONSTANTS])
+        q = (np.array([v[n] for n in model.names()]) - np.asarray(model.centre)) / np.asarray(model.width)
+        layout = list(HEAD_NAMES) + model.names()
+        return model, np.concatenate([head, q]), [layout.index(n) for n in self.names]
 
     def force(self, readings: Readings, *, sigma_i=0.0, sigma_x=0.0, sigma_i_bottom=None):
         """Force [N] on each reading's own axis and its standard error [N].
 
         ``sigma_i`` (top coil; ``sigma_i_bottom`` for the bottom coil, default the same) [A] and ``sigma_x`` [m]
-        are the readings' own noise std, a number or one per reading; they add to the parameters' error.
+        are the readings' own noise std, a number or one per reading; they add to the parameters' error.  The
+        force, its derivatives with respect to the parameters (delta method) and to the readings (their noise)
+        come from the core's one measurement of the model (:func:`ambfit.estimation.core.measured`).
         """
         sigma_i_bottom = sigma_i if sigma_i_bottom is None else sigma_i_bottom
-        def f(theta):
-            params, effects = self._params(theta)
-            return evaluate(params, readings, effects, bearing=self.bearing)[0]
+        model, theta, columns = self._model()
+        n = readings.x.shape[0]
 
-        theta = jnp.asarray(self.values)
-        val = f(theta)
-        jac = jax.jacfwd(f)(theta)
-        var = jnp.einsum("ni,ij,nj->n", jac, jnp.asarray(self.cov), jac)
+        def each(value):
+            return jnp.broadcast_to(jnp.asarray(value, dtype=float), (n,))
+
+        # every reading a known load of 0 N: F - L is the force, s_eff the readings' noise through it
+        prob = Problem(readings=readings, s_top=each(sigma_i), s_bottom=each(sigma_i_bottom), s_x=each(sigma_x),
+                       load=jnp.zeros(n), known=jnp.ones(n, dtype=bool), gidx=-jnp.ones(n, dtype=int),
+                       k_free=jnp.ones(2, dtype=bool), mask=jnp.ones(n), s_held=jnp.zeros(n))
+        f, s, d = (np.asarray(a) for a in measured(jnp.asarray(theta), prob, model))
+        jac = d[:, columns] / si_scale(prob, model)[0][columns]          # dF/d(each of names) [N per SI unit]
+        val, var = f, np.einsum("ni,ij,nj->n", jac, self.cov, jac)
         if self.discrepancy is not None:
             # the correction is orthogonal to the parameters: its variance adds (no cross-covariance)
-            delta, delta_std = self.discrepancy.correction(readings, np.asarray(jac))
+            delta, delta_std = self.discrepancy.correction(readings, jac)
             val, var = val + delta, var + delta_std**2
-        if np.any(sigma_i) or np.any(sigma_i_bottom) or np.any(sigma_x):
-            params, effects = self._params(theta)
-
-            def g(it, ib, x):
-                r = eqx_tree_replace(readings, i_top=it, i_bottom=ib, x=x)
-                return evaluate(params, r, effects, bearing=self.bearing)[0]
-
-            ones = jnp.ones_like(readings.x)
-            zeros = jnp.zeros_like(readings.x)
-            prim = (readings.i_top, readings.i_bottom, readings.x)
-            d = [jax.jvp(g, prim, tuple(ones if j == k else zeros for j in range(3)))[1] for k in range(3)]
-            si, sb, sx = (jnp.asarray(v, dtype=float) for v in (sigma_i, sigma_i_bottom, sigma_x))
-            var = var + (d[0] * si) ** 2 + (d[1] * sb) ** 2 + (d[2] * sx) ** 2
-        return np.asarray(val), np.sqrt(np.asarray(var))
+        return val, np.sqrt(var + s**2)
 
 
 def _set_field(effect, field, value):
     return eqx.tree_at(lambda e: getattr(e, field), effect, value)
-
-
-def eqx_tree_replace(readings: Readings, **fields) -> Readings:
-    names = tuple(fields)
-    return eqx.tree_at(lambda r: tuple(getattr(r, n) for n in names), readings, tuple(fields.values()))

@@ -28,7 +28,7 @@ import re
 
 import numpy as np
 
-from ambfit.estimation.units import CONTRACT_PARAMS
+from ambfit.estimation.units import CONTRACT_PARAMS, HEAD
 from ambfit.physics.bearing import AXES, Bearing, BearingError
 
 SCHEMA = "ambfit.model.v1"
@@ -36,8 +36,6 @@ SCHEMA = "ambfit.model.v1"
 
 KINDS = ("identify", "diagnose")
 """Kinds of record that hold a fitted model."""
-
-HEAD = ("g_v0", "g_w0", "v0", "w0", "k_v", "k_w")
 
 GAP_FACTOR = 10.0
 """A model's gap must lie within this factor of the drawn gap (either way); a unit mistake is decades off."""

@@ -17,6 +17,7 @@ from ambfit.data import load_groups
 from ambfit.estimation import robust
 from ambfit.estimation.core import K_REFERENCE, Meta, Model, Problem, row_jacobian
 from ambfit.estimation.results import FitResult
+from ambfit.estimation.units import HEAD
 
 
 def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.ndarray:
@@ -95,7 +96,7 @@ def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: M
 
 def _shift(plain: FitResult, res: FitResult) -> dict:
     """How far plain least squares sits from ``res``, per head parameter, in ``res``'s standard errors."""
-    return {n: (plain.value(n) - res.value(n)) / res.error(n) for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+    return {n: (plain.value(n) - res.value(n)) / res.error(n) for n in HEAD
             if n in res.names and n in plain.names and res.error(n) > 0}
 
 

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, si_unit, with_unit
+from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, GAPS, GEOMETRY, HEAD, display, si_unit, with_unit
 from ambfit.physics.bearing import AXES, Bearing
 
 
@@ -155,7 +155,7 @@ class FitResult:
 
     @property
     def relative_gap_std(self) -> float:
-        rel = [self.error(n) / self.value(n) for n in ("g_v0", "g_w0") if n in self.names]
+        rel = [self.error(n) / self.value(n) for n in GAPS if n in self.names]
         return max(rel) if rel else 0.0
 
     @property
@@ -171,7 +171,7 @@ class FitResult:
     @property
     def k_identified(self) -> bool:
         """Every axis in the data has a known load, so its force constant is calibrated (force measurement works)."""
-        present = {n[2] for n in self.names if n in ("g_v0", "g_w0")}
+        present = {n[2] for n in self.names if n in GAPS}
         return all(self.k_by_axis[ax] for ax in present)
 
     @property
@@ -236,15 +236,15 @@ class FitResult:
         return [text for name, ok, text in self.checks() if ok is False and (include_k or name != "k_identified")]
 
     def raise_for_health(self) -> None:
-        """Raise :class:`ambfit.FitError` when the fit is not identifiable or not converged (adequacy is reported,
-        not raised: an inadequate model still has estimates worth reading)."""
+        """Raise :class:`ambfit.FitError`, carrying this result, when the fit is not identifiable or not converged
+        (adequacy is reported, not raised: an inadequate model still has estimates worth reading)."""
         from ambfit.estimation.core import FitError
 
         for name, ok, text in self.checks():
             if name in ("well_conditioned", "converged") and not ok:
-                raise FitError(text)
+                raise FitError(text, result=self)
             if name == "effects_identified" and ok is False and not self.converged:   # the cause of the failure
-                raise FitError(text)
+                raise FitError(text, result=self)
 
     def goodness_of_fit(self) -> dict:
         """Contract section 2's ``goodness_of_fit`` record."""
@@ -315,7 +315,7 @@ class FitResult:
     def display_row(self) -> dict:
         """The head parameters as ``{"g_v0 [µm]": "774.5 ± 1.4", ...}`` plus χ²/dof (one table row)."""
         shown = {n: v for n, v, _ in self._rows()}
-        row = {f"{n} [{DISPLAY[n][0]}]": shown.get(n, "–") for n in ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")}
+        row = {f"{n} [{DISPLAY[n][0]}]": shown.get(n, "–") for n in HEAD}
         row["χ²/dof"] = f"{self.reduced_chi2:.2f}"
         return row
 
@@ -325,8 +325,8 @@ class FitResult:
         if self.bias_correction:
             bc = self.bias_correction
             out.append("bias correction subtracted (µm): " + ", ".join(
-                f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in ("g_v0", "v0", "g_w0", "w0")
-                if n in bc) + f" ({bc['n']} synthetic sets)")
+                f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in GEOMETRY if n in bc)
+                + f" ({bc['n']} synthetic sets)")
         out += [f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)"
                 for ax, ok in self.k_by_axis.items() if not ok]
         if self.outlier_note:

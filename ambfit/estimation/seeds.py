@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import group_labels, joint_codes
-from ambfit.estimation.closed_form.equations import POSITION_TOLERANCE, eq6, eq7
+from ambfit.estimation.closed_form.equations import eq6, eq7, position_labels
 from ambfit.estimation.core import K_REFERENCE, SCALE_HEAD, SCALE_LOAD
 from ambfit.estimation.problem import Meta, Problem
 from ambfit.estimation.profile import profile
@@ -26,8 +26,9 @@ def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray]]:
     """Eq. 6-7 groups of a design: ``(axis, rows[2 positions, 2 biases])`` per iteration (row positions in ``df``).
 
     Only iterations (``experiment``, ``iteration``, axis) with exactly two positions and two biases, one row
-    each, are used.  Positions are the own-axis set-points when the iteration has them, else the measured
-    positions, clustered within ``POSITION_TOLERANCE``.  Vectorised over every iteration of the table.
+    each, are used.  Positions are grouped by :func:`~ambfit.estimation.closed_form.equations.position_labels`
+    (set-points or measured positions, within ``POSITION_TOLERANCE``).  Vectorised over every iteration of the
+    table.
     """
     n = len(df)
     if n == 0:
@@ -40,25 +41,8 @@ def design_pairs(df: pd.DataFrame) -> list[tuple[int, np.ndarray]]:
         return []
     code = np.where(code >= 0, code, n_groups)        # rows of no group (a missing key) in a dummy group
     axis = df["axis"].to_numpy()
-    is_w = axis == "w"
-
-    def column(name):
-        return df[name].to_numpy(float) if name in df else np.full(n, np.nan)
-
-    own_set = np.where(is_w, column("w_set_um"), column("v_set_um"))
-    own = np.where(is_w, column("w_um"), column("v_um"))
-    set_complete = np.bincount(code, weights=np.isnan(own_set), minlength=n_groups + 1) == 0
-    pos = np.where(set_complete[code], own_set, own) * 1e-6
+    label = position_labels(df, code)
     size = np.bincount(code, minlength=n_groups + 1)
-    order = np.lexsort((pos, code))
-    sc, sp = code[order], pos[order]
-    new = np.zeros(n, dtype=int)
-    new[1:] = (sc[1:] == sc[:-1]) & (sp[1:] - sp[:-1] > POSITION_TOLERANCE)    # a new cluster within the group
-    csum = np.cumsum(new)
-    start = np.zeros(n_groups + 1, dtype=int)
-    start[sc[::-1]] = np.arange(n - 1, -1, -1)        # first sorted index of each group
-    label = np.empty(n, dtype=int)
-    label[order] = csum - csum[start[sc]]
     bias = df["bias_A"].to_numpy(float)
     lo = np.full(n_groups + 1, np.inf)
     hi = np.full(n_groups + 1, -np.inf)

@@ -12,15 +12,29 @@ from __future__ import annotations
 
 import numpy as np
 
-CONTRACT_PARAMS = (("g_v0", "g_v0_um", 1e6), ("v0", "v0_um", 1e6), ("g_w0", "g_w0_um", 1e6), ("w0", "w0_um", 1e6),
-                   ("k_v", "k_v_Nm2_per_A2", 1.0), ("k_w", "k_w_Nm2_per_A2", 1.0))
+HEAD = ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+"""The six head parameters, in the contract's order (DATA-CONTRACT.md section 2): the effective gap and origin of
+axis v, then of axis w [m], then the force constants of v and w [N m^2/A^2].  The one spelling of their names:
+every list of them is made from this table and its slices below (the fit's parameter vector orders them gaps,
+origins, force constants: :data:`ambfit.estimation.core.HEAD_NAMES`)."""
+
+GEOMETRY = HEAD[:4]
+"""The geometric head parameters, gap and origin of each axis [m] (a campaign follows these)."""
+
+GAPS, ORIGINS, FORCE_CONSTANTS = HEAD[0:4:2], HEAD[1:4:2], HEAD[4:]
+"""``(g_v0, g_w0)``, ``(v0, w0)`` and ``(k_v, k_w)``: each pair ordered by axis (v, w)."""
+
+BY_AXIS = {ax: (GAPS[a], ORIGINS[a], FORCE_CONSTANTS[a]) for a, ax in enumerate(("v", "w"))}
+"""Each axis' gap, origin and force constant: ``{"v": ("g_v0", "v0", "k_v"), "w": ("g_w0", "w0", "k_w")}``."""
+
+CONTRACT_PARAMS = tuple((n, f"{n}_um", 1e6) for n in GEOMETRY) + tuple((n, f"{n}_Nm2_per_A2", 1.0)
+                                                                        for n in FORCE_CONSTANTS)
 """Internal name, contract key (section 2) and the factor from SI to the contract's unit."""
 
-DISPLAY = {"g_v0": ("µm", 1e6), "g_w0": ("µm", 1e6), "v0": ("µm", 1e6), "w0": ("µm", 1e6),
-           "k_v": ("N·m²/A²", 1.0), "k_w": ("N·m²/A²", 1.0)}
+DISPLAY = {n: ("µm", 1e6) for n in GEOMETRY} | {n: ("N·m²/A²", 1.0) for n in FORCE_CONSTANTS}
 """Display unit and the factor from SI of the head parameters (loads are in N, effect parameters in SI)."""
 
-SI = {"g_v0": "m", "g_w0": "m", "v0": "m", "w0": "m", "k_v": "N·m²/A²", "k_w": "N·m²/A²"}
+SI = {n: "m" for n in GEOMETRY} | {n: "N·m²/A²" for n in FORCE_CONSTANTS}
 """The SI unit of each head parameter, the unit of ``FitResult.value`` and ``Posterior.value``."""
 
 FIXED_RANGE = (1e-3, 1e5)

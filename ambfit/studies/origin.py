@@ -136,7 +136,7 @@ def search(
         state, truth = sim.state, sim.truth
         frame = sim.data
         try:
-            est = closed_form.identify(frame, cross_check=False)   # one iteration: no mean to compare
+            est = closed_form.identify(frame)   # one iteration: no mean to compare with least squares
         except closed_form.ClosedFormError as exc:
             raise closed_form.ClosedFormError(
                 f"origin search iteration {it} (centre {center[0] * 1e6:.2f}, {center[1] * 1e6:.2f} µm): {exc}"

@@ -342,6 +342,7 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
     ls_out = []
     if least_squares:
         from ambfit.estimation.fit import FitError, fit
+        from ambfit.estimation.units import GAPS, ORIGINS
 
         for s in searches:
             try:
@@ -349,7 +350,7 @@ def reproduce(*, replicates: int = 200, seed: int = 0, spec: RigSpec = PAPER_RIG
             except FitError:
                 ls_out.append(None)
                 continue
-            ls_out.append({f"{n}_um": (res.value(n) * 1e6, res.error(n) * 1e6) for n in ("v0", "w0", "g_v0", "g_w0")})
+            ls_out.append({f"{n}_um": (res.value(n) * 1e6, res.error(n) * 1e6) for n in ORIGINS + GAPS})
     else:
         ls_out = [None] * len(rs)
     one = functools.partial(_replicate, rows=tuple(rs), spec=spec, noise=noise, iterations=iterations)

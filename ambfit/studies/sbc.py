@@ -18,13 +18,14 @@ import numpy as np
 
 from ambfit import rig
 from ambfit.estimation.bayes import Prior, sample
+from ambfit.estimation.units import BY_AXIS, FORCE_CONSTANTS, GAPS, ORIGINS
 from ambfit.rig import protocol as P
 
 SBC_PRIOR = Prior(gap=rig.PAPER_RIG.nominal_gap, gap_log_sd=0.05, origin_sd=30e-6, k=rig.PAPER_RIG.force_constant, k_log_sd=0.2)
 """The prior the calibration draws from and the sampler assumes (the paper's rig, nominal values)."""
 
 
-NAMES = ("g_v0", "v0", "k_v", "g_w0", "w0", "k_w")
+NAMES = BY_AXIS["v"] + BY_AXIS["w"]
 """The calibrated parameters, in the order of :attr:`Calibration.names`."""
 
 
@@ -90,8 +91,7 @@ def _calibrate_one(_index: int, seed: np.random.SeedSequence, *, n_draws: int, n
                  seed=int(rng.integers(2**31)))
     flat = res.draws.reshape(-1, res.draws.shape[-1])
     pick = flat[rng.choice(len(flat), size=n_draws, replace=False)]
-    truth = {"g_v0": th["g0"][0, 0], "g_w0": th["g0"][0, 1], "v0": th["x0"][0, 0], "w0": th["x0"][0, 1],
-             "k_v": th["k"][0, 0], "k_w": th["k"][0, 1]}
+    truth = dict(zip(GAPS + ORIGINS + FORCE_CONSTANTS, np.concatenate([th["g0"][0], th["x0"][0], th["k"][0]])))
     idx = [res.names.index(n) for n in NAMES]
     ranks = [int(np.sum(pick[:, i] < truth[n])) for i, n in zip(idx, NAMES)]
     t = np.array([truth[n] for n in NAMES])

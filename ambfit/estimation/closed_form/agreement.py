@@ -69,17 +69,6 @@ class Reference:
         return bool(np.isfinite(self.g0) and np.isfinite(self.x0))
 
 
-def least_squares(frame, bearing) -> object:
-    """Least squares of the rows of one closed-form estimate (a result with its health, or the error it raised)."""
-    from ambfit.data import DataError
-    from ambfit.estimation import fit
-
-    try:
-        return fit.fit(frame, bearing=bearing, throw=False)
-    except (fit.FitError, DataError, ValueError, KeyError) as exc:   # what a fit raises: the reference is missing
-        return exc
-
-
 def disagreement(est, ref: Reference) -> list[tuple[str, float, float, float]]:
     """``(name, difference [m], z, p)`` for gap and origin: closed form minus least squares, in units of
     ``sqrt(sem^2 + err^2)``, with the two-sided p-value of Student t on ``n - 1`` degrees of freedom (the closed

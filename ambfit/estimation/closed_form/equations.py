@@ -93,6 +93,42 @@ def _predicted_std(x, it, ib, sigma, n_avg, bearing) -> float:
     return float(np.sqrt(np.sum(np.square(grads))) * sigma / math.sqrt(n_avg))
 
 
+def position_labels(df, group=None, *, set_point_tolerance: float = POSITION_TOLERANCE) -> np.ndarray:
+    """Which position each reading is at within its group (an iteration of one axis): 0 for the lowest, counting
+    up, array[rows] of ints.
+
+    A group's positions are its own-axis set-points (``v_set_um`` or ``w_set_um``, by each row's axis) when every
+    row of the group has one, else its measured positions (``v_um``, ``w_um``); sorted, they start a new position
+    where they step by more than ``set_point_tolerance`` or ``POSITION_TOLERANCE`` [m] respectively.  ``df``: a
+    contract table; ``group``: array[rows] of group codes >= 0 (default: the table is one group).  Vectorised over
+    the groups: a study's thousands of iterations are grouped in one pass.
+    """
+    n = len(df)
+    group = np.zeros(n, dtype=int) if group is None else np.asarray(group)
+    if n == 0:
+        return np.zeros(0, dtype=int)
+    is_w = df["axis"].to_numpy() == "w"
+
+    def column(name):
+        return df[name].to_numpy(float) if name in df else np.full(n, np.nan)
+
+    own_set = np.where(is_w, column("w_set_um"), column("v_set_um"))
+    own = np.where(is_w, column("w_um"), column("v_um"))
+    by_set = (np.bincount(group, weights=np.isnan(own_set)) == 0)[group]
+    pos = np.where(by_set, own_set, own) * 1e-6
+    tolerance = np.where(by_set, set_point_tolerance, POSITION_TOLERANCE)
+    order = np.lexsort((pos, group))
+    sg, sp = group[order], pos[order]
+    new = np.zeros(n, dtype=int)
+    new[1:] = (sg[1:] == sg[:-1]) & (sp[1:] - sp[:-1] > tolerance[order][1:])    # a new position within the group
+    count = np.cumsum(new)
+    first = np.zeros(int(sg.max()) + 1, dtype=int)
+    first[sg[::-1]] = np.arange(n - 1, -1, -1)        # each group's first sorted index
+    labels = np.empty(n, dtype=int)
+    labels[order] = count - count[first[sg]]
+    return labels
+
+
 def eq6(i_top_1, i_bottom_1, i_top_2, i_bottom_2):
     """Eq. 6's ratio ``P = sqrt((i_t1^2 - i_t2^2) / (i_b1^2 - i_b2^2))`` on arrays of any shape (NaN where the
     radicand is not positive and finite)."""

@@ -11,7 +11,7 @@ import pandas as pd
 
 from ambfit.data import Dataset
 from ambfit.estimation.closed_form import agreement
-from ambfit.estimation.closed_form.equations import POSITION_TOLERANCE, ClosedFormError, Solution, solve
+from ambfit.estimation.closed_form.equations import ClosedFormError, Solution, position_labels, solve
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 
 MAX_RELATIVE_SEM = 0.05
@@ -95,32 +95,15 @@ def _mean_sem(values):
     return float(np.mean(v)), std / math.sqrt(v.size) if v.size > 1 else math.nan, std
 
 
-def _cluster_positions(x: np.ndarray, tol: float) -> np.ndarray:
-    order = np.argsort(x)
-    labels = np.empty(len(x), dtype=int)
-    lab, last = 0, None
-    for j in order:
-        if last is not None and x[j] - last > tol:
-            lab += 1
-        labels[j] = lab
-        last = x[j]
-    return labels
-
-
 def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solution:
     """Solve one iteration of one axis from its contract rows (see :func:`solve`).
 
-    Positions are grouped by the own-axis set-point column when present, else by
-    clustering the measured positions within ``POSITION_TOLERANCE``; replicated
+    Positions are the own-axis set-points when every row has one, else the measured positions clustered within
+    ``POSITION_TOLERANCE`` (:func:`~ambfit.estimation.closed_form.equations.position_labels`); replicated
     readings at one position and bias are averaged.
     """
-    axis = df["axis"].iloc[0]
-    own = f"{axis}_um"
-    set_col = f"{axis}_set_um"
-    if set_col in df.columns and df[set_col].notna().all():
-        labels = _cluster_positions(df[set_col].to_numpy(float) * 1e-6, 1e-9)
-    else:
-        labels = _cluster_positions(df[own].to_numpy(float) * 1e-6, POSITION_TOLERANCE)
+    own = f"{df['axis'].iloc[0]}_um"
+    labels = position_labels(df, set_point_tolerance=1e-9)     # a set-point is a commanded value: equal or not
     biases = np.unique(df["bias_A"].to_numpy(float))
     if len(biases) != 2:
         raise ClosedFormError(f"Eq. 6 needs exactly two bias settings per iteration, found {biases.tolist()} A")
@@ -292,7 +275,7 @@ def _reference_json(est: AxisEstimate) -> dict | None:
 
 
 def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
-             bearing: Bearing = PAPER_BEARING, cross_check: bool = True, reference=None) -> ClosedFormResult:
+             bearing: Bearing = PAPER_BEARING, reference=None) -> ClosedFormResult:
     """Closed-form identification of every iteration, averaged as in the paper's tables.
 
     Iterations are the (``experiment``, ``iteration``) groups of each axis (a file
@@ -300,11 +283,14 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     gets its own estimate; otherwise all iterations are pooled under ``"all"``.
     An iteration that cannot be solved is listed in ``rejected`` with the reason.
 
-    With ``cross_check`` (default) each estimate's rows are also fitted by least squares, and a mean that
-    differs from it by more than their errors allow fails the ``agrees_with_least_squares`` check
-    (:mod:`~ambfit.estimation.closed_form.agreement`: at higher noise Eq. 6-7's mean is biased).
-    ``reference`` gives that least-squares fit of all rows instead of fitting it (not with ``by_experiment``);
-    studies that compare with the truth themselves pass ``cross_check=False``.
+    ``reference`` is least squares on the same readings: a mean that differs from it by more than their errors
+    allow fails the ``agrees_with_least_squares`` check (:mod:`~ambfit.estimation.closed_form.agreement`: at
+    higher noise Eq. 6-7's mean is biased).  It is a function of an estimate's rows (all of them, or with
+    ``by_experiment`` each experiment's) that returns their fit or the error it raised, such as
+    ``lambda rows: ambfit.fit_many([rows], bearing=bearing)[0]``; or the fit of all rows itself (a
+    :class:`~ambfit.estimation.results.FitResult` or the error its fit raised; not with ``by_experiment``).
+    None (default): not compared, the check cannot be judged.  The closed form is a lower layer than least
+    squares (whose starts it gives): it does not fit by itself.
 
     Raises
     ------
@@ -319,6 +305,9 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     >>> round(est.g0 * 1e6, 6), round(est.x0 * 1e6, 6)
     (775.0, 33.3)
     """
+    if by_experiment and reference is not None and not callable(reference):
+        raise ValueError("reference: a fit of all rows cannot be compared with each experiment's closed form; "
+                         "with by_experiment pass a function of the rows that fits them")
     df = (data.frame if isinstance(data, Dataset) else data).copy()
     if "experiment" not in df.columns:
         df["experiment"] = "all"
@@ -330,12 +319,9 @@ def identify(data: Dataset | pd.DataFrame, *, by_experiment: bool = False,
     exp_keys = list(dict.fromkeys(df["experiment"])) if by_experiment else ["all"]
     for exp in exp_keys:
         sub_e = df if exp == "all" and not by_experiment else df[df["experiment"] == exp]
-        ls = None
-        if reference is not None and not by_experiment:
-            ls = reference
-        elif cross_check:
-            ls = agreement.least_squares(data if exp == "all" and not by_experiment else
-                                         sub_e.drop(columns="_it"), bearing)
+        ls = reference
+        if callable(reference):
+            ls = reference(data if exp == "all" and not by_experiment else sub_e.drop(columns="_it"))
         for ax in AXES:
             sub = sub_e[sub_e["axis"] == ax]
             if sub.empty:

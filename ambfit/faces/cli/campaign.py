@@ -117,11 +117,13 @@ def _pm(v, s, digits=2):
 def _show(res, name: str):
     import math
 
+    from ambfit.estimation.units import GEOMETRY
+
     rows = []
     for j, w in enumerate(res.windows):
         row = {"window": w.label, "t (h)": f"{w.centre_s / 3600:.2f}", "rows": str(w.n_rows),
                "experiment": w.group}
-        for p in ("g_v0", "v0", "g_w0", "w0"):
+        for p in GEOMETRY:
             v, s = w.estimate(p)
             row[f"{p} [µm]"] = _pm(v * 1e6, s * 1e6) if math.isfinite(v) else "–"
         row["χ²/dof"] = f"{w.fit.reduced_chi2:.2f}" if w.fit is not None else "–"

@@ -37,6 +37,8 @@ class Axis(str, Enum):
 
 
 class Target(str, Enum):
+    # ambfit.estimation.units.HEAD, spelt here: the command line imports no estimation module before a command
+    # runs (test_cli_options holds the two equal)
     g_v0 = "g_v0"
     g_w0 = "g_w0"
     v0 = "v0"

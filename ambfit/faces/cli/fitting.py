@@ -121,6 +121,15 @@ class _Options:
                     debias=self.debias, bearing=self.bearing, loss=self.loss)
 
 
+def checked_closed_form(ds, bearing):
+    """The closed form of ``ds`` (Eq. 5-7) compared with least squares on the same readings: ``identify`` exits
+    3 when they disagree beyond their errors (the ``agrees_with_least_squares`` check)."""
+    from ambfit.estimation import closed_form as cf
+    from ambfit.estimation.fit import fit_many
+
+    return cf.identify(ds, bearing=bearing, reference=lambda rows: fit_many([rows], bearing=bearing)[0])
+
+
 def _closed_form_record(result, bearing, name: str, say=say) -> dict:
     """The closed form's contract record with its plausibility flags; its rejections and health as warnings."""
     from ambfit.estimation import plausibility
@@ -164,19 +173,17 @@ def _status(record: dict, flags, accept: bool) -> str:
     return "ok"
 
 
-TABLE_PARAMS = (("g_v0", "um"), ("v0", "um"), ("g_w0", "um"), ("w0", "um"), ("k_v", "Nm2_per_A2"),
-                ("k_w", "Nm2_per_A2"))
-
-
 def _table_row(entry: dict) -> dict:
     """One ``--table`` row (file units in the column names, blank where a value does not apply)."""
+    from ambfit.estimation.units import CONTRACT_PARAMS
+
     params = entry.get("params", {})
     row = {"group": entry["group"], "file": entry.get("file", ""), "_value": entry.get("value"),
            "n_rows": entry.get("n_rows")}
-    for name, unit in TABLE_PARAMS:
-        p = params.get(f"{name}_{unit}", {})
-        row[f"{name}_{unit}"] = p.get("value")
-        row[f"{name}_std_{unit}"] = p.get("std")
+    for name, key, _ in CONTRACT_PARAMS:            # key: the name and its file unit, g_v0_um
+        p = params.get(key, {})
+        row[key] = p.get("value")
+        row[f"{name}_std{key[len(name):]}"] = p.get("std")
     gof = entry.get("goodness_of_fit", {})
     flags = entry.get("implausible", [])
     row |= {"reduced_chi2": entry.get("reduced_chi2"), "dof": entry.get("dof"), "p_value": gof.get("p_value"),

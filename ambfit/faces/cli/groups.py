@@ -18,6 +18,7 @@ from ambfit.faces.cli.fitting import (
     _table_row,
     _warn_health,
     _write_table,
+    checked_closed_form,
     drop_duplicates,
     say,
 )
@@ -203,13 +204,14 @@ def _finish_group(prep: _Prepared, name: str, opts: _Options, say=say, res=None)
     """The group's entry from its fit: ``res`` (a :class:`FitResult`, or the exception its fit raised) when the
     fit ran in a batch, else the fit runs here."""
     from ambfit.data import DataError
-    from ambfit.estimation import closed_form, fit, plausibility
+    from ambfit.estimation import fit, plausibility
+    from ambfit.estimation.closed_form import ClosedFormError
 
     prefix = f"{name}: "
     ds = prep.ds
     try:
         if opts.method is Method.closed_form:
-            record = _closed_form_record(closed_form.identify(ds, bearing=opts.bearing), opts.bearing, prefix, say)
+            record = _closed_form_record(checked_closed_form(ds, opts.bearing), opts.bearing, prefix, say)
         else:
             if res is None:
                 res = fit.fit(ds, **opts.fit_kw())
@@ -222,7 +224,7 @@ def _finish_group(prep: _Prepared, name: str, opts: _Options, say=say, res=None)
             if prep.dropped and "g_v0_um" in record["params"]:
                 record["duplicates_error_bar_factor"] = _duplicate_effect(prep.original, record, opts.bearing,
                                                                           opts.loss, prefix, say)
-    except (fit.FitError, closed_form.ClosedFormError, DataError, ValueError) as exc:
+    except (fit.FitError, ClosedFormError, DataError, ValueError) as exc:
         say("error", f"{prefix}{exc}")
         record = {"method": "closed_form" if opts.method is Method.closed_form else "least_squares", "params": {},
                   "converged": False, "n_rows": len(ds), "error": str(exc)}

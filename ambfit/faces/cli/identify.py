@@ -39,6 +39,7 @@ from ambfit.faces.cli.fitting import (
     _table_row,
     _warn_health,
     _write_table,
+    checked_closed_form,
     drop_duplicates,
 )
 from ambfit.faces.cli.groups import _expand, _identify_groups
@@ -218,11 +219,11 @@ def _identify_file(data: Path, opts: _Options, max_position_um, json_out, table)
 
 
 def _identify_closed_form(ds, name, bearing, *, show: bool = True) -> dict:
-    from ambfit.estimation import closed_form
+    from ambfit.estimation.closed_form import ClosedFormError
 
     try:
-        result = closed_form.identify(ds, bearing=bearing)
-    except closed_form.ClosedFormError as exc:
+        result = checked_closed_form(ds, bearing)
+    except ClosedFormError as exc:
         fail(str(exc), 3)
     show_table(result.display_rows(), f"closed form (Eq. 5-7), {name}, {result.n_rows} rows",
                left=("experiment", "axis"))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ambfit.estimation.units import FORCE_CONSTANTS, GEOMETRY
 from ambfit.faces.plots.figures import _axes
 
 
@@ -50,8 +51,7 @@ def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.
     return ax
 
 
-PAIR_UNITS = {"g_v0": ("µm", 1e6), "v0": ("µm", 1e6), "g_w0": ("µm", 1e6), "w0": ("µm", 1e6),
-              "k_v": ("10⁻⁶ N·m²/A²", 1e6), "k_w": ("10⁻⁶ N·m²/A²", 1e6)}
+PAIR_UNITS = {n: ("µm", 1e6) for n in GEOMETRY} | {n: ("10⁻⁶ N·m²/A²", 1e6) for n in FORCE_CONSTANTS}
 """Display unit and factor from SI of each pair-plot variable (k in 10⁻⁶ N·m²/A², so its ticks read 3.45, not 3.45e-06)."""
 
 
@@ -77,10 +77,10 @@ def plot_pair(sampling, var_names=None, *, result=None, fig=None, max_points: in
     import matplotlib.pyplot as plt
     from matplotlib.colors import to_rgba
 
-    from ambfit.estimation.units import DISPLAY, pm
+    from ambfit.estimation.units import BY_AXIS, DISPLAY, pm
 
     post = sampling.datatree.posterior
-    names = list(var_names or [n for n in ("g_v0", "v0", "k_v", "g_w0", "w0", "k_w") if n in post])
+    names = list(var_names or [n for n in BY_AXIS["v"] + BY_AXIS["w"] if n in post])
     n = len(names)
     factor = [PAIR_UNITS.get(v, ("", 1.0))[1] for v in names]                  # SI -> plotted unit
     from_tree = [f / DISPLAY.get(v, ("", 1.0))[1] for v, f in zip(names, factor)]   # tree unit -> plotted unit

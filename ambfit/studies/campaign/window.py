@@ -14,9 +14,10 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import DataError, Dataset
+from ambfit.estimation.units import GEOMETRY
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
-PARAMS = ("g_v0", "v0", "g_w0", "w0")
+PARAMS = GEOMETRY
 """The parameters whose drift and jumps a campaign studies (internal names, SI)."""
 
 
