@@ -49,7 +49,7 @@ _API = {
     "solution_space": ("ambfit.estimation.conditioning", "solution_space"),
     "FitResult": ("ambfit.estimation.results", "FitResult"),
     "FitError": ("ambfit.estimation.core", "FitError"),
-    "closed_form": ("ambfit.estimation.closed_form", "identify"),
+    "closed_form": ("ambfit.estimation.checked", "closed_form"),
     "sample": ("ambfit.estimation.bayes", "sample"),
     "Posterior": ("ambfit.estimation.bayes", "Posterior"),
     "Prior": ("ambfit.estimation.bayes", "Prior"),
@@ -99,7 +99,7 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from ambfit.diagnosis.attribution import diagnose  # noqa: F401
     from ambfit.diagnosis.results import Diagnosis  # noqa: F401
     from ambfit.estimation.bayes import Posterior, Prior, sample  # noqa: F401
-    from ambfit.estimation.closed_form import identify as closed_form  # noqa: F401
+    from ambfit.estimation.checked import closed_form  # noqa: F401
     from ambfit.estimation.conditioning import solution_space  # noqa: F401
     from ambfit.estimation.core import FitError  # noqa: F401
     from ambfit.estimation.design import recommend  # noqa: F401

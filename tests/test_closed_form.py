@@ -1,6 +1,7 @@
 """Eq. 5-7: exact recovery on noise-free rig data, the paper's validity checks, averaging."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -231,3 +232,15 @@ def test_a_position_whose_biases_carry_different_loads_is_refused():
     rows.loc[(rows["bias_A"] == rows["bias_A"].max()) & (rows["v_set_um"] > 0), "load_id"] = "rotor+mass"
     with pytest.raises(cf.ClosedFormError, match="carry different loads .* Eq. 5 needs the same load"):
         cf.solve_rows(rows)
+
+
+def test_the_public_closed_form_is_checked_against_least_squares():
+    """``ambfit.closed_form(data)`` compares its mean with least squares on the same readings, as the command line
+    does; the closed form alone (below the fit) is not compared."""
+    import ambfit
+    from ambfit.estimation import closed_form as cf
+
+    data = ambfit.read_csv(Path(__file__).parents[1] / "data" / "paper_table2.csv")
+    judged = [ok for name, ok, _ in ambfit.closed_form(data).checks() if name == "agrees_with_least_squares"]
+    alone = [ok for name, ok, _ in cf.identify(data).checks() if name == "agrees_with_least_squares"]
+    assert judged == [True, True] and alone == [None, None]

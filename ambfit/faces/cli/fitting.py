@@ -124,10 +124,9 @@ class _Options:
 def checked_closed_form(ds, bearing):
     """The closed form of ``ds`` (Eq. 5-7) compared with least squares on the same readings: ``identify`` exits
     3 when they disagree beyond their errors (the ``agrees_with_least_squares`` check)."""
-    from ambfit.estimation import closed_form as cf
-    from ambfit.estimation.fit import fit_many
+    from ambfit.estimation.checked import closed_form
 
-    return cf.identify(ds, bearing=bearing, reference=lambda rows: fit_many([rows], bearing=bearing)[0])
+    return closed_form(ds, bearing=bearing)
 
 
 def _closed_form_record(result, bearing, name: str, say=say) -> dict:
