@@ -18,7 +18,7 @@ import numpy as np
 from ambfit.physics.bearing import PAPER_BEARING
 from ambfit.physics.model import horseshoe_force
 from ambfit.physics.stages import _ax, _set
-from ambfit.rig.zoo_shapes import Shape, ZooLaw, log_uniform, random_shape, signed
+from ambfit.rig.zoo_shapes import Shape, ZooLaw, log_uniform, numerics, random_shape, signed
 
 B_REF = 0.8
 """Reference flux density [T]: about the largest the zoo's protocols reach on the paper's bearing (2.2 A on a
@@ -68,10 +68,10 @@ class KneeSaturation(ZooLaw):
         return _scale_k(ctx, self.factor)
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         while True:
             deficit = log_uniform(rng, 0.02, 0.15)
-            law = cls(jnp.asarray(deficit / (1.0 - deficit)),
+            law = cls(np.asarray(deficit / (1.0 - deficit)),
                       random_shape(rng, kinds=("power", "step", "knee"), power=(2.0, 8.0), centre=(0.5, 1.6),
                                    width=(0.05, 0.4)))
             if _rises(lambda i: i**2 * law.factor(_b(i))):
@@ -93,23 +93,24 @@ class CurveSaturation(ZooLaw):
     family: ClassVar[str] = "saturation"
 
     def factor(self, b):
-        x = jnp.maximum(jnp.abs(b), 1e-9) / self.b_s
-        curves = (jnp.tanh(x), 2.0 / jnp.pi * jnp.arctan(jnp.pi * x / 2.0), x / (1.0 + x**self.p) ** (1.0 / self.p))
+        xp = numerics(b)
+        x = xp.maximum(xp.abs(b), 1e-9) / self.b_s
+        curves = (xp.tanh(x), 2.0 / xp.pi * xp.arctan(xp.pi * x / 2.0), x / (1.0 + x**self.p) ** (1.0 / self.p))
         return (sum(w * c for w, c in zip(self.weights, curves)) / x) ** 2
 
     def coil(self, ctx):
         return _scale_k(ctx, self.factor)
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        weights, p = jnp.asarray(rng.dirichlet(np.full(3, 0.7))), jnp.asarray(rng.uniform(2.0, 8.0))
+    def _draw(cls, rng, duration_s):
+        weights, p = np.asarray(rng.dirichlet(np.full(3, 0.7))), np.asarray(rng.uniform(2.0, 8.0))
         deficit = log_uniform(rng, 0.02, 0.15)
         lo, hi = np.log(0.3), np.log(30.0)      # b_s [T], bisected: the deficit falls as b_s grows
         for _ in range(60):
             mid = 0.5 * (lo + hi)
-            short = 1.0 - float(cls(jnp.asarray(np.exp(mid)), weights, p).factor(B_REF)) > deficit
+            short = 1.0 - float(cls(np.asarray(np.exp(mid)), weights, p).factor(B_REF)) > deficit
             lo, hi = (mid, hi) if short else (lo, mid)
-        return cls(jnp.asarray(np.exp(hi)), weights, p)
+        return cls(np.asarray(np.exp(hi)), weights, p)
 
 
 class ShapeIron(ZooLaw):
@@ -137,10 +138,10 @@ class ShapeIron(ZooLaw):
                     g_bottom=ctx.g_bottom + extra(ctx.i_bottom, ctx.g_bottom))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         while True:
             base = rng.uniform(0.06, 0.12) / (2.0 * rng.uniform(1500.0, 6000.0))
-            law = cls(jnp.asarray(base), jnp.asarray(log_uniform(rng, 3e-6, 15e-6) / base),
+            law = cls(np.asarray(base), np.asarray(log_uniform(rng, 3e-6, 15e-6) / base),
                       random_shape(rng, kinds=("power", "step", "knee"), power=(2.0, 8.0), centre=(0.5, 1.6),
                                    width=(0.05, 0.4)))
             g = PAPER_BEARING.nominal_gap
@@ -163,16 +164,17 @@ class FroehlichIron(ZooLaw):
     family: ClassVar[str] = "iron_reluctance"
 
     def extra_gap(self, b):
-        return self.base / jnp.maximum(1.0 - (jnp.abs(b) / self.b_s) ** self.q, 0.05)
+        xp = numerics(b)
+        return self.base / xp.maximum(1.0 - (xp.abs(b) / self.b_s) ** self.q, 0.05)
 
     gap = ShapeIron.gap
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         while True:
             base = rng.uniform(0.06, 0.12) / (2.0 * rng.uniform(1500.0, 6000.0))
             r, q = log_uniform(rng, 3e-6, 15e-6) / base, rng.uniform(1.0, 3.0)
-            law = cls(jnp.asarray(base), jnp.asarray(B_REF * ((1.0 + r) / r) ** (1.0 / q)), jnp.asarray(q))
+            law = cls(np.asarray(base), np.asarray(B_REF * ((1.0 + r) / r) ** (1.0 / q)), np.asarray(q))
             g = PAPER_BEARING.nominal_gap
             if _rises(lambda i: (i / (g + law.extra_gap(_b(i)))) ** 2):
                 return law
@@ -200,12 +202,12 @@ class ShapeFringing(ZooLaw):
                     k_bottom=ctx.k_bottom * self.area(ctx.g_bottom, ctx.bearing))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         while True:
             shape = random_shape(rng, power=(0.5, 3.0), centre=(0.5, 1.5), width=(0.1, 0.5), tau=(0.2, 2.0))
             elasticity, slope = rng.uniform(0.08, 0.35), float(shape.slope(1.0))
             if slope > 1.2 * elasticity:
-                return cls(jnp.asarray(elasticity / (slope - elasticity)), shape)
+                return cls(np.asarray(elasticity / (slope - elasticity)), shape)
 
 
 class RotersFringing(ZooLaw):
@@ -232,8 +234,8 @@ class RotersFringing(ZooLaw):
     coil = ShapeFringing.coil
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        return cls(jnp.asarray(log_uniform(rng, 0.5e-3, 5e-3, 2)), jnp.asarray(rng.uniform(0.5, 1.5, 2)))
+    def _draw(cls, rng, duration_s):
+        return cls(np.asarray(log_uniform(rng, 0.5e-3, 5e-3, 2)), np.asarray(rng.uniform(0.5, 1.5, 2)))
 
 
 class CurrentLeakage(ZooLaw):
@@ -257,9 +259,9 @@ class CurrentLeakage(ZooLaw):
         return _set(ctx, k_top=ctx.k_top * self.factor(ctx.i_top), k_bottom=ctx.k_bottom * self.factor(ctx.i_bottom))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         while True:
-            law = cls(jnp.asarray(rng.uniform(0.03, 0.15)), jnp.asarray(log_uniform(rng, 0.01, 0.045)),
+            law = cls(np.asarray(rng.uniform(0.03, 0.15)), np.asarray(log_uniform(rng, 0.01, 0.045)),
                       random_shape(rng, kinds=("power", "step", "knee"), power=(1.0, 3.0), centre=(0.3, 1.2),
                                    width=(0.05, 0.4)))
             if _rises(lambda i: i**2 * law.factor(i)):
@@ -290,11 +292,11 @@ class SlotLeakage(ZooLaw):
                     k_bottom=ctx.k_bottom * self.factor(ctx.i_bottom, ctx.g_bottom, ctx.bearing))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         while True:
             lam0 = rng.uniform(0.05, 0.25)
             sigma1 = lam0 / (1.0 + lam0) + log_uniform(rng, 0.01, 0.04)
-            law = cls(jnp.asarray(lam0), jnp.asarray(sigma1 / (1.0 - sigma1) / lam0 - 1.0),
+            law = cls(np.asarray(lam0), np.asarray(sigma1 / (1.0 - sigma1) / lam0 - 1.0),
                       random_shape(rng, kinds=("power", "step", "knee"), power=(1.0, 3.0), centre=(0.3, 1.2),
                                    width=(0.05, 0.4)))
             if _rises(lambda i: i**2 * law.factor(i, PAPER_BEARING.nominal_gap, PAPER_BEARING)):
@@ -344,13 +346,13 @@ class PlayHysteresis(ZooLaw):
                                  ctx.i_bottom + f * (ctx.m_bottom - ctx.i_bottom))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         fraction = rng.uniform(0.25, 1.0)
         rise, fall = rng.uniform(0.005, 0.02, 2) / fraction
         growth = 0.0 if rng.random() < 0.5 else rng.uniform(0.2, 1.5)
-        return cls(jnp.asarray(rise), jnp.asarray(fall), jnp.asarray(growth),
+        return cls(np.asarray(rise), np.asarray(fall), np.asarray(growth),
                    random_shape(rng, kinds=("power", "knee", "settle"), power=(1.0, 2.0), centre=(0.2, 1.0)),
-                   jnp.asarray(fraction))
+                   np.asarray(fraction))
 
 
 class MemoryHysteresis(ZooLaw):
@@ -386,9 +388,9 @@ class MemoryHysteresis(ZooLaw):
         return _with_magnetising(ctx, force, m(ctx.i_top, ctx.m_top), m(ctx.i_bottom, ctx.m_bottom))
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        return cls(jnp.asarray(rng.uniform(0.005, 0.02)), jnp.asarray(log_uniform(rng, 0.02, 0.2)),
-                   jnp.asarray(np.exp(-1.0 / rng.uniform(0.5, 6.0))))
+    def _draw(cls, rng, duration_s):
+        return cls(np.asarray(rng.uniform(0.005, 0.02)), np.asarray(log_uniform(rng, 0.02, 0.2)),
+                   np.asarray(np.exp(-1.0 / rng.uniform(0.5, 6.0))))
 
 
 def _polynomial(rng, magnitudes, chances):
@@ -421,9 +423,9 @@ class PositionCoupling(ZooLaw):
         return force + (0.5 * (ctx.i_top + ctx.i_bottom) / 1.3) ** _ax(self.power, ctx.axis) * poly
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         coef = _polynomial(rng, [(0.06, 0.2), (0.02, 0.08), (0.02, 0.08)], (0.85, 0.4, 0.35))
-        return cls(jnp.asarray(coef), jnp.asarray(rng.choice([0.0, 1.0, 2.0], 2)))
+        return cls(np.asarray(coef), np.asarray(rng.choice([0.0, 1.0, 2.0], 2)))
 
 
 class CurrentsCoupling(ZooLaw):
@@ -446,8 +448,8 @@ class CurrentsCoupling(ZooLaw):
         return force + c[..., 0] * co + c[..., 1] * co * jnp.abs(co) + c[..., 2] * co * 0.5 * (ctx.i_top - ctx.i_bottom)
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        return cls(jnp.asarray(_polynomial(rng, [(0.3, 1.2), (0.2, 0.8), (0.2, 0.8)], (0.85, 0.4, 0.35))))
+    def _draw(cls, rng, duration_s):
+        return cls(np.asarray(_polynomial(rng, [(0.3, 1.2), (0.2, 0.8), (0.2, 0.8)], (0.85, 0.4, 0.35))))
 
 
 MAGNETIC: dict[str, tuple[type[ZooLaw], ...]] = {

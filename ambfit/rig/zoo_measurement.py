@@ -16,12 +16,17 @@ import numpy as np
 
 from ambfit.physics.stages import _ax, _set
 from ambfit.rig.zoo_magnetic import I_REF, Y_REF, _known
-from ambfit.rig.zoo_shapes import Shape, ZooLaw, random_shape, signed
+from ambfit.rig.zoo_shapes import Shape, ZooLaw, numerics, random_shape, signed
 
 X_REF = 100e-6
 """Reference position [m] of the sensor polynomials."""
 _NEWTON_STEPS = 8
 """Newton steps that invert a sensor characteristic: each squares an error that starts below 1e-3 relative."""
+
+
+def _per_axis(p, axis, xp):
+    """:func:`ambfit.physics.stages._ax` in ``xp``: the per-row value of a scalar or ``(v, w)`` parameter."""
+    return xp.broadcast_to(xp.asarray(p, dtype=float), (2,))[axis]
 
 
 def _one_coil(rng, lo, hi):
@@ -58,21 +63,24 @@ class ChannelGain(ZooLaw):
     @staticmethod
     def _invert(r, e0, e1):
         a, b = 1.0 + e0 - e1, e1 / I_REF        # the root of b i^2 + a i - r near r / a
-        return 2.0 * r / (a + jnp.sqrt(a**2 + 4.0 * b * r))
+        return 2.0 * r / (a + numerics(r, a).sqrt(a**2 + 4.0 * b * r))
+
+    def _channels(self, axis, i_top, i_bottom, f):
+        xp = numerics(i_top, self.top)
+        return (f(i_top, _per_axis(self.top, axis, xp), _per_axis(self.top_compression, axis, xp)),
+                f(i_bottom, _per_axis(self.bottom, axis, xp), _per_axis(self.bottom_compression, axis, xp)))
 
     def sense(self, axis, i_top, i_bottom, x, y):
-        return (self._read(i_top, _ax(self.top, axis), _ax(self.top_compression, axis)),
-                self._read(i_bottom, _ax(self.bottom, axis), _ax(self.bottom_compression, axis)), x, y)
+        return *self._channels(axis, i_top, i_bottom, self._read), x, y
 
     def unsense(self, axis, i_top, i_bottom, x, y):
-        return (self._invert(i_top, _ax(self.top, axis), _ax(self.top_compression, axis)),
-                self._invert(i_bottom, _ax(self.bottom, axis), _ax(self.bottom_compression, axis)), x, y)
+        return *self._channels(axis, i_top, i_bottom, self._invert), x, y
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         top, bottom = _one_coil(rng, 0.01, 0.08)
         bend = signed(rng, 0.003, 0.02) if rng.random() < 0.6 else 0.0
-        return cls(*(jnp.asarray(a) for a in (top, bottom, bend * (top != 0), bend * (bottom != 0))))
+        return cls(*(np.asarray(a) for a in (top, bottom, bend * (top != 0), bend * (bottom != 0))))
 
 
 class ChannelOffset(ZooLaw):
@@ -85,14 +93,16 @@ class ChannelOffset(ZooLaw):
     family: ClassVar[str] = "current_offset"
 
     def sense(self, axis, i_top, i_bottom, x, y):
-        return i_top + _ax(self.top, axis), i_bottom + _ax(self.bottom, axis), x, y
+        xp = numerics(i_top, self.top)
+        return i_top + _per_axis(self.top, axis, xp), i_bottom + _per_axis(self.bottom, axis, xp), x, y
 
     def unsense(self, axis, i_top, i_bottom, x, y):
-        return i_top - _ax(self.top, axis), i_bottom - _ax(self.bottom, axis), x, y
+        xp = numerics(i_top, self.top)
+        return i_top - _per_axis(self.top, axis, xp), i_bottom - _per_axis(self.bottom, axis, xp), x, y
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        return cls(*(jnp.asarray(a) for a in _one_coil(rng, 0.005, 0.025)))
+    def _draw(cls, rng, duration_s):
+        return cls(*(np.asarray(a) for a in _one_coil(rng, 0.005, 0.025)))
 
 
 class SensorCharacteristic(ZooLaw):
@@ -114,16 +124,17 @@ class SensorCharacteristic(ZooLaw):
     family: ClassVar[str] = "position_gain"
 
     def _read(self, x, axis, slope=False):
-        c, a, lam, ph = (p[axis] for p in (self.coef, self.amp, self.wavelength, self.phase))
-        u, arg = x / X_REF, 2.0 * jnp.pi * x[..., None] / lam + ph
+        xp = numerics(x, self.coef)
+        c, a, lam, ph = (xp.asarray(p)[axis] for p in (self.coef, self.amp, self.wavelength, self.phase))
+        u, arg = x / X_REF, 2.0 * xp.pi * x[..., None] / lam + ph
         if slope:
             return (1.0 + c[..., 0] + 2.0 * c[..., 1] * u + 3.0 * c[..., 2] * u**2
-                    + jnp.sum(a * 2.0 * jnp.pi / lam * jnp.cos(arg), axis=-1))
+                    + xp.sum(a * 2.0 * xp.pi / lam * xp.cos(arg), axis=-1))
         return (x + X_REF * (c[..., 0] * u + c[..., 1] * u**2 + c[..., 2] * u**3)
-                + jnp.sum(a * (jnp.sin(arg) - jnp.sin(ph)), axis=-1))
+                + xp.sum(a * (xp.sin(arg) - xp.sin(ph)), axis=-1))
 
     def _invert(self, s, axis):
-        x = s / (1.0 + self.coef[axis][..., 0])
+        x = s / (1.0 + numerics(s, self.coef).asarray(self.coef)[axis][..., 0])
         for _ in range(_NEWTON_STEPS):
             x = x - (self._read(x, axis) - s) / self._read(x, axis, slope=True)
         return x
@@ -135,14 +146,14 @@ class SensorCharacteristic(ZooLaw):
         return i_top, i_bottom, self._invert(x, axis), self._invert(y, 1 - axis)
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         coef, amp = np.zeros((2, 3)), np.zeros((2, 2))
         for a in range(2):
             while not (coef[a, 1:].any() or amp[a].any()):
                 coef[a] = (rng.random(3) < (0.8, 0.5, 0.4)) * signed(rng, (0.01, 0.01, 0.01), (0.04, 0.05, 0.05))
                 amp[a] = (rng.random(2) < (0.5, 0.2)) * rng.uniform(0.3e-6, 1.5e-6, 2)
-        return cls(jnp.asarray(coef), jnp.asarray(amp), jnp.asarray(rng.uniform(15e-6, 80e-6, (2, 2))),
-                   jnp.asarray(rng.uniform(0.0, 2.0 * np.pi, (2, 2))))
+        return cls(np.asarray(coef), np.asarray(amp), np.asarray(rng.uniform(15e-6, 80e-6, (2, 2))),
+                   np.asarray(rng.uniform(0.0, 2.0 * np.pi, (2, 2))))
 
 
 class Heating(ZooLaw):
@@ -157,18 +168,18 @@ class Heating(ZooLaw):
     name: ClassVar[str] = "heating"
 
     def temperature(self, time_s, ambient_C):
-        return ambient_C + self.heating_K * (1.0 - jnp.exp(-jnp.asarray(time_s) / self.tau_s))
+        return ambient_C + self.heating_K * (1.0 - np.exp(-np.asarray(time_s) / self.tau_s))
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        return cls(jnp.asarray(rng.uniform(0.0, 20.0)), jnp.asarray(rng.uniform(0.2, 3.0) * duration_s))
+    def _draw(cls, rng, duration_s):
+        return cls(np.asarray(rng.uniform(0.0, 20.0)), np.asarray(rng.uniform(0.2, 3.0) * duration_s))
 
 
 def _drift_sizes(rng):
     """Per-axis origin and gap excursions over a run [m]: origin 2-12 µm, gap 0.5-4 µm or (chance 0.3) none."""
     origin = signed(rng, 2e-6, 12e-6, 2)
     gap = np.zeros(2) if rng.random() < 0.3 else signed(rng, 0.5e-6, 4e-6, 2)
-    return jnp.asarray(origin), jnp.asarray(gap)
+    return np.asarray(origin), np.asarray(gap)
 
 
 class TimeDrift(ZooLaw):
@@ -199,12 +210,12 @@ class TimeDrift(ZooLaw):
                     y0=ctx.y0 + origin(1 - ctx.axis))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         def shape():
             return random_shape(rng, signed=True, power=(1.0, 3.0), centre=(0.1, 0.9), width=(0.03, 0.3),
                                 tau=(0.05, 1.0))
 
-        return cls(*_drift_sizes(rng), jnp.asarray(duration_s), shape(), shape(), shape())
+        return cls(*_drift_sizes(rng), np.asarray(duration_s), shape(), shape(), shape())
 
 
 class TemperatureDrift(ZooLaw):
@@ -243,16 +254,16 @@ class TemperatureDrift(ZooLaw):
                     y0=ctx.y0 + _ax(self.origin_drift, 1 - ctx.axis) * s)
 
     def temperature(self, time_s, ambient_C):
-        return ambient_C + self.heating_K * (1.0 - jnp.exp(-jnp.asarray(time_s) / self.tau_s))
+        return ambient_C + self.heating_K * (1.0 - np.exp(-np.asarray(time_s) / self.tau_s))
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         heating, tau = rng.uniform(5.0, 20.0), rng.uniform(0.2, 1.5) * duration_s
         lag = 0.0 if rng.random() < 0.3 else rng.uniform(0.05, 0.5) * duration_s
         while abs(lag - tau) < 0.02 * duration_s:
             lag = rng.uniform(0.05, 0.5) * duration_s
         origin, gap = _drift_sizes(rng)
-        law = cls(origin, gap, *(jnp.asarray(a) for a in (rng.uniform(-0.6, 0.6), heating, tau, lag)))
+        law = cls(origin, gap, *(np.asarray(a) for a in (rng.uniform(-0.6, 0.6), heating, tau, lag)))
         end = float(law.shift(duration_s))     # the excursions drawn are those at the run's end
         return cls(origin / end, gap / end, law.curve, law.heating_K, law.tau_s, law.lag_s)
 
@@ -270,7 +281,9 @@ class ProbePickup(ZooLaw):
     name: ClassVar[str] = "zoo_probe_pickup"
 
     def _pickup(self, axis, i_top, i_bottom):
-        return _ax(self.p1, axis) * (i_top - i_bottom) + _ax(self.p2, axis) * (i_top**2 - i_bottom**2)
+        xp = numerics(i_top, self.p1)
+        return (_per_axis(self.p1, axis, xp) * (i_top - i_bottom)
+                + _per_axis(self.p2, axis, xp) * (i_top**2 - i_bottom**2))
 
     def sense(self, axis, i_top, i_bottom, x, y):
         return i_top, i_bottom, x + self._pickup(axis, i_top, i_bottom), y
@@ -279,9 +292,9 @@ class ProbePickup(ZooLaw):
         return i_top, i_bottom, x - self._pickup(axis, i_top, i_bottom), y
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         p2 = np.zeros(2) if rng.random() < 0.5 else signed(rng, 0.5e-6, 2e-6, 2)
-        return cls(jnp.asarray(signed(rng, 1.5e-6, 6e-6, 2)), jnp.asarray(p2))
+        return cls(np.asarray(signed(rng, 1.5e-6, 6e-6, 2)), np.asarray(p2))
 
 
 class ZeroOscillation(ZooLaw):
@@ -306,9 +319,9 @@ class ZeroOscillation(ZooLaw):
         return _set(ctx, x0=ctx.x0 - zero(ctx.axis), y0=ctx.y0 - zero(1 - ctx.axis))
 
     @classmethod
-    def draw(cls, rng, duration_s):
-        return cls(jnp.asarray(rng.uniform(0.7e-6, 3e-6, 2)), jnp.asarray(duration_s / rng.uniform(3.0, 8.0)),
-                   jnp.asarray(rng.uniform(0.0, 2.0 * np.pi, 2)))
+    def _draw(cls, rng, duration_s):
+        return cls(np.asarray(rng.uniform(0.7e-6, 3e-6, 2)), np.asarray(duration_s / rng.uniform(3.0, 8.0)),
+                   np.asarray(rng.uniform(0.0, 2.0 * np.pi, 2)))
 
 
 class MechanicalSpring(ZooLaw):
@@ -328,9 +341,9 @@ class MechanicalSpring(ZooLaw):
         return force - _ax(self.k1, ctx.axis) * u - _ax(self.k3, ctx.axis) * (u / Y_REF) ** 3
 
     @classmethod
-    def draw(cls, rng, duration_s):
+    def _draw(cls, rng, duration_s):
         k3 = np.zeros(2) if rng.random() < 0.5 else signed(rng, 0.02, 0.1, 2)
-        return cls(jnp.asarray(rng.uniform(3000.0, 10000.0, 2)), jnp.asarray(k3))
+        return cls(np.asarray(rng.uniform(3000.0, 10000.0, 2)), np.asarray(k3))
 
 
 MEASUREMENT: dict[str, tuple[type[ZooLaw], ...]] = {

@@ -39,14 +39,22 @@ class Shape(eqx.Module):
     s: jnp.ndarray
 
     def __call__(self, u):
-        u = jnp.abs(jnp.asarray(u, dtype=float))[..., None]
+        xp = numerics(u, self.w)
+        u = xp.abs(xp.asarray(u, dtype=float))[..., None]
         n, c_step, c_knee, tau = self.a
         s_step, s_knee = self.s[1], self.s[2]
+
+        def softplus(z):
+            return xp.logaddexp(0.0, z)
+
+        def sigmoid(z):
+            return xp.exp(-softplus(-z))
+
         power = u**n
-        step = jax.nn.sigmoid((u - c_step) / s_step) - jax.nn.sigmoid(-c_step / s_step)
-        knee = s_knee * (jax.nn.softplus((u - c_knee) / s_knee) - jax.nn.softplus(-c_knee / s_knee))
-        settle = 1.0 - jnp.exp(-u / tau)
-        return jnp.sum(self.w[0] * power + self.w[1] * step + self.w[2] * knee + self.w[3] * settle, axis=-1)
+        step = sigmoid((u - c_step) / s_step) - sigmoid(-c_step / s_step)
+        knee = s_knee * (softplus((u - c_knee) / s_knee) - softplus(-c_knee / s_knee))
+        settle = 1.0 - xp.exp(-u / tau)
+        return xp.sum(self.w[0] * power + self.w[1] * step + self.w[2] * knee + self.w[3] * settle, axis=-1)
 
     def slope(self, u, du: float = 1e-4):
         """``df/du`` by a central difference (draw-time checks only)."""
@@ -62,6 +70,12 @@ class Shape(eqx.Module):
             if terms:
                 out[kind] = terms
         return out
+
+
+def numerics(*arrays):
+    """numpy unless an argument is being traced by JAX: draws evaluate laws on numpy grids, and the rig senses
+    whole protocols outside ``jit``, where op by op jax.numpy would compile each operation for each new length."""
+    return jnp if any(isinstance(a, jax.core.Tracer) for a in arrays) else np
 
 
 def random_shape(rng: np.random.Generator, *, kinds=KINDS, terms=(1, 3), power=(1.0, 3.0), centre=(0.2, 1.2),
@@ -80,14 +94,14 @@ def random_shape(rng: np.random.Generator, *, kinds=KINDS, terms=(1, 3), power=(
         w[k, j] = 10.0 ** rng.uniform(-1.0, 0.0) * (rng.choice([-1.0, 1.0]) if signed else 1.0)
         a[k, j] = rng.uniform(*(power, centre, centre, tau)[k])
         s[k, j] = rng.uniform(*width)
-    shape = Shape(jnp.asarray(w), jnp.asarray(a), jnp.asarray(s))
+    shape = Shape(w, a, s)
     grid = np.linspace(*span, 201)
     values = np.asarray(shape(grid))
     scale = np.max(np.abs(values)) if signed else values[-1]
     if not np.isfinite(scale) or abs(scale) < 1e-12:
         return random_shape(rng, kinds=kinds, terms=terms, power=power, centre=centre, width=width, tau=tau,
                             signed=signed, span=span)
-    return Shape(jnp.asarray(w / scale), jnp.asarray(a), jnp.asarray(s))
+    return Shape(w / scale, a, s)
 
 
 def log_uniform(rng: np.random.Generator, lo: float, hi: float, size=None):
@@ -112,6 +126,11 @@ class ZooLaw(Effect):
     def draw(cls, rng: np.random.Generator, duration_s: float) -> ZooLaw:
         """A law of this class with random structure and magnitude; ``duration_s`` [s] is the run's length (the
         time scale of laws in time)."""
+        return jax.tree_util.tree_map(jnp.asarray, cls._draw(rng, duration_s))
+
+    @classmethod
+    def _draw(cls, rng: np.random.Generator, duration_s: float) -> ZooLaw:
+        """:meth:`draw` with numpy parameters (draw-time checks evaluate the law without compiling anything)."""
         raise NotImplementedError
 
     def describe(self) -> dict:
