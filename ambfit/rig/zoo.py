@@ -2,10 +2,11 @@
 
 A :class:`Case` is drawn whole by :func:`draw_case`: what kind of truth it holds (no effect, one contract family,
 two at once, or an effect of no family), a law of each family drawn from that family's broad classes with a
-random structure and magnitude (:mod:`ambfit.rig.zoo_magnetic`, :mod:`ambfit.rig.zoo_measurement`), the
-rig's true gaps (within 2 µm of the nominal 762 µm) and origins (within 40 µm), the protocol (the library's
-:func:`~ambfit.rig.protocol.rich` or :func:`~ambfit.rig.protocol.serpentine`, or :func:`random_protocol`)
-centred where the operator found the origin, the bearing's heating, and which optional columns the rig writes.
+random structure and magnitude (:mod:`ambfit.rig.zoo_magnetic`, :mod:`ambfit.rig.zoo_hysteresis`,
+:mod:`ambfit.rig.zoo_measurement`), the rig's true gaps (within 2 µm of the nominal 762 µm) and origins (within
+40 µm), the protocol (the library's :func:`~ambfit.rig.protocol.rich` or :func:`~ambfit.rig.protocol.serpentine`,
+or :func:`random_protocol`) centred where the operator found the origin, the bearing's heating, and which
+optional columns the rig writes.
 :func:`draw` simulates it, drawing again when the rig cannot run it or a step leaves the bearing's limits
 (:func:`ambfit.rig.limits.limit_violations`).  ``benchmarks/gap_zoo.py`` scores the diagnosis on such draws.
 
@@ -31,13 +32,14 @@ from ambfit.rig.laws import as_recorded
 from ambfit.rig.limits import limit_violations
 from ambfit.rig.protocol import Load, Protocol
 from ambfit.rig.virtual import PAPER_RIG, RigError, RigSpec, simulate
+from ambfit.rig.zoo_hysteresis import HYSTERESIS
 from ambfit.rig.zoo_magnetic import MAGNETIC
 from ambfit.rig.zoo_measurement import MEASUREMENT, NO_FAMILY, Heating, TemperatureDrift
 from ambfit.rig.zoo_shapes import ZooLaw
 
 FAMILIES: tuple[str, ...] = tuple(EFFECTS)
 """The contract's families (section 3), in its order."""
-LAWS: dict[str, tuple[type[ZooLaw], ...]] = {f: {**MAGNETIC, **MEASUREMENT}[f] for f in FAMILIES}
+LAWS: dict[str, tuple[type[ZooLaw], ...]] = {f: {**MAGNETIC, **HYSTERESIS, **MEASUREMENT}[f] for f in FAMILIES}
 """Each family's law classes."""
 KINDS: dict[str, float] = {"none": 0.15, "single": 0.55, "pair": 0.20, "no_family": 0.10}
 """Kinds of truth and their chances: no effect, one family (each family equally likely), two families at once,
