@@ -1,13 +1,17 @@
 """The diagnosis record held against references (issue 30): a change that is meant to leave the diagnosis alone
 (a refactor, a faster route) must leave every key, string, flag and number of ``Diagnosis.to_json()`` as it was.
 
-The cases cover every way a verdict is reached: the bundled data (``none``, the protocol's blind spot), a library
-law, a pair, a family's law widened by its signature (explaining, and graded short of it), ``unexplained``, and the
-FEM development data (the magnetic circuit, its pieces as families).  Inputs are stored as they were simulated, so
+The cases cover the ways a verdict is reached: the bundled data (``none``, the protocol's blind spot), a library
+law, a pair, laws of families the library does not write (a coupling through the other axis' currents named by
+its signature, an exponential drift in time that no model brings to the floor, a non-linear position sensor too
+weak to single out), iron reluctance that saturation explains alike
+(``undecided``, with the protocol that would separate them), and the FEM development data (the magnetic circuit,
+its pieces as families).  Inputs are stored as they were simulated, so
 only the diagnosis is compared.  Keys must come in the same order, and strings, flags and integers must be equal.
 Numbers must agree to 1e-9 relative (1e-12 absolute): the references were made on one machine, and another
 processor's vector instructions may round the last bits differently.  On the machine that made them the records
-were byte-identical before and after the refactor.
+were byte-identical before and after the refactor of issue 30; issue 31 (undecided verdicts, predictive
+variance, paired comparisons) changed them on purpose and regenerated them.
 
 When a change is *meant* to change the diagnosis, regenerate the references and say so in the commit:
 
@@ -32,8 +36,9 @@ CASES = {
     "law": (REFS / "rig_saturation.csv.gz", None),
     "pair": (REFS / "hid_saturation_offset.csv.gz", None),
     "signature": (REFS / "hid_coupling_currents.csv.gz", None),
-    "signature_graded": (REFS / "hid_drift_exponential.csv.gz", None),
-    "unexplained": (REFS / "hid_position_nonlinear.csv.gz", None),
+    "short_of_the_floor": (REFS / "hid_drift_exponential.csv.gz", None),
+    "weak": (REFS / "hid_position_nonlinear.csv.gz", None),
+    "undecided": (REFS / "rig_iron_reluctance.csv.gz", None),
     "fem_dev": (SHARED_FEM / "fem_dev.csv", SHARED_FEM / "fem_dev.toml"),
 }
 

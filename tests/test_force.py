@@ -206,10 +206,10 @@ def test_the_circuit_families_decide_each_piece_as_refits_run_to_the_end_do():
     fem = ambfit.Bearing.from_toml(FEM_BEARING)
     ideal = ambfit.fit(ds, bearing=fem, throw=False)
     mec = ambfit.fit(ds, [MagneticCircuit()], bearing=fem, start_from=ideal, throw=False)
-    fams = {f["piece"]: f for f in circuit_families(ds.frame, mec, fem)}
+    fams = {f.piece: f for f in circuit_families(ds.frame, mec, fem)}
     threshold = 3 * np.sqrt(2 * mec.dof)
     assert set(fams) == set(MagneticCircuit.PIECES)
-    assert fams["saturation"]["significant"] and fams["saturation"]["decided"]
+    assert fams["saturation"].significant and fams["saturation"].decided
     held, keep = force_noise(mec, ds.frame), mec.fitted_rows.astype(float)
     long = {}
     for piece in ("saturation", "iron", "fringing", "leakage", "coupling"):
@@ -220,12 +220,12 @@ def test_the_circuit_families_decide_each_piece_as_refits_run_to_the_end_do():
     for piece, f in fams.items():
         ref = long["saturation"].chi2 if piece == "iron" else mec.chi2
         rise = long[piece].chi2 - ref
-        lo, hi = f["delta_chi2_bounds"]
+        lo, hi = f.delta_chi2_bounds
         assert lo - 1.0 <= rise <= hi + 1.0, (piece, lo, rise, hi)       # 1: χ² round-off of refits run apart
-        if f["decided"]:
-            assert f["significant"] == (rise > threshold), piece
+        if f.decided:
+            assert f.significant == (rise > threshold), piece
         else:                                                            # undecided is not called significant
-            assert not f["significant"] and lo <= threshold < hi, piece
+            assert not f.significant and lo <= threshold < hi, piece
 
 
 def test_a_force_check_reuses_a_refit_whose_left_out_rows_are_a_fold():

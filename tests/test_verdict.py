@@ -1,6 +1,11 @@
-"""The verdict as a pure function of scores (issue 30): :func:`ambfit.diagnosis.verdict.decide` driven by hand-made
-candidates, no fit run.  Each candidate is a real :class:`Candidate` / :class:`Signature` record whose held-out
-residuals have the mean square the test names (``score``); the ideal law's is ``IDEAL`` unless said otherwise."""
+"""The verdict as a pure function of scores (issues 30 and 31): :func:`ambfit.diagnosis.verdict.decide` driven by
+hand-made candidates, no fit run.
+
+Each candidate is a real :class:`Candidate` / :class:`Signature` record whose held-out residuals are the readings'
+noise ``e`` (one standard-normal draw shared by every model, as the readings are) plus a model error of its own,
+``sqrt(extra) * u`` with ``u`` a standard-normal draw of the model's: its score (mean z²) is about ``1 + extra``.
+Two models' scores then differ by their errors, and their paired difference is known far better than either
+score, as in a real diagnosis."""
 
 import dataclasses
 
@@ -12,130 +17,197 @@ from ambfit.diagnosis.signatures import Signature
 from ambfit.diagnosis.verdict import Judge, Rules, Verdict, decide, needs_pairs, needs_signatures
 
 N = 800
-IDEAL = 4.0
+NOISE = np.random.default_rng(0).standard_normal(N)
 SE = np.sqrt(2 / N)      # the standard error of a mean of N squared standard normals at the floor
 
 
-def _z(score: float, n: int = N) -> np.ndarray:
-    return np.full(n, np.sqrt(score))
+def _z(extra: float, seed: int) -> np.ndarray:
+    u = np.random.default_rng(seed).standard_normal(N)
+    return NOISE + np.sqrt(extra) * u
 
 
-def ideal(score: float = IDEAL) -> Candidate:
-    z = _z(score)
-    return Candidate("ideal", z, float(np.sqrt(max(score - 1, 0))), fit=None, kind="ideal")
+def ideal(extra: float = 3.0) -> Candidate:
+    z = _z(extra, 1)
+    return Candidate("ideal", z, float(np.sqrt(max(np.mean(z**2) - 1, 0))), fit=None, kind="ideal")
 
 
-def law(name: str, score: float, before: float = IDEAL) -> Candidate:
-    return Candidate(name, _z(score), float(np.sqrt(before - 1)), fit=None, kind="pair" if "+" in name else "law")
+def law(name: str, extra: float, seed: int | None = None, start: Candidate | None = None) -> Candidate:
+    before = (start or ideal()).after
+    seed = seed if seed is not None else sum(map(ord, name))
+    return Candidate(name, _z(extra, seed), before, fit=None, kind="pair" if "+" in name else "law")
 
 
-def widened(family: str, score: float, law_score: float, groups=("shape",), log_bayes: float = 50.0,
-            before: float = IDEAL) -> Signature:
-    return Signature(law=law(family, law_score, before), groups=tuple(groups), log_bayes={groups[0]: log_bayes},
-                     heldout_z=_z(score), folds=(), full=None)
+def widened(family: str, extra: float, law_extra: float, groups=("shape",), log_bayes: float = 50.0,
+            start: Candidate | None = None) -> Signature:
+    own = law(family, law_extra, start=start)
+    return Signature(law=own, groups=tuple(groups), log_bayes={groups[0]: log_bayes},
+                     heldout_z=_z(extra, sum(map(ord, family)) + 7), folds=(), full=None)
 
 
 def test_judge_thresholds_follow_the_standard_error_of_a_mean_of_squares():
-    judge = Judge(n=N, ideal_score=IDEAL)
-    assert judge.floor == pytest.approx(1 + 3 * SE)
-    assert judge.at_floor(law("a", 1 + 2.9 * SE)) and not judge.at_floor(law("a", 1 + 3.1 * SE))
-    # better: lower by more than three standard errors of the other's score (1.2 - 3 se(1.2) = 1.02)
-    assert judge.better(law("a", 1.01), law("b", 1.2)) and not judge.better(law("a", 1.03), law("b", 1.2))
-    # explains: half the excess removed and less than one noise unit left (after 0.89 / 1.10 of before 3)
-    assert judge.explains(law("a", 1.8, 10.0)) and not judge.explains(law("a", 2.2, 10.0))
-    assert not judge.explains(law("a", 1.5, before=1.6))                        # removes 0.09 only
+    judge = Judge(n=N, ideal_score=4.0)
+    assert judge.floor == pytest.approx(1 + 3 * SE) and judge.below == pytest.approx(1 - 3 * SE)
+    at = Candidate("a", np.full(N, np.sqrt(1 + 2.9 * SE)), 1.0, fit=None)
+    above = Candidate("a", np.full(N, np.sqrt(1 + 3.1 * SE)), 1.0, fit=None)
+    under = Candidate("a", np.full(N, np.sqrt(1 - 3.1 * SE)), 1.0, fit=None)
+    assert judge.at_floor(at) and not judge.at_floor(above)
+    # far below the floor a model predicts the readings' own noise: no explanation of the force
+    assert judge.below_floor(under) and not judge.explains(under)
+    assert not Judge(n=N, ideal_score=1.0 + SE).explains(at)          # the ideal law at the floor too
 
 
-def test_a_weak_effect_is_explained_by_reaching_the_floor():
-    # the ideal law 0.43 noise units above the floor (mean z² 1.185 on 840 readings): a model at the floor removes
-    # less than half of that excess, which near the floor is mostly noise, and explains the data all the same
-    weak = Candidate("a", _z(1.05, 840), float(np.sqrt(0.185)), fit=None)
-    assert weak.shrink < 0.5 and Judge(n=840, ideal_score=1.185).explains(weak)
-    assert not Judge(n=840, ideal_score=1.05).explains(weak)                   # the ideal at the floor too
+def test_clearly_better_is_a_paired_comparison_that_charges_a_wide_prediction():
+    judge = Judge(n=N, ideal_score=4.0)
+    a, b = law("a", 0.02), law("b", 0.30)
+    assert judge.clearly_better(a, b) and not judge.clearly_better(b, a) and judge.apart(a, b)
+    close = law("c", 0.03)
+    assert not judge.apart(a, close)
+    # the same residuals, but one model predicts them with twice the variance: it pays log 2 per reading
+    wide = dataclasses.replace(a, heldout_var=np.full(N, 2.0))
+    assert judge.clearly_better(a, wide)
+    with pytest.raises(ValueError, match="paired"):
+        judge.clearly_better(a, Candidate("short", np.zeros(3), 1.0, fit=None))
 
 
 def test_on_the_floor_the_verdict_is_none_and_lists_what_these_data_cannot_exclude():
-    on = ideal(1.0 + SE)                                   # excess 0.16 noise units, below floor_tolerance
-    near, far = law("saturation", 1.0), law("hysteresis", 1.0 + 6 * SE)
+    on = ideal(0.0)
+    near, far = law("saturation", 0.0, start=on), law("hysteresis", 0.3, start=on)
     v = decide(Rules(), on, [near, far])
     assert v.kind == "none" and v.name == "none" and v.grade is None and v.shrink == 0.0
     assert v.confounded_with == ("saturation",)
-    # a structured region keeps the same small excess from being the floor
-    assert decide(Rules(), on, [near, far], structured=True).kind != "none"
     assert not needs_pairs(Rules(), on, [near, far], structured=False)
     assert not needs_signatures(Rules(), on, [near, far], structured=False)
 
 
-def test_a_law_that_explains_is_named_and_graded():
-    sat, leak = law("saturation", 1.02), law("leakage", 1.9)
+def test_a_little_above_the_floor_with_no_model_clearly_better_is_none():
+    weak = ideal(0.25)                        # excess 0.5 noise units, above the floor
+    a = law("fringing", 0.20, start=weak)     # at about the same level: not clearly better
+    v = decide(Rules(), weak, [a], structured=True)
+    assert v.kind == "none"
+    # a model that is clearly better and reaches the floor explains it
+    b = law("saturation", 0.0, start=weak)
+    assert decide(Rules(), weak, [a, b], structured=True).name == "saturation"
+
+
+def test_a_law_that_explains_and_beats_every_other_family_is_named():
+    sat, leak = law("saturation", 0.0), law("leakage", 0.9)
     v = decide(Rules(), ideal(), [leak, sat])
     assert v.kind == "named" and v.name == "saturation" and v.model is sat
     assert v.grade.by == "law" and v.grade.at_floor and v.grade.explains
-    assert v.shrink == pytest.approx(sat.shrink) and v.best is None
-    assert v.confounded_with == ()
-    assert not needs_pairs(Rules(), ideal(), [leak, sat], structured=False)     # at the floor already
+    assert v.shrink == pytest.approx(sat.shrink) and v.best is None and v.confounded_with == ()
+    assert not needs_pairs(Rules(), ideal(), [leak, sat], structured=False)
+    # another family whose law differs from the library's must still be beaten: widened laws are scored
+    assert needs_signatures(Rules(), ideal(), [leak, sat], structured=False)
 
 
-def test_a_pair_wins_only_when_needed():
-    single, pair = law("saturation", 1.4, 30.0), law("saturation+current_offset", 1.02, 30.0)
+def test_two_families_that_explain_alike_are_undecided_best_first():
+    sat, iron = law("saturation", 0.005), law("iron_reluctance", 0.0)
+    v = decide(Rules(), ideal(), [sat, iron, law("leakage", 0.9)])
+    assert v.kind == "undecided" and v.name == "undecided" and v.families == ()
+    assert set(v.candidates) == {"saturation", "iron_reluctance"}
+    assert v.candidates[0] == min((sat, iron), key=lambda c: c.score).effect
+    # a family that does not reach the floor but cannot be told from the best is a rival too
+    v = decide(Rules(), ideal(), [law("saturation", 0.0), law("fringing", 0.03, seed=99)])
+    assert v.kind == "undecided" and "fringing" in v.candidates
+
+
+def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_rest():
     start = ideal(30.0)
-    assert needs_pairs(Rules(), start, [single], structured=False)               # the single is not at the floor
-    assert decide(Rules(), start, [single, pair]).name == "saturation+current_offset"    # significantly better
-    assert decide(Rules(), start, [single, pair]).grade.by == "pair"
-    assert decide(Rules(pair_verdict=False), start, [single, pair]).name == "saturation"
-    close = law("saturation+leakage", 1.38, 30.0)
-    v = decide(Rules(), start, [single, close])
-    assert v.name == "saturation" and v.confounded_with == ("saturation+leakage",)  # not significantly better
-    # at the floor, every model at the floor is consistent with noise: none can be told from the verdict's
-    judge = Judge(N, 30.0)
-    low, far = law("fringing+current_gain", 0.9, 30.0), law("position_gain", 1.0 + 2.8 * judge.se(), 30.0)
-    assert decide(Rules(), start, [far, low]).confounded_with == ("position_gain",)
-    beyond = law("position_gain", 1.0 + 3.2 * judge.se(), 30.0)
-    assert decide(Rules(), start, [beyond, low]).confounded_with == ()
+    single = law("saturation", 0.4, start=start)
+    pair = law("saturation+current_offset", 0.0, start=start)
+    assert needs_pairs(Rules(), start, [single], structured=False)
+    assert needs_signatures(Rules(), start, [single], structured=False)
+    v = decide(Rules(), start, [single, pair])
+    assert v.name == "saturation+current_offset" and v.grade.by == "pair"
+    assert decide(Rules(pair_verdict=False), start, [single, pair]).name == "unexplained"
+    # a family's widened law (more flexible) that predicts as well does not displace the pair (Occam) ...
+    rival = widened("position_gain", 0.0, 0.4, groups=("position_sensor",), start=start)
+    assert decide(Rules(), start, [single, pair, rival]).name == "saturation+current_offset"
+    # ... but without that preference the data cannot tell the pair from it
+    v = decide(Rules(occam=False), start, [single, pair, rival])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "position_gain"}
+    # ... and one that predicts clearly better is a rival whatever its flexibility
+    better = widened("position_gain", 0.0, 0.4, groups=("position_sensor",), start=start)
+    better = dataclasses.replace(better, heldout_z=NOISE.copy())
+    worse_pair = law("saturation+current_offset", 0.12, start=start)
+    assert decide(Rules(), start, [single, worse_pair, better]).name == "position_gain"
+    # ... unless its signature is not clearly in the data
+    quiet = dataclasses.replace(rival, log_bayes={"position_sensor": 2.0})
+    assert decide(Rules(occam=False), start, [single, pair, quiet]).name == "saturation+current_offset"
 
 
 def test_a_clear_signature_names_its_family_when_no_law_explains():
     start = ideal(10.0)
-    laws = [law("hysteresis", 6.0, 10.0), law("saturation", 5.0, 10.0)]
-    assert needs_signatures(Rules(), start, laws, structured=False)
-    hyst = widened("hysteresis", 1.01, 6.0, groups=("hysteresis", "memory"), before=10.0)
-    sat = widened("saturation", 3.0, 5.0, before=10.0)
+    laws = [law("hysteresis", 5.0, start=start), law("saturation", 4.0, start=start)]
+    hyst = widened("hysteresis", 0.0, 5.0, groups=("hysteresis", "memory"), start=start)
+    sat = widened("saturation", 2.0, 4.0, start=start)
     v = decide(Rules(), start, laws + [sat, hyst])
     assert v.name == "hysteresis" and v.model is hyst and v.best is hyst and v.law is hyst.law
     assert v.grade.by == "signature" and v.grade.model == "hysteresis widened by its hysteresis+memory signature"
-    # one the data do not clearly want is not a candidate: graded, the best law
-    unclear = widened("hysteresis", 1.01, 6.0, groups=("hysteresis", "memory"), log_bayes=5.0, before=10.0)
+    # one the data do not clearly want is no candidate: nothing reaches the floor
+    unclear = dataclasses.replace(hyst, log_bayes={"hysteresis": 5.0})
     v = decide(Rules(), start, laws + [unclear])
-    assert v.name == "unexplained" and v.best.effect == "saturation"
+    assert v.name == "unexplained" and v.best.effect == "saturation" and not v.grade.explains
     assert decide(Rules(log_bayes_clear=4.0), start, laws + [unclear]).name == "hysteresis"
 
 
-def test_families_sharing_a_signature_go_to_the_law_that_goes_furthest_and_the_rest_are_confounded():
+def test_families_sharing_a_signature_cannot_be_told_apart_by_it():
     start = ideal(10.0)
-    fringing = widened("fringing", 1.02, 3.0, before=10.0)
-    leakage = widened("leakage", 1.03, 2.0, before=10.0)         # the same signature; its own law goes further
-    v = decide(Rules(), start, [law("fringing", 3.0, 10.0), law("leakage", 2.0, 10.0), fringing, leakage])
-    assert v.name == "leakage" and "fringing" in v.confounded_with
+    fringing = widened("fringing", 0.0, 3.0, start=start)
+    leakage = widened("leakage", 0.0, 0.5, start=start)          # its own law goes further, short of the floor
+    v = decide(Rules(), start, [fringing.law, leakage.law, fringing, leakage])
+    assert v.kind == "undecided" and set(v.candidates) == {"fringing", "leakage"}
+    # a signature of its own, the other's far off: named
+    hyst = widened("hysteresis", 0.0, 3.0, groups=("hysteresis", "memory"), start=start)
+    assert decide(Rules(), start, [hyst.law, leakage.law, hyst, widened("leakage", 1.0, 0.5, start=start)]
+                  ).name == "hysteresis"
 
 
-def test_graded_when_nothing_explains_and_unexplained_when_nothing_removes_half():
+def test_what_every_rival_shares_is_named_and_what_none_singles_out_is_left_confounded():
+    start = ideal(30.0)
+    # saturation alone falls short; with any second effect it reaches the floor, and no second is clearly best
+    single = law("saturation", 0.35, start=start)
+    pairs = [law(f"saturation+{other}", 0.0, start=start) for other in ("current_offset", "leakage", "hysteresis")]
+    v = decide(Rules(), start, [single, *pairs, law("fringing", 3.0, start=start)])
+    assert v.kind == "named" and v.name == "saturation" and v.grade.by == "pair"
+    assert {"saturation+leakage", "saturation+hysteresis"} <= set(v.confounded_with)
+    # a single not clearly worse than the pair: the pair's second effect is not singled out
+    close = law("saturation", 0.02, start=start)
+    v = decide(Rules(), start, [close, pairs[0]])
+    assert v.name == "saturation"
+    # pairs sharing no family: undecided between the minimal sets
+    a, b = law("saturation+current_offset", 0.0, start=start), law("leakage+current_gain", 0.0, start=start)
+    v = decide(Rules(), start, [law("saturation", 2.0, start=start), a, b])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "leakage+current_gain"}
+
+
+def test_short_of_the_floor_a_model_that_removes_nearly_all_and_beats_the_rest_is_named():
+    start = ideal(30.0)
+    near = law("hysteresis", 0.3, start=start)                  # leaves 0.55 of 5.4 noise units: removes 0.9
+    assert near.shrink > 0.89
+    v = decide(Rules(), start, [near, law("saturation", 6.0, start=start)])
+    assert v.name == "hysteresis" and not v.grade.at_floor
+    assert decide(Rules(graded_shrink=0.95), start, [near]).name == "unexplained"
+    # ... and with a rival that it does not beat: undecided
+    v = decide(Rules(), start, [near, law("cross_coupling", 0.32, start=start)])
+    assert v.kind == "undecided"
+
+
+def test_nothing_at_the_floor_is_unexplained_with_the_best_model_reported():
     start = ideal(10.0)
-    # leaves 1.3 noise units (more than floor_tolerance) having removed 0.57 of 3: graded, short of explaining
-    v = decide(Rules(), start, [law("saturation", 2.7, 10.0), law("leakage", 5.0, 10.0)])
-    assert v.kind == "named" and v.name == "saturation" and not v.grade.explains and not v.grade.at_floor
-    # removes 0.33 only: unexplained, with the best single's shrink and its force check
-    v = decide(Rules(), start, [law("saturation", 5.0, 10.0)])
-    assert v.kind == "unexplained" and v.name == "unexplained" and v.grade is None
-    assert v.shrink == pytest.approx(1 - 2 / 3) and v.best.effect == "saturation"
-    # the same scores under a lower min_shrink: graded
-    assert decide(Rules(min_shrink=0.3), start, [law("saturation", 5.0, 10.0)]).name == "saturation"
+    v = decide(Rules(), start, [law("saturation", 0.7, start=start), law("leakage", 4.0, start=start)])
+    assert v.kind == "unexplained" and v.name == "unexplained" and v.families == ()
+    assert v.best.effect == "saturation" and not v.grade.explains and not v.grade.at_floor
+    assert v.shrink == pytest.approx(v.best.shrink)
+    # below the floor is no explanation either
+    under = Candidate("fringing", NOISE * 0.5, start.after, fit=None)
+    assert decide(Rules(), start, [under]).kind == "unexplained"
 
 
 def test_a_verdict_names_its_kind_and_a_circuit_its_families():
     with pytest.raises(ValueError, match="kind"):
         Verdict("maybe")
-    circuit = law("magnetic_circuit", 1.01)
-    v = decide(Rules(), ideal(), [circuit])
+    v = decide(Rules(), ideal(), [law("magnetic_circuit", 0.0), law("saturation", 1.0)])
     assert v.name == "magnetic_circuit"
     named = v.with_families({"saturation": None, "fringing": None})
     assert named.name == "saturation+fringing" and named.grade.families == ("saturation", "fringing")
@@ -143,18 +215,18 @@ def test_a_verdict_names_its_kind_and_a_circuit_its_families():
     assert Verdict("undecided", candidates=("a", "b")).name == "undecided"
 
 
-def test_rules_are_one_object_and_every_field_is_used():
-    # each threshold, moved, changes a decision that the default rules make otherwise
-    start, a = ideal(10.0), law("saturation", 1.8, 10.0)          # removes 0.70, leaves 0.89
-    assert decide(Rules(), start, [a]).grade.explains
-    assert not decide(Rules(floor_tolerance=0.8), start, [a]).grade.explains
-    assert decide(Rules(min_shrink=0.8), start, [a]).name == "unexplained"      # nor graded: removes too little
-    on = law("saturation", 1.0 + 2.5 * SE, 10.0)
-    assert decide(Rules(), start, [on]).grade.at_floor and not decide(Rules(floor_se=2.0), start, [on]).grade.at_floor
-    single, pair = law("saturation", 1.4, 30.0), law("saturation+leakage", 1.1, 30.0)
-    assert decide(Rules(), ideal(30.0), [single, pair]).name == "saturation+leakage"
-    assert decide(Rules(better_se=6.0), ideal(30.0), [single, pair]).name == "saturation"
+def test_rules_are_one_object_and_every_threshold_moves_a_decision():
+    start = ideal(10.0)
+    a = law("saturation", 0.2, start=start)                         # a little above 1 + 3 se
+    assert not decide(Rules(), start, [a]).grade.at_floor
+    assert decide(Rules(floor_se=6.0), start, [a]).name == "saturation"
+    b, c = law("saturation", 0.0, start=start), law("leakage", 0.15, start=start)
+    assert decide(Rules(), start, [b, c]).name == "saturation"
+    assert decide(Rules(margin_se=50.0), start, [b, c]).kind == "undecided"
+    weak = ideal(0.25)
+    assert decide(Rules(), weak, [law("fringing", 0.2, start=weak)]).kind == "none"
+    assert decide(Rules(floor_tolerance=0.1), weak, [law("fringing", 0.2, start=weak)]).kind == "unexplained"
     assert {f.name for f in dataclasses.fields(Rules)} == {
-        "floor_tolerance", "min_shrink", "floor_se", "better_se", "log_bayes_clear", "structure_alpha",
-        "circuit_dchi2", "pairs", "pair_verdict"}
-    assert not needs_pairs(Rules(pairs=False), ideal(30.0), [single], structured=False)
+        "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "log_bayes_clear", "structure_alpha", "circuit_dchi2",
+        "separate_log_bayes", "time_tied_r2", "occam", "pairs", "pair_verdict"}
+    assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)

@@ -31,11 +31,16 @@ from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
 from ambfit.diagnosis.scoring import Scorer
+from ambfit.diagnosis.separation import separate_by
 from ambfit.diagnosis.threads import _Each
 from ambfit.diagnosis.verdict import Judge, Rules, decide, needs_pairs, needs_signatures
 from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
+
+MAX_SEPARATED = 4
+"""The protocol that separates an ``undecided`` verdict's candidates is sought for its best few (every ordered pair
+of them is a comparison on every protocol scored)."""
 
 
 def default_candidates(data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> list:
@@ -51,38 +56,37 @@ def default_candidates(data: pd.DataFrame, bearing: Bearing = PAPER_BEARING) -> 
 
 
 def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing = PAPER_BEARING,
-             rules: Rules | None = None, floor_tolerance: float | None = None, min_shrink: float | None = None,
-             pairs: bool | None = None, pair_verdict: bool | None = None, max_steps: int = 60,
+             rules: Rules | None = None, floor_tolerance: float | None = None, pairs: bool | None = None,
+             pair_verdict: bool | None = None, max_steps: int = 60,
              baseline: FitResult | None = None, progress=None, check_force: bool = True, discrepancy: bool = True,
-             threads: int = 2, **noise) -> Diagnosis:
+             threads: int = 2, folds: str = "regions", **noise) -> Diagnosis:
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
-    Verdict (:mod:`ambfit.diagnosis.verdict`; every threshold is a field of ``rules``, default :class:`Rules`;
-    ``floor_tolerance``, ``min_shrink``, ``pairs`` and ``pair_verdict`` set those fields of it): ``none`` when the
-    baseline's held-out residuals sit on the noise floor (excess below ``floor_tolerance`` and no structured
-    region).  Otherwise the best candidate (default: every effect in :data:`ambfit.physics.effects.EFFECTS`) if it
-    *explains* the data (removes at least ``min_shrink`` of the excess, or reaches the floor where the ideal law
-    does not, and leaves less than ``floor_tolerance``); when no single effect reaches the floor, the best single
-    plus each other candidate are tried the same way (``pairs``), and a pair is the verdict when no single explains
-    or the pair is significantly better (``pair_verdict``, the default: real bearings often carry two effects at
-    once; with False the pair is only reported as ``best_pair``).  ``max_steps`` is the Levenberg-Marquardt budget
-    of each candidate fit; ``baseline`` is the ideal fit of these data when the caller already has it.
-    ``progress``, if given, is called as ``progress("candidate effects", done, total)`` after each model's
-    held-out fits.  ``threads``: how many fits run at once (each compiled solve releases the interpreter while it
-    runs; 1: one after another, the same results to round-off).  A model's fold refits leave out the readings its
-    fit of every row named outliers (one outlier test per model; that fit saw the held-out rows too).
+    Every model is scored on held-out folds (block cross-validation over operating regions, and over time when
+    the readings have a clock) and the verdict decided from the scores by :func:`ambfit.diagnosis.verdict.decide`,
+    every threshold a field of ``rules`` (default :class:`Rules`; ``floor_tolerance``, ``pairs`` and
+    ``pair_verdict`` set those fields of it).
 
-    **A family whose law differs from the library's**: when no law reaches the floor, every family's law is
-    widened by its signature (:mod:`ambfit.diagnosis.signatures`: the discrepancy's groups of the variables the
-    family acts through) and scored on the same folds.  A family whose signature the data want clearly and whose
-    widened law explains the data (when no law does, or reaching the floor when the law does not) is the verdict;
-    ``law`` says how much the library's own law leaves, and the families sharing its signature that explain the
-    data too are listed as confounded.
+    - ``none``: the ideal law's held-out residuals sit on the noise floor.
+    - A family (or a ``+``-joined set) is *named* only when its model *explains* the data (its held-out score at
+      the noise floor, within its standard error, where the ideal law's is not) and is clearly better, reading by
+      reading, than every other family's model that explains them too.  Models are tried simplest first: each
+      candidate effect's library law (default: every effect in :data:`ambfit.physics.effects.EFFECTS`, and the
+      magnetic circuit of a bearing with a B-H curve); when none explains, the best single plus each other
+      candidate (``pairs``); when no pair explains either, each family's law widened by its signature
+      (:mod:`ambfit.diagnosis.signatures`: the discrepancy's groups of the variables the family acts through),
+      whose signature the data must want clearly.  ``law`` then says how much the library's own law leaves.
+    - ``undecided``: several families explain the data and these data cannot tell them apart: ``candidates``
+      lists them, best first.
+    - ``unexplained``: nothing reaches the floor; the model that removes most is reported (``grade``, and its
+      force check as ``force_check.best``).
 
-    **Graded**: when nothing explains the data, the model that removes most of the excess (a law, a pair or a
-    widened law) is the verdict if it removes at least ``min_shrink``, with ``grade`` saying what it leaves (noise
-    units, at the floor or not); ``unexplained`` only when nothing does.  The force check of the model that removes
-    most is always reported (``force_check.best`` when it is not the verdict's law).
+    ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit; ``baseline`` is the ideal fit of these
+    data when the caller already has it.  ``progress``, if given, is called as ``progress("candidate effects",
+    done, total)`` after each model's held-out fits.  ``threads``: how many fits run at once (each compiled solve
+    releases the interpreter while it runs; 1: one after another, the same results to round-off).  A model's fold
+    refits leave out the readings its fit of every row named outliers (one outlier test per model; that fit saw
+    the held-out rows too).
 
     **The discrepancy** (``discrepancy=True``, :mod:`ambfit.estimation.discrepancy`): the ideal law and the
     verdict's model each get the nonparametric correction on the same folds; its held-out shrink is the
@@ -93,7 +97,7 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     from ambfit.estimation.lm import compiled_together
     from ambfit.estimation.problem import owned
 
-    given = {"floor_tolerance": floor_tolerance, "min_shrink": min_shrink, "pairs": pairs, "pair_verdict": pair_verdict}
+    given = {"floor_tolerance": floor_tolerance, "pairs": pairs, "pair_verdict": pair_verdict}
     rules = dataclasses.replace(rules or Rules(), **{k: v for k, v in given.items() if v is not None})
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)   # its own copy (see owned)
     cands = list(candidates) if candidates is not None else default_candidates(df, bearing)
@@ -101,7 +105,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]), owned(df), \
             _Each(threads) as each, contextlib.ExitStack() as later:
         base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
-        scorer = Scorer(df, base, bearing=bearing, noise=noise, max_steps=max_steps, each=each, progress=progress)
+        scorer = Scorer(df, base, bearing=bearing, noise=noise, max_steps=max_steps, each=each, progress=progress,
+                        scheme=folds)
         return _diagnose(scorer, cands, rules, check_force=check_force, discrepancy=discrepancy, later=later)
 
 
@@ -136,7 +141,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     verdict = decide(rules, ideal, singles + pairs + sigs, structured=structured)
     ranking = sorted(singles + pairs, key=lambda c: c.score)
     # check
-    law = verdict.law if verdict.kind == "named" else None
+    law = verdict.law
     verdict_fit = law.fit if law is not None else None
     ceil = ceiling(df, ideal, law, ideal.after, noise, scorer.progress, each) if discrepancy else None
     families = None
@@ -144,6 +149,13 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         # the circuit is physics, the verdict names its families: each piece's contribution, largest first
         families = circuit_families(df, verdict_fit, bearing, significance=rules.circuit_dchi2, **noise)
         verdict = verdict.with_families(dict.fromkeys(f.family for f in families if f.significant))
+    separation = None
+    if verdict.kind == "undecided":
+        # what would tell the candidates apart: each one's model as fitted here, on protocols within the limits
+        by_name = {"+".join(c.families): c for c in sorted(ranking + sigs, key=lambda c: c.score)}
+        fits = [getattr(by_name[n], "law", by_name[n]).fit for n in verdict.candidates[:MAX_SEPARATED]
+                if n in by_name]
+        separation = separate_by(fits, df, bearing, noise, enough=rules.separate_log_bayes)
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
     best_pair = next((Pair(c.effect, c.after, c.shrink, bool(judge.explains(c))) for c in ranking if c.kind == "pair"),
                      None)
@@ -151,7 +163,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         baseline=base, noise_floor=noise_floor(base), where=loc, folds=scorer.fold_name, ideal=ideal,
         ranking=ranking, decision=verdict, rules=rules, verdict_fit=verdict_fit,
         operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
-        best_pair=best_pair, families=families, ceiling=ceil, signatures=sigs or None,
+        best_pair=best_pair, families=families, ceiling=ceil, signatures=sigs or None, separation=separation,
         force_check=force_checks(df, base, verdict_fit, bearing, noise, discrepancy, scorer.max_steps,
                                  fold_fits([ideal] + ranking, ceil), each, best=verdict.best)
         if check_force else None)

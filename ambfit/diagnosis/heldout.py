@@ -15,14 +15,37 @@ import pandas as pd
 
 from ambfit.data import load_groups, zero_based
 from ambfit.estimation.results import FitResult
+from ambfit.estimation.units import HEAD
 
-HEAD = ("g_v0", "v0", "g_w0", "w0", "k_v", "k_w")
+FOLDS = 4
+"""Cross-validation folds of the time-block scheme."""
+
+BLOCKS_PER_FOLD = 4
+"""Contiguous blocks of readings in each time-block fold: spread over the run, each held-out block lies between
+readings the fold's fit sees (interpolation in time), the first and the last at its ends (extrapolation)."""
 
 
-def folds(data: pd.DataFrame) -> tuple[str, list]:
-    """Block cross-validation folds over operating regions: leave one load out when there are three or more
-    load groups, else leave one bias out, else alternate iterations.  Returns (name, [bool test masks])."""
+def folds(data: pd.DataFrame, scheme: str = "regions") -> tuple[str, list]:
+    """Block cross-validation folds.  Returns ``(name, [bool test masks])``.
+
+    ``scheme="regions"``: over operating regions: leave one load out when there are three or more load groups,
+    else leave one bias out, else alternate iterations.  ``scheme="time"``: the readings in the order they were
+    taken (``time_s``, else the rows' order) cut into ``FOLDS * BLOCKS_PER_FOLD`` contiguous blocks, block ``j``
+    in fold ``j mod FOLDS``: every fold holds readings from the whole run, each between readings its fit sees,
+    so a drift is tested by interpolation as well as extrapolation, and every load, bias and set-point region is
+    in every fit."""
     df = data.reset_index(drop=True)
+    if scheme == "time":
+        n = len(df)
+        t = pd.to_numeric(df["time_s"], errors="coerce").to_numpy(float) if "time_s" in df else np.full(n, np.nan)
+        order = np.argsort(np.where(np.isfinite(t), t, np.arange(n)) if np.isfinite(t).all() else np.arange(n),
+                           kind="stable")
+        blocks = max(min(FOLDS * BLOCKS_PER_FOLD, n // 5), FOLDS)
+        block = np.empty(n, int)
+        block[order] = np.arange(n) * blocks // max(n, 1)
+        return "time blocks", [(block % FOLDS) == k for k in range(FOLDS)]
+    if scheme != "regions":
+        raise ValueError(f"scheme must be 'regions' or 'time', got {scheme!r}")
     if "load_id" in df and df["load_id"].nunique() >= 3:
         return "leave-one-load-out", [(df["load_id"] == v).to_numpy() for v in df["load_id"].unique()]
     b = np.round(df["bias_A"].to_numpy(float), 6)
@@ -30,6 +53,16 @@ def folds(data: pd.DataFrame) -> tuple[str, list]:
         return "leave-one-bias-out", [b == v for v in np.unique(b)]
     it = pd.to_numeric(df["iteration"], errors="coerce").fillna(0).to_numpy() if "iteration" in df else np.arange(len(df))
     return "alternate iterations", [(it % 2) == 0, (it % 2) == 1]
+
+
+def deviance(z, var=None) -> np.ndarray:
+    """``z^2 / var + log(var)`` per reading: minus twice the Gaussian log predictive density of a residual ``z``
+    (noise units) whose predictive variance is ``var``, up to a constant."""
+    z = np.asarray(z, dtype=float)
+    if var is None:
+        return z**2
+    var = np.asarray(var, dtype=float)
+    return z**2 / var + np.log(var)
 
 
 def excess(z) -> float:
@@ -62,6 +95,23 @@ def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, g
     return z[test]
 
 
+def predictive_variance(fitted: FitResult, rows: np.ndarray) -> np.ndarray:
+    """What the fit's parameter uncertainty adds to the variance of its prediction of ``rows`` (bool mask), in
+    noise units: ``h = J (J' W J + P)^-1 J'`` with ``J`` the standardized residuals' Jacobian (free parameters,
+    scaled), ``W`` the rows the fit used and ``P`` the unit precision of the effect parameters' priors.  A held-out
+    reading's standardized residual has variance ``1 + h`` when the model is right (the leverage of a new
+    observation: Cook and Weisberg, *Residuals and Influence in Regression*, 1982, sec. 2.2)."""
+    jac = fitted.jacobian_rows
+    if jac is None or not np.any(rows):
+        return np.zeros(int(np.sum(rows)))
+    w = np.ones(len(jac)) if fitted.weights is None else np.asarray(fitted.weights, dtype=float)
+    jw = jac * w[:, None]
+    prior = np.array([1.0 if "." in name else 0.0 for name in fitted.names[:jac.shape[1]]])
+    cov = np.linalg.pinv(jw.T @ jw + np.diag(prior))
+    j = jac[rows]
+    return np.einsum("ni,ij,nj->n", j, cov, j)
+
+
 @dataclasses.dataclass(frozen=True)
 class Candidate:
     """One model's held-out score: the effects, the excess before and after, and its in-sample fit.
@@ -71,7 +121,7 @@ class Candidate:
     effect : str
         The model's name: ``ideal``, an effect's, or ``+``-joined effects'.
     heldout_z : array[n]
-        Standardized residuals of every fold's held-out readings, pooled.
+        Standardized residuals of every fold's held-out readings, pooled (in noise units).
     before : float
         The ideal law's held-out excess (noise units).
     fit : FitResult
@@ -80,6 +130,9 @@ class Candidate:
         ``(test mask, fit without those rows)`` per fold.
     kind : {"ideal", "law", "pair"}
         The ideal law, one library law, or a pair of them.
+    heldout_var : array[n] or None
+        Each held-out reading's predictive variance ``1 + h`` in noise units (:func:`predictive_variance`): the
+        variance of its residual when the model is right (None: 1).
     """
 
     effect: str
@@ -88,6 +141,13 @@ class Candidate:
     fit: FitResult
     folds: tuple = ()
     kind: str = "law"
+    heldout_var: np.ndarray | None = None
+
+    @property
+    def heldout_deviance(self) -> np.ndarray:
+        """Each held-out reading's ``z^2 / (1 + h) + log(1 + h)``: minus twice its log predictive density, up to a
+        constant (the flexibility a model pays: a wider prediction is less surprised, and pays its width)."""
+        return deviance(self.heldout_z, self.heldout_var)
 
     @property
     def families(self) -> tuple[str, ...]:

@@ -15,6 +15,7 @@ from ambfit.diagnosis.checks import ForceCheck, Pair
 from ambfit.diagnosis.discrepancy import Ceiling
 from ambfit.diagnosis.heldout import Candidate
 from ambfit.diagnosis.residuals import NoiseFloor, Where
+from ambfit.diagnosis.separation import Separation
 from ambfit.diagnosis.verdict import Grade, Judge, Rules, Verdict
 from ambfit.estimation.results import FitResult
 
@@ -54,7 +55,9 @@ class Diagnosis:
     ceiling : Ceiling or None
         The discrepancy's held-out shrink on the ideal law and the verdict's model.
     signatures : list[Signature] or None
-        Every family's law widened by its signature, best first, when no law reached the floor.
+        Every family's law widened by its signature, best first, when no single law explained the data.
+    separation : Separation or None
+        ``undecided``: the protocol that would tell the candidates apart.
     """
 
     baseline: FitResult
@@ -73,6 +76,7 @@ class Diagnosis:
     force_check: ForceCheck | None = None
     ceiling: Ceiling | None = None
     signatures: list | None = None
+    separation: Separation | None = None
 
     @property
     def verdict(self) -> str:
@@ -139,6 +143,8 @@ class Diagnosis:
         }
         if self.decision.kind == "undecided":
             rec["candidates"] = list(self.decision.candidates)
+            if self.separation is not None:
+                rec["separate_by"] = self.separation.to_json()
         if blind := text.blind_spot(self):
             rec["blind_spot"] = blind
         if self.best_pair is not None:

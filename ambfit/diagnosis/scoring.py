@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import load_groups
-from ambfit.diagnosis.heldout import Candidate, excess, folds, heldout_residuals
+from ambfit.diagnosis.heldout import Candidate, excess, folds, heldout_residuals, predictive_variance
 from ambfit.diagnosis.signatures import Signature, widened
 from ambfit.diagnosis.threads import _Each
 from ambfit.estimation.fit import fit
@@ -53,13 +53,15 @@ class Scorer:
         How independent fits run (threads).
     progress : callable, optional
         ``progress("candidate effects", done, total)`` after each model's folds.
+    scheme : {"regions", "time"}
+        The cross-validation folds (:func:`ambfit.diagnosis.heldout.folds`).
     """
 
     def __init__(self, df: pd.DataFrame, base: FitResult, *, bearing: Bearing, noise: dict, max_steps: int,
-                 each: _Each, progress=None):
+                 each: _Each, progress=None, scheme: str = "regions"):
         self.df, self.base, self.bearing, self.noise = df, base, bearing, noise
         self.max_steps, self.each, self.progress = max_steps, each, progress
-        self.fold_name, self.tests = folds(df)
+        self.fold_name, self.tests = folds(df, scheme)
         self.groups = load_groups(df).to_numpy()
         self.done = self.total = 0
 
@@ -100,11 +102,12 @@ class Scorer:
         out = []
         for k, effects in enumerate(effect_sets):
             fitted = [first] + [f.result() for f in queued[0]] if k == 0 else [f.result() for f in queued[k]]
+            var = np.concatenate([1.0 + predictive_variance(f, test) for test, f in zip(self.tests, fitted)])
             z = np.concatenate([heldout_residuals(f, self.df, test, self.groups) for test, f in zip(self.tests, fitted)])
             kind = "ideal" if not effects else "pair" if len(effects) > 1 else "law"
             out.append(Candidate("+".join(type(e).name for e in effects) or "ideal", z,
                                  excess(z) if before is None else before, full[k], tuple(zip(self.tests, fitted)),
-                                 kind=kind))
+                                 kind=kind, heldout_var=var))
             self.done += 1
             if self.progress is not None:
                 self.progress("candidate effects", self.done, self.total)

@@ -15,7 +15,7 @@ import dataclasses
 
 import numpy as np
 
-from ambfit.diagnosis.heldout import Candidate, excess, shrink
+from ambfit.diagnosis.heldout import Candidate, deviance, excess, predictive_variance, shrink
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +36,8 @@ class Signature:
         ``(held-out mask, fit, discrepancy)`` per fold.
     full : Discrepancy
         The signature fitted on every row of the law's fit.
+    heldout_var : array or None
+        Each held-out reading's predictive variance (the law's parameters and the correction's coefficients).
     """
 
     law: Candidate
@@ -44,6 +46,7 @@ class Signature:
     heldout_z: np.ndarray
     folds: tuple
     full: object
+    heldout_var: np.ndarray | None = None
 
     kind = "signature"
 
@@ -60,6 +63,11 @@ class Signature:
         return f"{self.family} widened by its {'+'.join(self.groups)} signature"
 
     label = model
+
+    @property
+    def heldout_deviance(self) -> np.ndarray:
+        """Each held-out reading's ``z^2 + log(1 + h)`` (:func:`ambfit.diagnosis.heldout.deviance`)."""
+        return deviance(self.heldout_z, self.heldout_var)
 
     @property
     def log_bayes_max(self) -> float:
@@ -96,14 +104,17 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
     from ambfit.diagnosis.heldout import heldout_residuals
     from ambfit.estimation.discrepancy import fit_discrepancy
 
-    zs, folds_ = [], []
+    zs, vs, folds_ = [], [], []
     loads = load_groups(df).to_numpy()
     for test, f in law.folds:
         d = fit_discrepancy(f, df, groups=groups, **noise)          # on the rows the fold's fit used
         zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
                                     loads))
+        # the law's parameters and the correction's coefficients both widen the prediction
+        vs.append(1.0 + predictive_variance(f, test) + d.row_variance[test])
         folds_.append((test, f, d))
     full = fit_discrepancy(law.fit, df, groups=groups, **noise)
+    var = np.concatenate(vs)
     return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
-                     folds=tuple(folds_), full=full)
+                     folds=tuple(folds_), full=full, heldout_var=var)
 

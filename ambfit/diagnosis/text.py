@@ -11,6 +11,7 @@ import html as _html
 
 import numpy as np
 
+from ambfit.estimation.units import GEOMETRY
 from ambfit.physics.bearing import AXES
 
 
@@ -40,6 +41,23 @@ def verdict(dg) -> str:
     if dg.verdict == "none":
         text = ("verdict: none (the ideal law's held-out residuals sit on the noise floor); these data cannot "
                 f"exclude: {', '.join(dg.confounded_with) or 'nothing'}")
+    elif dg.verdict == "undecided":
+        text = (f"verdict: undecided: {', '.join(dg.decision.candidates)} explain the data alike and these data "
+                "cannot tell them apart (best first)")
+        sep = dg.separation
+        if sep is not None:
+            text += (f"\nto tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
+                     f"for the weakest pair (these data: {sep.on_these_data:.1f})"
+                     + ("" if sep.separates else "; even that would not separate them clearly"))
+            drift = any("thermal_drift" in c.split("+") for c in dg.decision.candidates)
+            if drift and sep.time_tied is not None and sep.time_tied > dg.rules.time_tied_r2:
+                text += (f"\nthe readings' time runs with the sweep (the set-points, biases and loads explain "
+                         f"{100 * sep.time_tied:.0f} % of it): a drift cannot be told from an effect of the "
+                         "operating point; shuffle the order of the set-points and biases")
+    elif dg.verdict == "unexplained":
+        text = "verdict: unexplained: no model reaches the noise floor held out"
+        if dg.grade is not None:
+            text += f" (the closest: {dg.grade.model})"
     else:
         text = (f"verdict: {dg.verdict}; confounded with: {', '.join(dg.confounded_with) or 'none'}; "
                 f"shrink {dg.shrink:.3f}")
@@ -53,7 +71,7 @@ def verdict(dg) -> str:
                      f"{f.piece} ({f.family}) {f.delta_chi2:.0f}" + family_note(f) for f in dg.families))
     if dg.families is not None and dg.verdict_fit is not None:
         vf = dg.verdict_fit
-        shown = [n for n in ("g_v0", "v0", "g_w0", "w0") if n in vf.names]
+        shown = [n for n in GEOMETRY if n in vf.names]
         text += ("\nthe circuit's gap and origin [µm]: " + ", ".join(
             f"{n} {vf.value(n) * 1e6:.2f} ± {vf.error(n) * 1e6:.2f}" for n in shown)
             + f" (χ²/dof {vf.reduced_chi2:.2f}; the ideal law's are compared with the drawing below)")
@@ -89,8 +107,7 @@ def findings(dg) -> list[str]:
         g = dg.grade
         out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "
                    f"noise units (mean z² {g.remainder_mean_z2:.2f}; the floor reaches {g.floor_mean_z2:.2f}): "
-                   + ("at the noise floor" if g.at_floor else "it explains the data, not to the floor"
-                      if g.explains else "graded: short of explaining, part of the structure is left"))
+                   + ("at the noise floor" if g.at_floor else "short of the floor: part of the structure is left"))
     if dg.law is not None:
         lw = dg.law
         signature = "+".join(lw.groups)

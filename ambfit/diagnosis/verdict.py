@@ -1,23 +1,30 @@
 """How a diagnosis turns held-out scores into a verdict: the rules, and one pure function that applies them.
 
-Every model is scored by the mean squared held-out standardized residual (``score``; 1 at the noise floor).  With
-``n`` held-out readings its standard error at the floor is ``sqrt(2 / n)`` (a mean of ``n`` squared standard
-normals), scaled by the level above it.  A model
+Every model is scored by its held-out standardized residuals ``z`` (each fold's readings predicted by a fit that
+did not see them): ``score = mean(z^2)``, 1 at the noise floor for a model whose parameters are known exactly, and
+``mean(1 + h)`` for one that is right but estimated (``h``: what its parameters' uncertainty adds to each
+prediction's variance, :func:`ambfit.diagnosis.heldout.predictive_variance`).  With ``n`` held-out readings the
+score's standard error is ``sqrt(2 / n)`` (a mean of ``n`` squared standard normals), scaled by its level.  A model
 
-- is *at the floor* when its score is within ``Rules.floor_se`` of those standard errors of 1 (a right law's
-  held-out score sits a little above 1: each fold's prediction carries its parameters' error too);
-- *explains* the data when it leaves less than ``Rules.floor_tolerance`` noise units and either removes at least
-  ``Rules.min_shrink`` of the ideal law's held-out excess or reaches the floor where the ideal law does not (a
-  weak effect: the excess of a model near the floor is mostly noise, so its shrink says little);
-- is *better* than another when its score is lower by more than ``Rules.better_se`` standard errors of the other's.
+- is *at the floor* when its score is within ``Rules.floor_se`` of those standard errors of its floor (and not
+  below the noise's: a held-out score far *below* 1 is no model of the force, it predicts the readings' own noise);
+- *explains* the data when it is at the floor where the ideal law is not;
+- is *clearly better* than another when, reading by reading, its predictions are better by more than
+  ``Rules.margin_se`` standard errors of their paired difference (minus twice the log predictive density,
+  ``z^2 / (1 + h) + log(1 + h)``: a flexible model pays for the width of its predictions; the two models' scores
+  share the readings' noise, so their difference is known far better than either score).
 
 :func:`decide` applies them to scored models (:class:`~ambfit.diagnosis.heldout.Candidate` laws and pairs,
-:class:`~ambfit.diagnosis.signatures.Signature` widened laws): the verdict is the best library law (or pair of
-laws) that explains the data; else the best family whose law widened by its signature explains them; else,
-graded, the best model of all that removes at least ``min_shrink`` of the excess, with what it leaves
-(:class:`Grade`); ``unexplained`` only when nothing does.  :func:`needs_pairs` and :func:`needs_signatures` say,
-from the same rules, whether the scores so far call for more candidates.  Nothing here fits: every function is
-pure, and unit tests drive it with hand-made scores.
+:class:`~ambfit.diagnosis.signatures.Signature` widened laws), simplest first, so that flexibility is paid for:
+a library law that explains the data is preferred to a pair, and a pair to a family's law widened by its
+signature (tens of free terms).  Within the first of these tiers that explains the data, a family is named only
+when its best model is clearly better than every other family's that explains them too; otherwise the verdict
+is ``undecided`` and lists them (``candidates``, best first).  Families sharing a signature are told apart by
+their own laws, or not at all.  When nothing explains the data the verdict is ``unexplained``, with the model that
+removes most reported (``best``), unless one removes nearly all of the excess and beats every other family's model:
+it is named, graded short of the floor.  :func:`needs_pairs` and :func:`needs_signatures` say, from the same rules,
+whether the scores so far call for more candidates.  Nothing here fits: every function is pure, and unit tests
+drive it with hand-made scores.
 """
 
 from __future__ import annotations
@@ -34,39 +41,53 @@ class Rules:
     Attributes
     ----------
     floor_tolerance : float
-        A model explains the data only when it leaves less than this held-out excess [noise units]; the ideal
-        law is on the floor (verdict ``none``) below it when no region is structured.
-    min_shrink : float
-        The share of the ideal law's held-out excess a model must remove to explain the data (or to be a graded
-        verdict when nothing explains them).
+        The ideal law is on the floor (verdict ``none``) when its held-out excess [noise units] is below this and
+        no region is structured (or when its score is at the floor).
     floor_se : float
         At the floor: a score within this many standard errors of 1.
-    better_se : float
-        Significantly better (a pair over a single, a widened law over a law) and indistinguishable
-        (``confounded_with``): a difference of more than / less than this many standard errors.
+    margin_se : float
+        Clearly better: a paired difference of squared held-out residuals beyond this many of its standard
+        errors.  Models not clearly apart are indistinguishable (``undecided``, ``confounded_with``).
+    graded_shrink : float
+        When nothing reaches the floor, a model that removes at least this share of the ideal law's held-out
+        excess, and predicts clearly better than every other family's, is still named (its ``grade`` says what it
+        leaves); one that does not is ``unexplained``.
     log_bayes_clear : float
         A signature is clearly in the residuals when the marginal likelihood wants one of its discrepancy groups
         by more than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995 scale; the FEM
-        bearing, with no hysteresis, gives its direction group 3.3).
+        bearing, with no hysteresis, gives its direction group 3.3); a widened law whose signature is not clear
+        is no candidate.
     structure_alpha : float
         False-alarm probability of the search for structured regions (:func:`ambfit.diagnosis.residuals.where`).
     circuit_dchi2 : float
         A piece of the magnetic circuit counts in the verdict when switching it off raises χ² by more than this
         many of χ²'s standard deviations ``sqrt(2 dof)`` (:func:`ambfit.diagnosis.circuit_families.circuit_families`).
+    separate_log_bayes : float
+        A protocol separates two candidates when its expected log Bayes factor is above this ('strong' and more on
+        Kass and Raftery's scale is above 3; 5 leaves room for the linearisation) (:mod:`ambfit.diagnosis.separation`).
+    time_tied_r2 : float
+        The readings' time runs with the sweep when the set-points, biases and loads explain more than this share
+        of its variance.
+    occam : bool
+        A more flexible model (a pair against a law, a widened law against either) rivals a simpler one that
+        explains the data only when it predicts clearly better: where both explain, the simpler wins (the Occam
+        factor a held-out score alone barely charges).  False: any model not clearly worse is a rival.
     pairs : bool
-        Try pairs of effects when no single one reaches the floor.
+        Try pairs of effects when no single one explains the data.
     pair_verdict : bool
-        Let a pair be the verdict when no single explains the data or the pair is significantly better (with
-        False the best pair is only reported).
+        Let a pair be the verdict (with False the best pair is only reported).
     """
 
     floor_tolerance: float = 1.0
-    min_shrink: float = 0.5
     floor_se: float = 3.0
-    better_se: float = 3.0
+    margin_se: float = 3.0
+    graded_shrink: float = 0.9
     log_bayes_clear: float = 10.0
     structure_alpha: float = 0.01
     circuit_dchi2: float = 3.0
+    separate_log_bayes: float = 5.0
+    time_tied_r2: float = 0.9
+    occam: bool = True
     pairs: bool = True
     pair_verdict: bool = True
 
@@ -85,24 +106,48 @@ class Judge:
 
     @property
     def floor(self) -> float:
-        """The largest score at the floor."""
+        """The largest score at the floor of a model whose parameters are known exactly."""
         return 1.0 + self.rules.floor_se * self.se()
 
+    def floor_of(self, model) -> float:
+        """The largest score at ``model``'s floor: its held-out residuals' expected mean square when it is right
+        (the noise and its parameters' uncertainty, ``mean(1 + h)``), plus ``floor_se`` standard errors."""
+        var = getattr(model, "heldout_var", None)
+        level = 1.0 if var is None else float(np.mean(var))
+        return level + self.rules.floor_se * self.se(level)
+
+    @property
+    def below(self) -> float:
+        """The smallest score at the floor: a model below it predicts the readings' own noise."""
+        return 1.0 - self.rules.floor_se * self.se()
+
     def at_floor(self, model) -> bool:
-        return model.score <= self.floor
+        return self.below <= model.score <= self.floor_of(model)
+
+    def below_floor(self, model) -> bool:
+        return model.score < self.below
 
     def explains(self, model) -> bool:
-        if model.after >= self.rules.floor_tolerance:
-            return False
-        return model.shrink >= self.rules.min_shrink or (self.at_floor(model) and self.ideal_score > self.floor)
+        return self.at_floor(model) and self.ideal_score > self.floor
 
-    def better(self, a, b) -> bool:
-        """Whether ``a`` leaves significantly less than ``b``."""
-        return a.score < b.score - self.rules.better_se * self.se(b.score)
+    def clearly_better(self, a, b) -> bool:
+        """Whether ``a`` predicts the held-out readings clearly better than ``b``, reading by reading (paired
+        differences of ``z^2 + log(1 + h)``, minus twice the log predictive density: a flexible model pays for
+        the width of its predictions)."""
+        da, db = np.asarray(a.heldout_deviance), np.asarray(b.heldout_deviance)
+        if da.shape != (self.n,) or db.shape != (self.n,):
+            raise ValueError(f"paired scores need {self.n} held-out readings each, got {da.shape} and {db.shape}")
+        d = da - db
+        se = float(np.std(d, ddof=1) / np.sqrt(self.n)) if self.n > 1 else np.inf
+        return float(np.mean(d)) < -self.rules.margin_se * se
+
+    def apart(self, a, b) -> bool:
+        """Whether either of two models is clearly better than the other."""
+        return self.clearly_better(a, b) or self.clearly_better(b, a)
 
     def close(self, a, ref: float) -> bool:
-        """Whether ``a``'s score cannot be told from ``ref``."""
-        return abs(a.score - ref) < self.rules.better_se * self.se(ref)
+        """Whether ``a``'s score cannot be told from ``ref`` (unpaired: within ``margin_se`` standard errors)."""
+        return abs(a.score - ref) < self.rules.margin_se * self.se(ref)
 
     def clear(self, signature) -> bool:
         """Whether the data clearly want ``signature``'s discrepancy groups."""
@@ -111,7 +156,7 @@ class Judge:
     def grade(self, model) -> Grade:
         """What ``model`` removes and what it leaves."""
         return Grade(model=model.label, families=tuple(model.families), by=model.kind, removes=model.shrink,
-                     remainder=model.after, remainder_mean_z2=model.score, floor_mean_z2=self.floor,
+                     remainder=model.after, remainder_mean_z2=model.score, floor_mean_z2=self.floor_of(model),
                      at_floor=self.at_floor(model), explains=self.explains(model))
 
 
@@ -199,26 +244,30 @@ class Verdict:
 
 
 def on_floor(rules: Rules, ideal, structured: bool) -> bool:
-    """Whether the ideal law's held-out residuals sit on the noise floor (no structured region either)."""
-    return ideal.after < rules.floor_tolerance and not structured
+    """Whether the ideal law's held-out residuals sit on the noise floor: its score is at the floor, or its excess
+    is below ``floor_tolerance`` with no structured region."""
+    judge = Judge(len(ideal.heldout_z), ideal.score, rules)
+    return ideal.score <= judge.floor or (ideal.after < rules.floor_tolerance and not structured)
 
 
 def needs_pairs(rules: Rules, ideal, singles: list, structured: bool) -> bool:
-    """Whether pairs of effects are to be scored: no single law reaches the floor explaining the data."""
+    """Whether pairs of effects are to be scored: no single law explains the data."""
     if on_floor(rules, ideal, structured) or not singles or not rules.pairs:
         return False
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
-    best = min(singles, key=lambda c: c.score)
-    return not (judge.explains(best) and judge.at_floor(best))
+    return not any(judge.explains(c) for c in singles)
 
 
 def needs_signatures(rules: Rules, ideal, laws: list, structured: bool) -> bool:
-    """Whether the families' laws widened by their signatures are to be scored: no law reaches the floor."""
-    if on_floor(rules, ideal, structured):
-        return False
-    judge = Judge(len(ideal.heldout_z), ideal.score, rules)
-    model = _choose_law(judge, *_split(laws))
-    return not (model is not None and judge.at_floor(model))
+    """Whether the families' laws widened by their signatures are to be scored: whenever the ideal law is off the
+    floor.  A law that explains the data must still be told from another family whose law differs from the
+    library's (the flux families share one signature); the widened laws pay for their flexibility in the paired
+    comparison, so an exact law beats them when it is right."""
+    return not on_floor(rules, ideal, structured)
+
+
+TIERS = (("law",), ("pair",), ("signature",))
+"""Models by flexibility: a library law, a pair of them, a family's law widened by its signature."""
 
 
 def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -> Verdict:
@@ -232,65 +281,80 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         The ideal law's held-out score.
     candidates : list
         Scored models: library laws and pairs (``kind`` ``"law"`` / ``"pair"``) and widened laws (``kind``
-        ``"signature"``), in the order they were scored (ties keep it).
+        ``"signature"``), their held-out residuals on the same readings as the ideal law's, in the order they
+        were scored (ties keep it).
     structured : bool
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
     """
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
-    singles, pairs = _split(candidates)
-    sigs = sorted((c for c in candidates if c.kind == "signature"), key=lambda s: s.score)
+    laws = sorted((c for c in candidates if c.kind in ("law", "pair")), key=lambda c: c.score)
     if on_floor(rules, ideal, structured):
-        ranking = sorted(singles + pairs, key=lambda c: c.score)
-        return Verdict("none", confounded_with=tuple(c.label for c in ranking if judge.close(c, ideal.score)))
-    model = _choose_law(judge, singles, pairs if rules.pair_verdict else [])
-    clear = [s for s in sigs if judge.clear(s)]
-    laws = sorted(singles + pairs, key=lambda c: c.score) if rules.pair_verdict else singles
-    if clear and judge.explains(clear[0]) and (model is None or (
-            judge.at_floor(clear[0]) and judge.better(clear[0], model))):
-        # a family's law widened by its signature: when no law explains, or it reaches the floor and they not; of
-        # families that share the signature and cannot be told apart by it, the one whose own law goes furthest
-        model = min((s for s in clear if s.groups == clear[0].groups and judge.close(s, clear[0].score)),
-                    key=lambda s: s.law.score)
-    if model is None:
-        # graded: the model that removes most of the excess, if it removes at least min_shrink of it
-        pool = sorted(laws + clear, key=lambda m: m.score)
-        model = pool[0] if pool and pool[0].shrink >= rules.min_shrink else None
-    best_single = singles[0] if singles else None
-    if model is None:
-        return Verdict("unexplained", shrink=best_single.shrink if best_single is not None else 0.0,
-                       best=best_single)
-    confounded_with = _confounded(judge, model, laws + clear)
-    if model.kind == "signature":
-        # the families whose laws widened by the same signature explain the data too: it cannot tell them apart
-        twins = [s.family for s in clear if s.groups == model.groups and judge.explains(s)]
-        confounded_with = [f for f in dict.fromkeys(confounded_with + twins) if f != model.family]
-    return Verdict("named", model=model, families=tuple(model.families), confounded_with=tuple(confounded_with),
-                   grade=judge.grade(model), shrink=model.shrink if best_single is not None else 0.0,
-                   best=model if model.kind == "signature" else None)
+        return Verdict("none", confounded_with=tuple(c.label for c in laws if judge.close(c, ideal.score)))
+    usable = [c for c in candidates if not judge.below_floor(c) and (c.kind != "signature" or judge.clear(c))
+              and (c.kind != "pair" or rules.pair_verdict)]
+    usable.sort(key=lambda c: c.score)
+    if ideal.after < rules.floor_tolerance and not any(judge.clearly_better(c, ideal) for c in usable):
+        # a little above the floor, and no model predicts the held-out readings clearly better than the ideal law
+        return Verdict("none", confounded_with=tuple(c.label for c in laws if judge.close(c, ideal.score)))
+    explaining = [c for c in usable if judge.explains(c)]
+    for kinds in TIERS:
+        tier = [c for c in explaining if c.kind in kinds]
+        if tier:
+            return _named_or_undecided(judge, tier[0], usable)
+    # short of the floor: a model that removes nearly all of the excess, if it beats every other family's
+    close = [c for c in usable if c.shrink >= rules.graded_shrink]
+    if close:
+        return _named_or_undecided(judge, close[0], usable)
+    best = usable[0] if usable else None
+    return Verdict("unexplained", shrink=best.shrink if best is not None else 0.0, best=best,
+                   grade=judge.grade(best) if best is not None else None)
 
 
-def _split(candidates: list) -> tuple[list, list]:
-    """The single laws and the pairs, each best first (ties in the order given)."""
-    key = lambda c: c.score    # noqa: E731
-    return (sorted((c for c in candidates if c.kind == "law"), key=key),
-            sorted((c for c in candidates if c.kind == "pair"), key=key))
+def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
+    """``top`` (the best model of the simplest tier that explains the data) against every other family's best
+    model, of any tier (a flexible model must be beaten, not ignored), whether that reaches the floor or not.
 
-
-def _choose_law(judge: Judge, singles: list, pairs: list):
-    """The best library law that explains the data: the best single, or the best pair when no single explains or
-    the pair is significantly better; None when none explains."""
-    single = singles[0] if singles else None
-    pair = pairs[0] if pairs and judge.rules.pair_verdict else None
-    if pair is not None and judge.explains(pair) and (
-            single is None or not judge.explains(single) or judge.better(pair, single)):
-        return pair
-    return single if single is not None and judge.explains(single) else None
+    The rivals are those ``top`` is not clearly better than.  A model naming another's families and more adds
+    nothing these data single out: of ``top`` and its rivals only the minimal ones count.  One left: it is named.
+    Several sharing families: those are named (a second effect the data cannot name is left in
+    ``confounded_with``).  Else ``undecided`` among them, best first.  Families whose laws are widened by one
+    signature cannot be told apart by it: they are rivals whatever their own laws do."""
+    best_of = {}
+    for c in usable:                              # each family set's best model
+        best_of.setdefault(frozenset(c.families), c)
+    # a model (of any tier) that predicts clearly better than the simplest explanation replaces it
+    better = [c for c in best_of.values() if judge.explains(c) and judge.clearly_better(c, top)]
+    while better:
+        top = min(better, key=lambda c: float(np.mean(c.heldout_deviance)))
+        better = [c for c in best_of.values() if judge.explains(c) and judge.clearly_better(c, top)]
+    best_of.pop(frozenset(top.families), None)
+    rank = {kind: k for k, kinds in enumerate(TIERS) for kind in kinds}
+    rivals = [c for c in best_of.values() if not judge.clearly_better(top, c) and not (
+        judge.rules.occam and rank[c.kind] > rank[top.kind] and not judge.clearly_better(c, top))]
+    if top.kind == "signature":
+        rivals += [c for c in best_of.values() if c.kind == "signature" and c.groups == top.groups
+                   and judge.explains(c) and not any(c is r for r in rivals)]
+    group = [top, *sorted(rivals, key=lambda c: c.score)]
+    sets = [frozenset(c.families) for c in group]
+    minimal = [c for c, fams in zip(group, sets) if not any(other < fams for other in sets)]
+    core = frozenset.intersection(*sets)
+    extra = tuple(dict.fromkeys("+".join(c.families) for c in group if frozenset(c.families) != core))
+    if len(minimal) == 1 or core:
+        named = minimal[0] if len(minimal) == 1 else top
+        families = tuple(f for f in named.families if len(minimal) == 1 or f in core)
+        confounded = [n for n in dict.fromkeys(list(extra) + _confounded(judge, named, usable))
+                      if n != "+".join(families)]
+        return Verdict("named", model=named, families=families, confounded_with=tuple(confounded),
+                       grade=judge.grade(named), shrink=named.shrink, best=named if named.kind == "signature" else None)
+    return Verdict("undecided", model=top, grade=judge.grade(top), shrink=top.shrink,
+                   best=top if top.kind == "signature" else None,
+                   candidates=tuple("+".join(c.families) for c in minimal))
 
 
 def _confounded(judge: Judge, model, others: list) -> list[str]:
-    """The models of ``others`` whose held-out score cannot be told from ``model``'s (or both at the noise floor:
-    each is consistent with noise), not ``model``'s own families."""
+    """The models of ``others`` (any tier) that explain the data too and are not clearly worse than ``model``:
+    what a user should know these data do not exclude.  Not ``model``'s own families."""
     own = "+".join(model.families)
-    floor = judge.at_floor(model)
-    names = ["+".join(o.families) for o in others if judge.close(o, model.score) or (floor and judge.at_floor(o))]
+    names = ["+".join(o.families) for o in others
+             if judge.explains(o) and not judge.clearly_better(model, o)]
     return [n for n in dict.fromkeys(names) if n != own]

@@ -63,6 +63,9 @@ class Discrepancy:
         and in newtons.
     row_noise_n : array[n]
         Each of those rows' force noise std [N] (the unit of the standardized correction).
+    row_variance : array[n]
+        The variance of the correction on each of those rows from its coefficients' uncertainty, in standardized
+        units (what a held-out reading's prediction variance gains).
     unconstrained_shift : dict
         ``{name: (shift, shift / std)}``: how far an unconstrained correction (not projected) would move each
         physical parameter, in SI units and in the parameter's standard errors.
@@ -80,6 +83,7 @@ class Discrepancy:
     row_correction_n: np.ndarray
     unconstrained_shift: dict
     row_noise_n: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    row_variance: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def correction(self, readings, sensitivity: np.ndarray, frame=None) -> tuple[np.ndarray, np.ndarray]:
         """The correction [N] at other readings and its standard error.
@@ -254,4 +258,5 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     return Discrepancy(basis=basis, coef=coef, cov=cov, projection=a_si[phys], names=tuple(names[j] for j in phys),
                        tau=dict(zip(basis.groups, map(float, tau_g))), log_bayes=dict(zip(basis.groups, map(float, bayes))),
                        effective_parameters=neff, row_correction=row, row_correction_n=row * s,
-                       unconstrained_shift=unconstrained, row_noise_n=s)
+                       unconstrained_shift=unconstrained, row_noise_n=s,
+                       row_variance=np.maximum(np.einsum("ni,ij,nj->n", b_perp, cov, b_perp), 0.0))

@@ -139,8 +139,13 @@ def design(
     position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
+    discriminate: Annotated[bool, typer.Option(help="Instead: diagnose the data and, when several effect families "
+                                               "explain them alike (verdict undecided), say which protocol within "
+                                               "the bearing's limits would tell them apart (expected log Bayes "
+                                               "factor of each protocol scored).")] = False,
 ):
-    """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty."""
+    """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty; with
+    --discriminate, the protocol that best tells the diagnosis' undecided candidates apart."""
     from ambfit.data import DataError
     from ambfit.estimation import design as design_mod
     from ambfit.estimation import fit
@@ -150,6 +155,9 @@ def design(
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
+    if discriminate:
+        _discriminate(ds, desc, json_out, declared_noise(current_noise_ma, position_noise_um))
+        return
     try:
         with progress_bar(2) as bar:
             bar.step("least squares")
@@ -165,6 +173,37 @@ def design(
     show_table(rec.display_rows(), rec.title)
     if json_out is not None:
         write_json(rec.to_json(), json_out)
+
+
+def _discriminate(ds, desc, json_out, noise: dict) -> None:
+    """``design --discriminate``: the diagnosis' candidates and the protocols that would separate them."""
+    from ambfit.data import DataError
+    from ambfit.diagnosis import diagnose as run_diagnosis
+    from ambfit.estimation.core import FitError
+    from ambfit.faces.cli.progress import progress_bar
+
+    try:
+        with progress_bar() as bar:
+            dg = run_diagnosis(ds, bearing=desc, progress=bar, check_force=False, **noise)
+    except (DataError, ValueError, OSError) as exc:
+        fail(str(exc))
+    except FitError as exc:
+        fail(str(exc), 3)
+    sep = dg.separation
+    if dg.verdict != "undecided" or sep is None:
+        note(f"verdict: {dg.verdict}: nothing to tell apart" + (
+            " (the data single it out)" if dg.verdict not in ("none", "unexplained", "undecided") else ""))
+        record = {"verdict": dg.verdict, "candidates": [], "separate_by": None}
+    else:
+        note(f"undecided between {', '.join(dg.decision.candidates)}; these data: expected log Bayes factor "
+             f"{sep.on_these_data:.1f} for the weakest pair")
+        show_table([{"protocol": k, "expected log Bayes factor": f"{v:.1f}"}
+                    for k, v in sorted(sep.protocols.items(), key=lambda kv: -kv[1])],
+                   "protocols within the bearing's limits (best first)", left=("protocol",))
+        note(f"run: {sep.protocol}" + ("" if sep.separates else " (even that would not separate them clearly)"))
+        record = {"verdict": dg.verdict, "candidates": list(dg.decision.candidates), "separate_by": sep.to_json()}
+    if json_out is not None:
+        write_json(record, json_out)
 
 
 @app.command()

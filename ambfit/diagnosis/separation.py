@@ -1,0 +1,171 @@
+"""What would tell undecided candidates apart: the protocol, within the bearing's limits, that separates them best.
+
+When several families explain the data alike (verdict ``undecided``), each candidate's model, as fitted to these
+data, predicts the force of readings that another protocol would take.  Where two models predict differently
+beyond what refitting one of them can absorb, data from that protocol would tell them apart: the T-optimal
+(Atkinson and Fedorov, *Biometrika* 62, 1975) or Box-Hill (*Technometrics* 9, 1967) discrimination
+``D = min_theta sum(((F_a - F_b(theta)) / s)^2)``, the noise-free χ² of model ``b`` fitted to data made by ``a``,
+linearised about ``b``'s fit.  Half of it is the expected log Bayes factor for ``a`` over ``b`` when ``a`` is
+true.  A protocol separates the candidates by the least of these over every ordered pair; :func:`separate_by`
+scores a few protocols scaled to the bearing (a bias sweep up to the coil limit, set-points across the back-up
+clearance, the biases in shuffled order) and this data set's own readings, and returns the best.
+
+:func:`time_tied` says when the readings' time is (almost) a function of the set-points, biases and loads (nested
+sweeps): a drift is then indistinguishable from an effect of the operating point, and shuffling the order breaks
+the tie.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pandas as pd
+
+
+@dataclasses.dataclass(frozen=True)
+class Separation:
+    """The protocol that best separates the candidates, and how well each scored.
+
+    Attributes
+    ----------
+    protocol : str
+        What to run.
+    expected_log_bayes : float
+        The least expected log Bayes factor over every ordered pair of candidates, on that protocol.
+    on_these_data : float
+        The same on the readings already taken.
+    protocols : dict
+        Every protocol scored: ``{description: expected log Bayes factor}``.
+    time_tied : float or None
+        Share of the readings' time variance that their operating points explain (None without times).
+    separates : bool
+        Whether that protocol's expected log Bayes factor clears :attr:`ambfit.diagnosis.verdict.Rules.separate_log_bayes`.
+    """
+
+    protocol: str
+    expected_log_bayes: float
+    on_these_data: float
+    protocols: dict
+    time_tied: float | None = None
+    separates: bool = False
+
+    def to_json(self) -> dict:
+        out = {"protocol": self.protocol, "expected_log_bayes": self.expected_log_bayes,
+               "on_these_data": self.on_these_data, "separates": self.separates, "protocols": dict(self.protocols)}
+        if self.time_tied is not None:
+            out["time_explained_by_operating_points"] = self.time_tied
+        return out
+
+
+def time_tied(df: pd.DataFrame) -> float | None:
+    """R² of the readings' time regressed on their operating points (axis, bias, set-points or positions, load):
+    near 1 when the protocol's order nests its sweeps, so that time runs with the operating point."""
+    if "time_s" not in df or df["time_s"].isna().any() or np.ptp(df["time_s"].to_numpy(float)) <= 0:
+        return None
+    cols = [c for c in ("bias_A", "v_set_um", "w_set_um") if c in df and df[c].notna().all()] or ["bias_A", "v_um",
+                                                                                                  "w_um"]
+    parts = [pd.get_dummies(df[c].round(6).astype(str), drop_first=True) for c in cols]
+    if "load_id" in df:
+        parts.append(pd.get_dummies(df["load_id"].astype(str), drop_first=True))
+    x = np.column_stack([np.ones(len(df))] + [p.to_numpy(float) for p in parts if p.shape[1]])
+    t = df["time_s"].to_numpy(float)
+    fitted = x @ np.linalg.lstsq(x, t, rcond=None)[0]
+    return float(1.0 - np.sum((t - fitted) ** 2) / np.sum((t - t.mean()) ** 2))
+
+
+def separate_by(models: list, df: pd.DataFrame, bearing, noise: dict, enough: float = 5.0) -> Separation | None:
+    """The protocol that best separates ``models`` (fitted :class:`~ambfit.estimation.results.FitResult` of each
+    candidate on ``df``); None when fewer than two can be compared.  ``enough``: the expected log Bayes factor
+    that counts as separating (:attr:`ambfit.diagnosis.verdict.Rules.separate_log_bayes`)."""
+    if len(models) < 2:
+        return None
+    scores = {}
+    own = _discrimination(models, df, noise)
+    for what, data in _protocols(models[0], df, bearing):
+        scores[what] = _discrimination(models, data, {})
+    scores = {k: v for k, v in scores.items() if np.isfinite(v)}
+    if not scores:
+        return None
+    best = max(scores, key=scores.get)
+    return Separation(protocol=best, expected_log_bayes=scores[best], on_these_data=own, protocols=scores,
+                      time_tied=time_tied(df), separates=scores[best] > enough)
+
+
+def _protocols(fitted, df: pd.DataFrame, bearing) -> list[tuple[str, pd.DataFrame]]:
+    """Each candidate protocol's readings, simulated noise-free-in-the-model on a rig of these data's fitted gap
+    and origin (the ideal law: only where the readings fall matters), within the bearing's limits."""
+    from ambfit.rig import protocol
+    from ambfit.rig import virtual as rig
+
+    vals = dict(zip(fitted.names, fitted.values))
+    g0 = (vals.get("g_v0", bearing.nominal_gap), vals.get("g_w0", bearing.nominal_gap))
+    x0 = (vals.get("v0", 0.0), vals.get("w0", 0.0))
+    spec = rig.RigSpec(bearing=bearing).with_truth(g0=g0, x0=x0)
+    centre = (-x0[0], -x0[1])
+    reach = 0.6 * bearing.backup_clearance / np.sqrt(2.0)
+    limit = bearing.max_current
+    biases = np.unique(np.round(df["bias_A"].to_numpy(float), 3))
+    sweep = tuple(np.round(np.linspace(0.25, 0.8, 6) * limit, 3))
+    kg = bearing.rotor_mass
+    masses = (0.0, 0.5 * kg, kg, 1.5 * kg)
+    designs = {
+        f"a bias sweep {sweep[0]:g}-{sweep[-1]:g} A (up and down) at 5 set-points within ±{reach * 1e6:.0f} µm of "
+        "the effective origin, under 4 known loads":
+            protocol.rich(biases=sweep, span=reach, center=centre, masses_kg=masses, rotor_kg=kg),
+        f"9 set-points across ±{reach * 1e6:.0f} µm of the effective origin at this data's biases "
+        f"({', '.join(f'{b:g}' for b in biases)} A), under 4 known loads":
+            protocol.rich(biases=tuple(biases), span=reach, n_positions=9, center=centre, masses_kg=masses,
+                          rotor_kg=kg),
+        f"the biases {sweep[0]:g}-{sweep[-1]:g} A in shuffled order at a 5 x 3 grid of set-points within "
+        f"±{reach * 1e6:.0f} µm, under 4 known loads (time no longer runs with the sweep)":
+            protocol.serpentine(biases=sweep, span=(reach, 0.75 * reach), center=centre, masses_kg=masses,
+                                rotor_kg=kg, seed=7),
+    }
+    sigma = _noise_of(df)
+    out = []
+    for what, design in designs.items():
+        try:
+            out.append((what, rig.simulate(spec, design, noise=rig.Noise(current=sigma[0], position=sigma[1]),
+                                           seed=0).data))
+        except (rig.RigError, ValueError):
+            continue
+    return out
+
+
+def _noise_of(df: pd.DataFrame) -> tuple[float, float]:
+    """The readings' typical current [A] and position [m] noise (std columns, else the rig's default)."""
+    from ambfit.rig import virtual as rig
+
+    cur = df[["i_top_std_A", "i_bottom_std_A"]].median().mean() if {"i_top_std_A", "i_bottom_std_A"} <= set(df) \
+        else np.nan
+    pos = df[["v_std_um", "w_std_um"]].median().mean() * 1e-6 if {"v_std_um", "w_std_um"} <= set(df) else np.nan
+    return (float(cur) if np.isfinite(cur) and cur > 0 else rig.Noise().current,
+            float(pos) if np.isfinite(pos) and pos > 0 else rig.Noise().position)
+
+
+def _discrimination(models: list, data: pd.DataFrame, noise: dict) -> float:
+    """The least expected log Bayes factor, over every ordered pair of ``models``, on ``data``'s readings."""
+    from ambfit.data import zero_based
+    from ambfit.estimation.core import Model, build_problem, misfit, row_jacobian
+
+    df = zero_based(data)
+    prob, meta = build_problem(df, **noise)
+    preds = []
+    for m in models:
+        model = Model.of(m.effects, m.bearing)
+        n_loads = len(m.theta) - 6 - model.n
+        theta = np.concatenate([m.theta[:6], np.zeros(len(meta.load_groups)), m.theta[6 + n_loads:]])
+        f, s = (np.asarray(a) for a in misfit(theta, prob, model))
+        preds.append((f, s, theta, model))
+    least = np.inf
+    for (fa, _, _, _), (fb, sb, tb, mb) in itertools.permutations(preds, 2):
+        delta = (fa - fb) / sb
+        jac = row_jacobian(tb, prob, meta, mb)
+        ok = np.isfinite(delta) & np.all(np.isfinite(jac), axis=1)
+        if not ok.any():
+            continue
+        left = delta[ok] - jac[ok] @ np.linalg.lstsq(jac[ok], delta[ok], rcond=None)[0]
+        least = min(least, 0.5 * float(left @ left))
+    return float(least)
