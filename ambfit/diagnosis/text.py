@@ -42,18 +42,7 @@ def verdict(dg) -> str:
         text = ("verdict: none (the ideal law's held-out residuals sit on the noise floor); these data cannot "
                 f"exclude: {', '.join(dg.confounded_with) or 'nothing'}")
     elif dg.verdict == "undecided":
-        text = (f"verdict: undecided: {', '.join(dg.decision.candidates)} explain the data alike and these data "
-                "cannot tell them apart (best first)")
-        sep = dg.separation
-        if sep is not None:
-            text += (f"\nto tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
-                     f"for the weakest pair (these data: {sep.on_these_data:.1f})"
-                     + ("" if sep.separates else "; even that would not separate them clearly"))
-            drift = any("thermal_drift" in c.split("+") for c in dg.decision.candidates)
-            if drift and sep.time_tied is not None and sep.time_tied > dg.rules.time_tied_r2:
-                text += (f"\nthe readings' time runs with the sweep (the set-points, biases and loads explain "
-                         f"{100 * sep.time_tied:.0f} % of it): a drift cannot be told from an effect of the "
-                         "operating point; shuffle the order of the set-points and biases")
+        text = f"verdict: undecided between {', '.join(dg.decision.candidates)} (best first)"
     elif dg.verdict == "unexplained":
         text = "verdict: unexplained: no model reaches the noise floor held out"
         if dg.grade is not None:
@@ -101,8 +90,21 @@ def verdict(dg) -> str:
 
 
 def findings(dg) -> list[str]:
-    """The grade, law and discrepancy findings as sentences (part of :func:`verdict`; the report shows them)."""
+    """What an undecided verdict cannot tell and what would; the grade, law and discrepancy findings (part of
+    :func:`verdict`; the report shows them)."""
     out = []
+    if dg.verdict == "undecided":
+        out.append(f"{', '.join(dg.decision.candidates)} explain the data alike: these data cannot tell them apart")
+        sep = dg.separation
+        if sep is not None:
+            out.append(f"to tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
+                       f"for the weakest pair (these data: {sep.on_these_data:.1f})"
+                       + ("" if sep.separates else "; even that would not separate them clearly"))
+            drift = any("thermal_drift" in c.split("+") for c in dg.decision.candidates)
+            if drift and sep.time_tied is not None and sep.time_tied > dg.rules.time_tied_r2:
+                out.append(f"the readings' time runs with the sweep (the set-points, biases and loads explain "
+                           f"{100 * sep.time_tied:.0f} % of it): a drift cannot be told from an effect of the "
+                           "operating point; shuffle the order of the set-points and biases")
     if dg.grade is not None:
         g = dg.grade
         out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "
