@@ -179,6 +179,10 @@ def test_what_every_rival_shares_is_named_and_what_none_singles_out_is_left_conf
     a, b = law("saturation+current_offset", 0.0, start=start), law("leakage+current_gain", 0.0, start=start)
     v = decide(Rules(), start, [law("saturation", 2.0, start=start), a, b])
     assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "leakage+current_gain"}
+    # a candidate naming another's families and more is left out: the data do not single out its extra family
+    near = law("saturation", 0.02, start=start)
+    v = decide(Rules(occam=False), start, [near, a, b])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation", "leakage+current_gain"}
 
 
 def test_short_of_the_floor_a_model_that_removes_nearly_all_and_beats_the_rest_is_named():
