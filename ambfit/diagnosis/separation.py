@@ -93,24 +93,20 @@ def separate_by(models: list, df: pd.DataFrame, bearing, noise: dict, enough: fl
                       time_tied=time_tied(df), separates=scores[best] > enough)
 
 
-def _protocols(fitted, df: pd.DataFrame, bearing) -> list[tuple[str, pd.DataFrame]]:
-    """Each candidate protocol's readings, simulated noise-free-in-the-model on a rig of these data's fitted gap
-    and origin (the ideal law: only where the readings fall matters), within the bearing's limits."""
+def designs(fitted, df: pd.DataFrame, bearing) -> dict:
+    """The protocols scored, scaled to the bearing and centred on ``fitted``'s effective origin: ``{description:
+    Protocol}`` (a bias sweep to 80 % of the coil limit, set-points across 60 % of the back-up clearance at these
+    data's biases, the same biases as the sweep in shuffled order)."""
     from ambfit.rig import protocol
-    from ambfit.rig import virtual as rig
 
     vals = dict(zip(fitted.names, fitted.values))
-    g0 = (vals.get("g_v0", bearing.nominal_gap), vals.get("g_w0", bearing.nominal_gap))
-    x0 = (vals.get("v0", 0.0), vals.get("w0", 0.0))
-    spec = rig.RigSpec(bearing=bearing).with_truth(g0=g0, x0=x0)
-    centre = (-x0[0], -x0[1])
+    centre = (-vals.get("v0", 0.0), -vals.get("w0", 0.0))
     reach = 0.6 * bearing.backup_clearance / np.sqrt(2.0)
-    limit = bearing.max_current
     biases = np.unique(np.round(df["bias_A"].to_numpy(float), 3))
-    sweep = tuple(np.round(np.linspace(0.25, 0.8, 6) * limit, 3))
+    sweep = tuple(np.round(np.linspace(0.25, 0.8, 6) * bearing.max_current, 3))
     kg = bearing.rotor_mass
     masses = (0.0, 0.5 * kg, kg, 1.5 * kg)
-    designs = {
+    return {
         f"a bias sweep {sweep[0]:g}-{sweep[-1]:g} A (up and down) at 5 set-points within ±{reach * 1e6:.0f} µm of "
         "the effective origin, under 4 known loads":
             protocol.rich(biases=sweep, span=reach, center=centre, masses_kg=masses, rotor_kg=kg),
@@ -123,9 +119,20 @@ def _protocols(fitted, df: pd.DataFrame, bearing) -> list[tuple[str, pd.DataFram
             protocol.serpentine(biases=sweep, span=(reach, 0.75 * reach), center=centre, masses_kg=masses,
                                 rotor_kg=kg, seed=7),
     }
+
+
+def _protocols(fitted, df: pd.DataFrame, bearing) -> list[tuple[str, pd.DataFrame]]:
+    """Each of :func:`designs`' readings, simulated on a rig of these data's fitted gap and origin (the ideal law:
+    only where the readings fall matters), within the bearing's limits."""
+    from ambfit.rig import virtual as rig
+
+    vals = dict(zip(fitted.names, fitted.values))
+    g0 = (vals.get("g_v0", bearing.nominal_gap), vals.get("g_w0", bearing.nominal_gap))
+    x0 = (vals.get("v0", 0.0), vals.get("w0", 0.0))
+    spec = rig.RigSpec(bearing=bearing).with_truth(g0=g0, x0=x0)
     sigma = _noise_of(df)
     out = []
-    for what, design in designs.items():
+    for what, design in designs(fitted, df, bearing).items():
         try:
             out.append((what, rig.simulate(spec, design, noise=rig.Noise(current=sigma[0], position=sigma[1]),
                                            seed=0).data))
