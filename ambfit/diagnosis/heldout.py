@@ -38,8 +38,7 @@ def folds(data: pd.DataFrame, scheme: str = "regions") -> tuple[str, list]:
     if scheme == "time":
         n = len(df)
         t = pd.to_numeric(df["time_s"], errors="coerce").to_numpy(float) if "time_s" in df else np.full(n, np.nan)
-        order = np.argsort(np.where(np.isfinite(t), t, np.arange(n)) if np.isfinite(t).all() else np.arange(n),
-                           kind="stable")
+        order = np.argsort(t if np.isfinite(t).all() else np.arange(n), kind="stable")
         blocks = max(min(FOLDS * BLOCKS_PER_FOLD, n // 5), FOLDS)
         block = np.empty(n, int)
         block[order] = np.arange(n) * blocks // max(n, 1)
@@ -97,19 +96,17 @@ def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, g
 
 def predictive_variance(fitted: FitResult, rows: np.ndarray) -> np.ndarray:
     """What the fit's parameter uncertainty adds to the variance of its prediction of ``rows`` (bool mask), in
-    noise units: ``h = J (J' W J + P)^-1 J'`` with ``J`` the standardized residuals' Jacobian (free parameters,
-    scaled), ``W`` the rows the fit used and ``P`` the unit precision of the effect parameters' priors.  A held-out
-    reading's standardized residual has variance ``1 + h`` when the model is right (the leverage of a new
-    observation: Cook and Weisberg, *Residuals and Influence in Regression*, 1982, sec. 2.2)."""
+    noise units: the leverage ``h`` of those rows (:func:`ambfit.estimation.robust.leverage`) under the rows the fit
+    used, with the unit precision of the effect parameters' priors.  A held-out reading's standardized residual has
+    variance ``1 + h`` when the model is right."""
+    from ambfit.estimation.robust import leverage
+
     jac = fitted.jacobian_rows
     if jac is None or not np.any(rows):
         return np.zeros(int(np.sum(rows)))
-    w = np.ones(len(jac)) if fitted.weights is None else np.asarray(fitted.weights, dtype=float)
-    jw = jac * w[:, None]
+    mask = np.ones(len(jac)) if fitted.weights is None else np.asarray(fitted.weights, dtype=float)
     prior = np.array([1.0 if "." in name else 0.0 for name in fitted.names[:jac.shape[1]]])
-    cov = np.linalg.pinv(jw.T @ jw + np.diag(prior))
-    j = jac[rows]
-    return np.einsum("ni,ij,nj->n", j, cov, j)
+    return leverage(jac[None], (mask**2)[None], prior)[0][rows]
 
 
 @dataclasses.dataclass(frozen=True)

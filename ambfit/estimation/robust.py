@@ -113,13 +113,23 @@ def studentized(jac_rows: np.ndarray, z: np.ndarray, used: np.ndarray, weight: n
     return studentized_many(np.asarray(jac_rows)[None], np.asarray(z)[None], w[None], known_noise)[0]
 
 
+def leverage(jac_rows: np.ndarray, weight: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+    """``h = J (J' W J + P)^+ J'`` of every row of many fits: ``jac_rows[sets, rows, params]`` (unweighted),
+    ``weight[sets, rows]`` (each row's weight in the fit's sum of squares, 0 for a left-out row) and ``prior[params]``
+    (the precision of priors on the parameters, none by default).  A fitted row's leverage is ``w h``; a left-out
+    row's prediction variance, in its noise units, is ``h`` (Cook and Weisberg, *Residuals and Influence in
+    Regression*, 1982, sec. 2.2).  Returns ``h[sets, rows]``."""
+    jw = jac_rows * np.sqrt(np.asarray(weight, dtype=float))[..., None]
+    info = np.einsum("bni,bnj->bij", jw, jw)
+    cov = np.linalg.pinv(info if prior is None else info + np.diag(prior))
+    return np.einsum("bni,bij,bnj->bn", jac_rows, cov, jac_rows)
+
+
 def studentized_many(jac_rows: np.ndarray, z: np.ndarray, weight: np.ndarray, known_noise: bool = True) -> np.ndarray:
     """:func:`studentized` of many fits at once: ``jac_rows[sets, rows, params]``, ``z`` and ``weight[sets, rows]``;
     returns ``t[sets, rows]``."""
     w = np.asarray(weight, dtype=float)
-    jw = jac_rows * np.sqrt(w)[..., None]
-    cov = np.linalg.pinv(np.einsum("bni,bnj->bij", jw, jw))
-    h = np.einsum("bni,bij,bnj->bn", jac_rows, cov, jac_rows)            # leverage of an unweighted row
+    h = leverage(jac_rows, w)                                          # leverage of an unweighted row
     fitted = w > 0
     var = np.where(fitted, 1.0 - np.clip(w * h, 0.0, 0.999), 1.0 + h)
     return np.asarray(z, dtype=float) / (_scales(np.asarray(z, dtype=float), fitted, known_noise)[:, None]
