@@ -76,7 +76,7 @@ def test_on_the_floor_the_verdict_is_none_and_lists_what_these_data_cannot_exclu
     assert v.kind == "none" and v.name == "none" and v.grade is None and v.shrink == 0.0
     assert v.confounded_with == ("saturation",)
     assert not needs_pairs(Rules(), on, [near, far], structured=False)
-    assert not needs_signatures(Rules(), on, [near, far], structured=False)
+    assert not needs_signatures(Rules(), on, structured=False)
 
 
 def test_a_little_above_the_floor_with_no_model_clearly_better_is_none():
@@ -97,7 +97,7 @@ def test_a_law_that_explains_and_beats_every_other_family_is_named():
     assert v.shrink == pytest.approx(sat.shrink) and v.best is None and v.confounded_with == ()
     assert not needs_pairs(Rules(), ideal(), [leak, sat], structured=False)
     # another family whose law differs from the library's must still be beaten: widened laws are scored
-    assert needs_signatures(Rules(), ideal(), [leak, sat], structured=False)
+    assert needs_signatures(Rules(), ideal(), structured=False)
 
 
 def test_two_families_that_explain_alike_are_undecided_best_first():
@@ -116,7 +116,7 @@ def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_res
     single = law("saturation", 0.4, start=start)
     pair = law("saturation+current_offset", 0.0, start=start)
     assert needs_pairs(Rules(), start, [single], structured=False)
-    assert needs_signatures(Rules(), start, [single], structured=False)
+    assert needs_signatures(Rules(), start, structured=False)
     v = decide(Rules(), start, [single, pair])
     assert v.name == "saturation+current_offset" and v.grade.by == "pair"
     assert decide(Rules(pair_verdict=False), start, [single, pair]).name == "unexplained"

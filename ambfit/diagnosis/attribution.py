@@ -134,9 +134,10 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
             # the pairs as one compiled set of their own, for the rest of the diagnosis (``later`` closes it)
             later.enter_context(compiled_together([Model.of((best_single, e), bearing) for e in partners]))
             pairs = scorer.laws([(best_single, e) for e in partners], before=ideal.after)
-    # each family's law widened by its signature, when no law reaches the floor: a law other than the library's
-    sigs = scorer.signatures(sorted(singles, key=lambda c: c.score)) \
-        if needs_signatures(rules, ideal, singles + pairs, structured) else []
+    # each family's law widened by its signature whenever the ideal law is off the floor: a law other than the
+    # library's, which a library law that explains must still beat
+    sigs = scorer.signatures(sorted(singles, key=lambda c: c.score)) if needs_signatures(rules, ideal, structured) \
+        else []
     # decide
     verdict = decide(rules, ideal, singles + pairs + sigs, structured=structured)
     ranking = sorted(singles + pairs, key=lambda c: c.score)
@@ -151,10 +152,10 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         verdict = verdict.with_families(dict.fromkeys(f.family for f in families if f.significant))
     separation = None
     if verdict.kind == "undecided":
-        # what would tell the candidates apart: each one's model as fitted here, on protocols within the limits
-        by_name = {"+".join(c.families): c for c in sorted(ranking + sigs, key=lambda c: c.score)}
-        fits = [getattr(by_name[n], "law", by_name[n]).fit for n in verdict.candidates[:MAX_SEPARATED]
-                if n in by_name]
+        # what would tell the candidates apart: each one's library law or pair as fitted here (a widened law's
+        # own law stands in for it), on protocols within the limits
+        by_name = {"+".join(c.families): c for c in ranking}
+        fits = [by_name[n].fit for n in verdict.candidates[:MAX_SEPARATED] if n in by_name]
         separation = separate_by(fits, df, bearing, noise, enough=rules.separate_log_bayes)
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
     best_pair = next((Pair(c.effect, c.after, c.shrink, bool(judge.explains(c))) for c in ranking if c.kind == "pair"),

@@ -129,7 +129,7 @@ def _protocols(fitted, df: pd.DataFrame, bearing) -> list[tuple[str, pd.DataFram
     vals = dict(zip(fitted.names, fitted.values))
     g0 = (vals.get("g_v0", bearing.nominal_gap), vals.get("g_w0", bearing.nominal_gap))
     x0 = (vals.get("v0", 0.0), vals.get("w0", 0.0))
-    spec = rig.RigSpec(bearing=bearing).with_truth(g0=g0, x0=x0)
+    spec = rig.RigSpec.for_bearing(bearing).with_truth(g0=g0, x0=x0)
     sigma = _noise_of(df)
     out = []
     for what, design in designs(fitted, df, bearing).items():

@@ -258,7 +258,7 @@ def needs_pairs(rules: Rules, ideal, singles: list, structured: bool) -> bool:
     return not any(judge.explains(c) for c in singles)
 
 
-def needs_signatures(rules: Rules, ideal, laws: list, structured: bool) -> bool:
+def needs_signatures(rules: Rules, ideal, structured: bool) -> bool:
     """Whether the families' laws widened by their signatures are to be scored: whenever the ideal law is off the
     floor.  A law that explains the data must still be told from another family whose law differs from the
     library's (the flux families share one signature); the widened laws pay for their flexibility in the paired
@@ -266,7 +266,7 @@ def needs_signatures(rules: Rules, ideal, laws: list, structured: bool) -> bool:
     return not on_floor(rules, ideal, structured)
 
 
-TIERS = (("law",), ("pair",), ("signature",))
+TIERS = ("law", "pair", "signature")
 """Models by flexibility: a library law, a pair of them, a family's law widened by its signature."""
 
 
@@ -287,18 +287,17 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
     """
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
-    laws = sorted((c for c in candidates if c.kind in ("law", "pair")), key=lambda c: c.score)
-    if on_floor(rules, ideal, structured):
-        return Verdict("none", confounded_with=tuple(c.label for c in laws if judge.close(c, ideal.score)))
     usable = [c for c in candidates if not judge.below_floor(c) and (c.kind != "signature" or judge.clear(c))
               and (c.kind != "pair" or rules.pair_verdict)]
     usable.sort(key=lambda c: c.score)
-    if ideal.after < rules.floor_tolerance and not any(judge.clearly_better(c, ideal) for c in usable):
-        # a little above the floor, and no model predicts the held-out readings clearly better than the ideal law
+    # on the floor; or a little above it, with no model predicting the held-out readings clearly better
+    if on_floor(rules, ideal, structured) or (
+            ideal.after < rules.floor_tolerance and not any(judge.clearly_better(c, ideal) for c in usable)):
+        laws = sorted((c for c in candidates if c.kind in ("law", "pair")), key=lambda c: c.score)
         return Verdict("none", confounded_with=tuple(c.label for c in laws if judge.close(c, ideal.score)))
     explaining = [c for c in usable if judge.explains(c)]
-    for kinds in TIERS:
-        tier = [c for c in explaining if c.kind in kinds]
+    for kind in TIERS:
+        tier = [c for c in explaining if c.kind == kind]
         if tier:
             return _named_or_undecided(judge, tier[0], usable)
     # short of the floor: a model that removes nearly all of the excess, if it beats every other family's
@@ -328,9 +327,8 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
         top = min(better, key=lambda c: float(np.mean(c.heldout_deviance)))
         better = [c for c in best_of.values() if judge.explains(c) and judge.clearly_better(c, top)]
     best_of.pop(frozenset(top.families), None)
-    rank = {kind: k for k, kinds in enumerate(TIERS) for kind in kinds}
     rivals = [c for c in best_of.values() if not judge.clearly_better(top, c) and not (
-        judge.rules.occam and rank[c.kind] > rank[top.kind] and not judge.clearly_better(c, top))]
+        judge.rules.occam and TIERS.index(c.kind) > TIERS.index(top.kind) and not judge.clearly_better(c, top))]
     if top.kind == "signature":
         rivals += [c for c in best_of.values() if c.kind == "signature" and c.groups == top.groups
                    and judge.explains(c) and not any(c is r for r in rivals)]
