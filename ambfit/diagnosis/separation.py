@@ -165,11 +165,11 @@ def _discrimination(models: list, data: pd.DataFrame, noise: dict) -> float:
         n_loads = len(m.theta) - 6 - model.n
         theta = np.concatenate([m.theta[:6], np.zeros(len(meta.load_groups)), m.theta[6 + n_loads:]])
         f, s = (np.asarray(a) for a in misfit(theta, prob, model))
-        preds.append((f, s, theta, model))
+        # each model's Jacobian once: it is the refitted side of every pair it is in
+        preds.append((f, s, row_jacobian(theta, prob, meta, model)))
     least = np.inf
-    for (fa, _, _, _), (fb, sb, tb, mb) in itertools.permutations(preds, 2):
+    for (fa, _, _), (fb, sb, jac) in itertools.permutations(preds, 2):
         delta = (fa - fb) / sb
-        jac = row_jacobian(tb, prob, meta, mb)
         ok = np.isfinite(delta) & np.all(np.isfinite(jac), axis=1)
         if not ok.any():
             continue
