@@ -97,21 +97,38 @@ def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     return np.where(partner >= 0, it[partner], np.nan), np.where(partner >= 0, ib[partner], np.nan)
 
 
+def clock(df: pd.DataFrame) -> np.ndarray | None:
+    """Each row's time [s] from the start of its clock; ``None`` without a ``time_s`` column.
+
+    One clock holds within an experiment (contract section 1).  When each experiment, in the order the file
+    lists them, starts after the one before it ends, they were read one after another on one clock, and the
+    whole file counts from its first reading (a drift runs on across experiments); otherwise each experiment's
+    clock restarted, and each counts from its own first reading.  Either way nothing depends on where a clock's
+    zero is.
+    """
+    if "time_s" not in df.columns:
+        return None
+    t = df["time_s"].astype(float)
+    exp = group_labels(df["experiment"]) if "experiment" in df.columns else pd.Series("", index=df.index)
+    spans = t.groupby(exp.to_numpy(), sort=False).agg(["min", "max"]).dropna()
+    one_clock = bool(np.all(spans["min"].to_numpy()[1:] > spans["max"].to_numpy()[:-1]))
+    start = t.min() if one_clock else t.groupby(exp.to_numpy()).transform("min")
+    return (t - start).to_numpy()
+
+
 def readings(data: Dataset | pd.DataFrame):
-    """The rows as :class:`ambfit.physics.model.Readings` in SI units; time counts from the first reading of each
-    row's experiment (one clock holds within an experiment, contract section 1), wherever the clock's zero is."""
+    """The rows as :class:`ambfit.physics.model.Readings` in SI units; time counts from the start of the rows'
+    clock (:func:`clock`), wherever the clock's zero is."""
     from ambfit.physics.model import Readings
 
     df = data.frame if isinstance(data, Dataset) else data
     ax = (df["axis"] == "w").to_numpy().astype(int)
     v = df["v_um"].to_numpy(float) * 1e-6
     w = df["w_um"].to_numpy(float) * 1e-6
-    t = df["time_s"].astype(float) if "time_s" in df.columns else None
-    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(len(df))
     return Readings.build(
         axis=ax, i_top=df["i_top_A"].to_numpy(float), i_bottom=df["i_bottom_A"].to_numpy(float),
         x=np.where(ax == 0, v, w), y=np.where(ax == 0, w, v), bias=df["bias_A"].to_numpy(float),
-        time=None if t is None else (t - t.groupby(exp).transform("min")).to_numpy(),
+        time=clock(df),
         temperature=df["temperature_C"].to_numpy(float) if "temperature_C" in df.columns else None,
         dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
         **dict(zip(("i_top_other", "i_bottom_other"), other_axis_currents(df))),

@@ -63,15 +63,19 @@ def test_the_rig_without_thermometer_writes_no_temperature_and_drifts_in_time():
     assert "temperature_C" in rig.simulate(rig.PAPER_RIG, proto, eff, rig.NOISE_FREE).data.columns
 
 
-def test_time_counts_from_each_experiments_first_reading(timed):
-    """The fitted gap and origin are those at the experiment's start, wherever the clock's zero is."""
+def test_time_counts_from_the_start_of_the_clock(timed):
+    """The fitted gap and origin are those at the clock's start, wherever the clock's zero is."""
     late = timed.assign(time_s=timed.time_s + 1.7e9)         # a Unix clock
     t = np.asarray(rows_mod.readings(late).time)
     assert np.array_equal(t, timed.time_s.to_numpy() - timed.time_s.min())
-    # two experiments, the second on a clock that restarts: each counts from its own first reading
+    # two experiments read one after another on one clock: the drift runs on, one clock counts from the start
     two = late.assign(experiment=np.where(np.arange(len(late)) < 140, "a", "b"))
-    t2 = np.asarray(rows_mod.readings(two).time)
-    assert t2[0] == 0.0 and t2[140] == 0.0
+    assert np.array_equal(np.asarray(rows_mod.readings(two).time), t)
+    # the second experiment's clock restarts: each counts from its own first reading
+    restart = two.assign(time_s=np.where(two.experiment == "b", two.time_s - two.time_s.iloc[140] + 5.0,
+                                         two.time_s))
+    t2 = np.asarray(rows_mod.readings(restart).time)
+    assert t2[0] == 0.0 and t2[140] == 0.0 and t2[141] == t[141] - t[140]
     a = ambfit.fit(timed, effects=(E.ThermalDrift(),))
     b = ambfit.fit(late, effects=(E.ThermalDrift(),))
     np.testing.assert_allclose(b.values, a.values, rtol=1e-9)

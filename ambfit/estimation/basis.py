@@ -17,7 +17,8 @@ coupling           the same times the other axis' mean squared current; the othe
 control            the other axis' signed control current times this axis' current stiffness
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
-drift              each coil's ``b^2``, ``b^2 xi`` times powers of time (and of temperature when read)
+drift              each coil's ``b^2``, ``b^2 xi`` times smooth functions of time: powers and settling curves
+                   (and of temperature when read: powers and the temperature lagged through first-order lags)
 current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
 position_sensor    the force's slope in position times powers of the position reading
 =================  ====================================================================================
@@ -55,6 +56,11 @@ FAMILY_GROUPS = {
 """Each contract family's signature: the groups that carry what a law of its variables, other than the library's,
 could add (the flux families: flux density and gap per coil; hysteresis: the direction and path of each coil
 current; drift: time and temperature; the sensors: their readings)."""
+
+SETTLE = (0.1, 0.3)
+"""Time constants of the drift group's settling curves ``1 - exp(-t / tau)`` and temperature lags, as fractions of
+the run's duration: a mount that settles, or a gap that follows the coils' temperature through the iron's thermal
+lag, within the run (slower ones are the powers of time and of temperature)."""
 
 PLAY_WIDTHS = (0.005, 0.01, 0.02, 0.035, 0.05, 0.07, 0.1, 0.15)
 """Half-widths of the memory group's plays, as fractions of ``I_max`` (15-450 mA on the paper's rig: from the
@@ -134,7 +140,10 @@ class Basis:
                          for coil, s, b, x in (("top", st, bt, xi), ("bottom", sb, bb, -xi))
                          for extra, v in (("", s * b), ("^2", s * b**2), (" xi", s * b * x))]
         if "drift" in self.groups:
-            clocks = [(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)] + [(f"T^{r}", f["theta"] ** r) for r in (1, 2)]
+            clocks = ([(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)]
+                      + [(f"1 - exp(-t / {s:g} t_run)", -np.expm1(-f["tau"] / s)) for s in SETTLE]
+                      + [(f"T^{r}", f["theta"] ** r) for r in (1, 2)]
+                      + [(f"T lagged {s:g} t_run", f[f"theta_lag{j}"]) for j, s in enumerate(SETTLE)])
             cols += [("drift", f"{name} {coil} b^2{extra}", c * v) for name, c in clocks
                      for coil, v0 in (("top", bt**2), ("bottom", bb**2))
                      for extra, v in (("", v0), (" xi", v0 * xi))]
@@ -158,8 +167,9 @@ class Basis:
              "xi": xi, "o": o, "c": c, "eta": np.asarray(readings.y) * self.sin_alpha / self.g_ref,
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
         if "drift" in self.groups:
-            temp = (np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span
-            f |= {"tau": np.asarray(readings.time, dtype=float) / self.t_ref, "theta": np.nan_to_num(temp)}
+            temp = np.nan_to_num((np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span)
+            tau = np.asarray(readings.time, dtype=float) / self.t_ref
+            f |= {"tau": tau, "theta": temp} | {f"theta_lag{j}": _lagged(tau, temp, s) for j, s in enumerate(SETTLE)}
         if "memory" in self.groups:
             from ambfit.rows import play_states
 
@@ -174,6 +184,7 @@ class Basis:
         """``(group, "axis: term")`` of every basis function, in column order."""
         z = np.zeros(1)
         one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "o", "c", "eta", "dt", "db", "tau", "theta")}
+                            | {f"theta_lag{j}": z for j in range(len(SETTLE))}
                             | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS)))})
         return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
 
@@ -206,3 +217,19 @@ class Basis:
     def group_index(self) -> np.ndarray:
         """Index into ``groups`` of every column."""
         return np.array([self.groups.index(g) for g, _ in self.terms()])
+
+
+def _lagged(tau: np.ndarray, theta: np.ndarray, lag: float) -> np.ndarray:
+    """``theta`` passed through a first-order lag of time constant ``lag`` (units of ``tau``), in time order from
+    the first reading's value: ``y += (1 - exp(-dt / lag)) (theta - y)`` (exact for a temperature held between
+    readings)."""
+    out = np.zeros_like(theta)
+    if theta.size == 0:
+        return out
+    order = np.argsort(tau, kind="stable")
+    gain = -np.expm1(-np.diff(tau[order], prepend=tau[order][0]) / lag)
+    y = theta[order][0]
+    for k, (g, now) in zip(order, zip(gain, theta[order])):   # a recursion: each output needs the one before
+        y += g * (now - y)
+        out[k] = y
+    return out

@@ -98,8 +98,8 @@ class Readings(eqx.Module):
     bias : array[n]
         Commanded bias current [A].
     time : array[n]
-        Time of the reading [s] (zeros when unknown); from a contract table, counted from the first reading
-        of its experiment (:func:`ambfit.rows.readings`), on the virtual rig its clock.
+        Time of the reading [s] (zeros when unknown); from a contract table, counted from the start of its
+        clock (:func:`ambfit.rows.clock`), on the virtual rig its clock.
     temperature : array[n]
         Bearing temperature [°C] (NaN when unknown).
     dir_top, dir_bottom : array[n]

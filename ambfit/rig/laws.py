@@ -86,7 +86,7 @@ class LinearTimeDrift(Effect):
 
     ``g0(t) = g0 + gap_rate t``, ``x0(t) = x0 + origin_rate t`` with ``t`` the row's ``time_s``; rows without a
     time are taken at ``t = 0``.  Unlike the library's ``thermal_drift`` (through ``temperature_C`` where it is
-    measured, linear in time from each experiment's first reading where not), it drifts from the clock's zero
+    measured, linear in time from the start of the rows' clock where not), it drifts from the clock's zero
     whatever the temperature.  Rates of 10-30 µm/h on the origin and 2-6 µm/h on the gap are those of a sensor mount settling in the
     first hour (the library's 0.5-2 µm/K over the rig's 15 K warm-up).
     """

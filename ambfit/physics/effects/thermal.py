@@ -28,9 +28,9 @@ class ThermalDrift(Effect):
 
         g0 = g0 + dg_dt t,              x0 = x0 + dx0_dt t                  (dg_dt, dx0_dt in m/s)
 
-    where ``t`` counts from the first reading of the row's experiment (:func:`ambfit.rows.readings`; the
-    contract holds ``time_s`` to one clock within an experiment only), so the fitted gap and origin are those at
-    the start of each experiment, and nothing depends on where the clock's zero is.  A row with neither is taken
+    where ``t`` counts from the start of the rows' clock (:func:`ambfit.rows.clock`: the file's first reading
+    when its experiments were read one after another, each experiment's first when each restarted its clock),
+    so the fitted gap and origin are those at that start, and nothing depends on where the clock's zero is.  A row with neither is taken
     at ``ref_C``, i.e. without drift.
 
     Differential expansion of rotor and stator (Δα ≈ 5e-6 /K over a 17.5 mm radius) gives about 0.1 µm/K on
