@@ -50,8 +50,12 @@ class Rules:
         errors.  Models not clearly apart are indistinguishable (``undecided``, ``confounded_with``).
     graded_shrink : float
         When nothing reaches the floor, a model that removes at least this share of the ideal law's held-out
-        excess, and predicts clearly better than every other family's, is still named (its ``grade`` says what it
-        leaves); one that does not is ``unexplained``.
+        excess, leaves less than ``graded_remainder``, and predicts clearly better than every other family's, is
+        still named (its ``grade`` says what it leaves); one that does not is ``unexplained``.
+    graded_remainder : float
+        The most a model named short of the floor may leave [noise units of held-out excess]: a family that removes
+        most of a large excess but leaves several noise units has a second effect beside it, which naming it
+        alone would hide.
     log_bayes_clear : float
         A signature is clearly in the residuals when the marginal likelihood wants one of its discrepancy groups
         by more than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995 scale; the FEM
@@ -82,6 +86,7 @@ class Rules:
     floor_se: float = 3.0
     margin_se: float = 3.0
     graded_shrink: float = 0.9
+    graded_remainder: float = 1.0
     log_bayes_clear: float = 10.0
     structure_alpha: float = 0.01
     circuit_dchi2: float = 3.0
@@ -301,7 +306,7 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         if tier:
             return _named_or_undecided(judge, tier[0], usable)
     # short of the floor: a model that removes nearly all of the excess, if it beats every other family's
-    close = [c for c in usable if c.shrink >= rules.graded_shrink]
+    close = [c for c in usable if c.shrink >= rules.graded_shrink and c.after < rules.graded_remainder]
     if close:
         return _named_or_undecided(judge, close[0], usable)
     best = usable[0] if usable else None
