@@ -13,14 +13,15 @@ physics changes the force through variables of its own, its *signature* (:data:`
 group              columns
 =================  ====================================================================================
 shape              ``b^p xi^q`` (``p <= 6``, ``q <= 3``): the law's shape in flux density and gap
-coupling           the same times the other axis' mean squared current; the other axis' position
+coupling           the same times the other axis' mean squared current; powers of the other axis' position
+                   (from 0: its origin is not known) times this axis' flux, current and their products
 control            the other axis' signed control current times this axis' current stiffness
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
 drift              each coil's ``b^2``, ``b^2 xi`` times smooth functions of time: powers and settling curves
                    (and of temperature when read: powers and the temperature lagged through first-order lags)
 current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
-position_sensor    the force's slope in position times powers of the position reading
+position_sensor    the force's slope in position times powers and ripples (periods ``RIPPLES``) of the reading
 =================  ====================================================================================
 
 The columns of a group are what a smooth law of its variables, linearised about the ideal force, can add: a
@@ -56,6 +57,16 @@ FAMILY_GROUPS = {
 """Each contract family's signature: the groups that carry what a law of its variables, other than the library's,
 could add (the flux families: flux density and gap per coil; hysteresis: the direction and path of each coil
 current; drift: time and temperature; the sensors: their readings)."""
+
+X_SCALE = 0.05
+"""Scale of the position polynomials of the coupling and position sensor groups, as a fraction of the nominal
+gap (38 µm on the paper's bearing, about the largest displacement a protocol reaches): ``u = x / (X_SCALE g)``
+and ``eta = y sin(alpha) / (X_SCALE g)`` keep every power of order one, so that one prior scale per group
+serves all of them."""
+
+RIPPLES = (0.02, 0.04, 0.08)
+"""Periods of the position sensor group's ripples, as fractions of the nominal gap (15-60 µm on the paper's
+bearing): a probe's linearisation table or a target's electrical runout repeats over tens of micrometres."""
 
 SETTLE = (0.1, 0.3)
 """Time constants of the drift group's settling curves ``1 - exp(-t / tau)`` and temperature lags, as fractions of
@@ -120,10 +131,13 @@ class Basis:
         if "coupling" in self.groups:
             cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", f["o"] * horseshoes(p, q))
                      for p, q in mono if p in (0, 2)]
+            # a polynomial of the other axis' displacement from the centre, y0 + y (y0 not known: from power 0),
+            # scaled by this axis' flux or current (a shared back iron carries its bias flux)
             eta = f["eta"]
-            for r in (1, 2, 3):
-                cols += [("coupling", f"eta^{r}", eta**r), ("coupling", f"eta^{r} (b_t^2 + b_b^2)", eta**r * (bt**2 + bb**2)),
-                         ("coupling", f"eta^{r} (b_t^2 - b_b^2)", eta**r * (bt**2 - bb**2))]
+            for r in (0, 1, 2, 3):
+                cols += [("coupling", f"eta^{r}{name}", eta**r * v) for name, v in (
+                    ("", np.ones_like(xi)), (" (b_t^2 + b_b^2)", bt**2 + bb**2), (" (b_t^2 - b_b^2)", bt**2 - bb**2),
+                    (" (i_t + i_b)", f["it"] + f["ib"]), (" i_t i_b", f["it"] * f["ib"]))]
         if "control" in self.groups:
             # the other axis' control current, signed: a current-stiffness cross term (force per its current)
             c, k_i = f["c"], bt / (1.0 - xi) + bb / (1.0 + xi)
@@ -153,7 +167,9 @@ class Basis:
                      for r in range(4)]
         if "position_sensor" in self.groups:
             slope = bt**2 / (1.0 - xi) + bb**2 / (1.0 + xi)
-            cols += [("position_sensor", f"dF/dx xi^{r}", slope * xi**r) for r in range(1, 5)]
+            cols += [("position_sensor", f"dF/dx u^{r}", slope * f["u"] ** r) for r in range(1, 5)]
+            cols += [("position_sensor", f"dF/dx {trig}(2 pi x / {lam:g} g)", slope * fn(2 * np.pi * f["x"] / lam))
+                     for lam in RIPPLES for trig, fn in (("sin", np.sin), ("cos", np.cos))]
         return cols
 
     def _features(self, readings, frame=None) -> dict:
@@ -164,7 +180,9 @@ class Basis:
             0.5 * ((np.asarray(ot) / self.i_ref) ** 2 + (np.asarray(ob) / self.i_ref) ** 2))
         c = np.zeros_like(xi) if ot is None else np.nan_to_num(0.5 * (np.asarray(ot) - np.asarray(ob)) / self.i_ref)
         f = {"it": np.abs(it), "ib": np.abs(ib), "bt": np.abs(it) / (1.0 - xi), "bb": np.abs(ib) / (1.0 + xi),
-             "xi": xi, "o": o, "c": c, "eta": np.asarray(readings.y) * self.sin_alpha / self.g_ref,
+             "xi": xi, "x": np.asarray(readings.x) / self.g_ref, "o": o, "c": c,
+             "u": np.asarray(readings.x) / (X_SCALE * self.g_ref),
+             "eta": np.asarray(readings.y) * self.sin_alpha / (X_SCALE * self.g_ref),
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
         if "drift" in self.groups:
             temp = np.nan_to_num((np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span)
@@ -183,7 +201,8 @@ class Basis:
     def terms(self) -> list[tuple[str, str]]:
         """``(group, "axis: term")`` of every basis function, in column order."""
         z = np.zeros(1)
-        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "o", "c", "eta", "dt", "db", "tau", "theta")}
+        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "x", "u", "o", "c", "eta", "dt", "db", "tau",
+                                            "theta")}
                             | {f"theta_lag{j}": z for j in range(len(SETTLE))}
                             | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS)))})
         return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
