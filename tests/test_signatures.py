@@ -10,7 +10,7 @@ from ambfit.estimation.basis import FAMILY_GROUPS, Basis
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.physics import effects as E
 from ambfit.physics.bearing import PAPER_BEARING
-from ambfit.rig import laws, protocol
+from ambfit.rig import laws, protocol, zoo_magnetic
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +32,10 @@ CASES = [
     (laws.PositionNonlinearity(gain=np.array([0.04, -0.03]), curve=np.array([0.05, -0.06])), "position_gain", []),
     (laws.ChannelCalibration, "current_offset", []),
     (laws.CurrentCoupling, "cross_coupling", [E.CrossCoupling()]),
+    # through the cube of the other axis' displacement from the bearing centre (its origin unknown to the basis),
+    # scaled by this axis' mean current squared: powers of order one, a constant part, a current scale
+    (zoo_magnetic.PositionCoupling(coef=np.array([[0.0, 0.0, 0.08], [0.0, 0.0, -0.08]]), power=np.array([2.0, 2.0])),
+     "cross_coupling", [E.CrossCoupling()]),
 ]
 
 
@@ -78,3 +82,19 @@ def test_memory_hysteresis_is_named_by_its_signature(design):
     assert d.verdict == "hysteresis", d.summary()
     assert d.law.groups == ("hysteresis", "memory") and d.grade.by == "signature"
     assert d.law.law.shrink < 0.5 < d.law.shrink == d.shrink
+
+
+def test_on_clean_data_no_widened_law_predicts_better_than_the_ideal_law(design):
+    """The ideal law is the truth here: a family's signature that predicted held-out readings clearly better would
+    be regressing on the readings' noise (a term steep in a noisy reading, at set-points the grid repeats)."""
+    from ambfit.diagnosis.scoring import Scorer
+    from ambfit.diagnosis.signatures import widened
+    from ambfit.diagnosis.threads import _Each
+    from ambfit.diagnosis.verdict import Judge, Rules
+
+    data = rig.simulate(rig.PAPER_RIG, design, [], seed=11).data
+    with _Each(2) as each:
+        ideal, = Scorer(data, ambfit.fit(data), bearing=PAPER_BEARING, noise={}, max_steps=60, each=each).laws([()])
+    judge = Judge(len(ideal.heldout_z), ideal.score, Rules())
+    for family, groups in FAMILY_GROUPS.items():
+        assert not judge.clearly_better(widened(ideal, data, groups, {}), ideal), family

@@ -21,7 +21,7 @@ memory             each coil's state in plays of several widths (the path over s
 drift              each coil's ``b^2``, ``b^2 xi`` times smooth functions of time: powers and settling curves
                    (and of temperature when read: powers and the temperature lagged through first-order lags)
 current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
-position_sensor    the force's slope in position times powers and ripples (periods ``RIPPLES``) of the reading
+position_sensor    the force's slope in position times powers of the reading
 =================  ====================================================================================
 
 The columns of a group are what a smooth law of its variables, linearised about the ideal force, can add: a
@@ -63,10 +63,6 @@ X_SCALE = 0.05
 gap (38 µm on the paper's bearing, about the largest displacement a protocol reaches): ``u = x / (X_SCALE g)``
 and ``eta = y sin(alpha) / (X_SCALE g)`` keep every power of order one, so that one prior scale per group
 serves all of them."""
-
-RIPPLES = (0.02, 0.04, 0.08)
-"""Periods of the position sensor group's ripples, as fractions of the nominal gap (15-60 µm on the paper's
-bearing): a probe's linearisation table or a target's electrical runout repeats over tens of micrometres."""
 
 SETTLE = (0.1, 0.3)
 """Time constants of the drift group's settling curves ``1 - exp(-t / tau)`` and temperature lags, as fractions of
@@ -168,8 +164,6 @@ class Basis:
         if "position_sensor" in self.groups:
             slope = bt**2 / (1.0 - xi) + bb**2 / (1.0 + xi)
             cols += [("position_sensor", f"dF/dx u^{r}", slope * f["u"] ** r) for r in range(1, 5)]
-            cols += [("position_sensor", f"dF/dx {trig}(2 pi x / {lam:g} g)", slope * fn(2 * np.pi * f["x"] / lam))
-                     for lam in RIPPLES for trig, fn in (("sin", np.sin), ("cos", np.cos))]
         return cols
 
     def _features(self, readings, frame=None) -> dict:
@@ -180,7 +174,7 @@ class Basis:
             0.5 * ((np.asarray(ot) / self.i_ref) ** 2 + (np.asarray(ob) / self.i_ref) ** 2))
         c = np.zeros_like(xi) if ot is None else np.nan_to_num(0.5 * (np.asarray(ot) - np.asarray(ob)) / self.i_ref)
         f = {"it": np.abs(it), "ib": np.abs(ib), "bt": np.abs(it) / (1.0 - xi), "bb": np.abs(ib) / (1.0 + xi),
-             "xi": xi, "x": np.asarray(readings.x) / self.g_ref, "o": o, "c": c,
+             "xi": xi, "o": o, "c": c,
              "u": np.asarray(readings.x) / (X_SCALE * self.g_ref),
              "eta": np.asarray(readings.y) * self.sin_alpha / (X_SCALE * self.g_ref),
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
@@ -201,7 +195,7 @@ class Basis:
     def terms(self) -> list[tuple[str, str]]:
         """``(group, "axis: term")`` of every basis function, in column order."""
         z = np.zeros(1)
-        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "x", "u", "o", "c", "eta", "dt", "db", "tau",
+        one = self._columns({k: z for k in ("it", "ib", "bt", "bb", "xi", "u", "o", "c", "eta", "dt", "db", "tau",
                                             "theta")}
                             | {f"theta_lag{j}": z for j in range(len(SETTLE))}
                             | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS)))})
