@@ -24,8 +24,11 @@ holds it), per protocol, per kind of case and per law class; the confusion matri
 no_family) and a column per verdict; the wrong claims are listed with their laws.
 
     .venv/bin/python benchmarks/gap_zoo.py [--draws 300] [--seed 3131] [--workers 2] [--out reports/gap]
+        [--before reports/gap/zoo_before.json]
 
-Writes zoo.json and zoo.md to ``--out``.
+Writes zoo.json and zoo.md to ``--out``.  ``--before``: an earlier run's zoo.json of the same study seed; the
+draws both runs hold (the same cases: each draw's seed depends on its index only) are compared, category by
+category and draw by draw.
 """
 
 import argparse
@@ -164,21 +167,53 @@ def markdown(summary: dict, draws: list, args) -> list[str]:
     return md
 
 
+def compared(before: list, draws: list) -> dict:
+    """The draws both runs hold: each run's fractions, and the draws whose category changed."""
+    old = {d["index"]: d for d in before}
+    common = [d for d in draws if d["index"] in old]
+    changed = [{"index": d["index"], "truth": d["truth"], "before": old[d["index"]]["verdict"],
+                "after": d["verdict"], "category_before": old[d["index"]]["category"], "category_after": d["category"]}
+               for d in common if d["category"] != old[d["index"]]["category"]]
+    return {"before": fractions([old[d["index"]] for d in common]), "after": fractions(common), "changed": changed}
+
+
+def comparison_markdown(cmp: dict, before_path) -> list[str]:
+    md = ["## Before and after", "", f"The {cmp['after']['n']} draws this run shares with `{before_path}` (the same "
+          "cases): each category's share before and after, then every draw whose category changed.", ""]
+    md += _table("run", {"before": cmp["before"], "after": cmp["after"]})
+    md += ["| # | truth | before | after |", "|---|---|---|---|"]
+    md += [f"| {c['index']} | {c['truth']} | `{c['before']}` ({c['category_before']}) | `{c['after']}` "
+           f"({c['category_after']}) |" for c in cmp["changed"]]
+    return md + [""]
+
+
 def main():
     ap = argparse.ArgumentParser(description="the diagnosis on the law zoo (issue 31, item 5)")
     ap.add_argument("--draws", type=int, default=300, help="number of drawn data sets")
     ap.add_argument("--seed", type=int, default=3131, help="the study's seed (each draw gets its own from it)")
     ap.add_argument("--workers", type=int, default=None, help="local worker processes (default: this process)")
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "gap")
+    ap.add_argument("--before", type=Path, default=None, help="an earlier zoo.json of the same study seed")
     args = ap.parse_args()
+    before = None
+    if args.before is not None:
+        record = json.loads(args.before.read_text())
+        if record["summary"]["engine"]["seed"] != args.seed:
+            ap.error(f"{args.before} is of study seed {record['summary']['engine']['seed']}, not {args.seed}")
+        before = record["draws"]
     from ambfit.engine import Engine
 
     with Engine(workers=args.workers) as engine:
         draws = engine.map(one_draw, list(range(args.draws)), seed=args.seed, chunk_size=1, what="draws")
     summary = summarise(draws) | {"engine": {"workers": args.workers, "seed": args.seed}}
+    if before is not None:
+        summary["compared"] = compared(before, draws) | {"with": str(args.before)}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "zoo.json").write_text(json.dumps({"summary": summary, "draws": draws}, indent=1, default=float))
     md = markdown(summary, draws, args)
+    if before is not None:
+        at = md.index("## Confusion matrix")
+        md[at:at] = comparison_markdown(summary["compared"], args.before)
     (args.out / "zoo.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

@@ -69,6 +69,20 @@ def test_clearly_better_is_a_paired_comparison_that_charges_a_wide_prediction():
         judge.clearly_better(a, Candidate("short", np.zeros(3), 1.0, fit=None))
 
 
+def test_a_model_too_vague_to_be_tested_does_not_explain_by_its_width():
+    """Its floor counts its predictions' width only up to ``spread_max``: a model leaving 3 noise units with
+    predictions 13 times as wide as the noise is not at the floor, however well its width covers its misses."""
+    start = ideal(30.0)
+    vague = dataclasses.replace(law("thermal_drift", 9.0, start=start), heldout_var=np.full(N, 13.0))
+    judge = Judge(n=N, ideal_score=start.score)
+    assert vague.score < 11 and not judge.at_floor(vague) and not judge.explains(vague)
+    assert Judge(n=N, ideal_score=start.score, rules=Rules(spread_max=20.0)).explains(vague)
+    assert decide(Rules(), start, [vague]).kind == "unexplained"
+    # a correct model whose predictions are a little wider than the noise is at its floor
+    right = dataclasses.replace(law("saturation", 0.3, start=start), heldout_var=np.full(N, 1.3))
+    assert judge.explains(right)
+
+
 def test_on_the_floor_the_verdict_is_none_and_lists_what_these_data_cannot_exclude():
     on = ideal(0.0)
     near, far = law("saturation", 0.0, start=on), law("hysteresis", 0.3, start=on)
@@ -237,6 +251,6 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert decide(Rules(), weak, [law("fringing", 0.2, start=weak)]).kind == "none"
     assert decide(Rules(floor_tolerance=0.1), weak, [law("fringing", 0.2, start=weak)]).kind == "unexplained"
     assert {f.name for f in dataclasses.fields(Rules)} == {
-        "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "log_bayes_clear", "structure_alpha", "circuit_dchi2",
+        "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear", "structure_alpha", "circuit_dchi2",
         "separate_log_bayes", "time_tied_r2", "occam", "pairs", "pair_verdict"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)

@@ -52,6 +52,10 @@ class Rules:
         When nothing reaches the floor, a model that removes at least this share of the ideal law's held-out
         excess, leaves less than ``graded_remainder``, and predicts clearly better than every other family's, is
         still named (its ``grade`` says what it leaves); one that does not is ``unexplained``.
+    spread_max : float
+        A model's floor counts the width its parameters' uncertainty adds to its held-out predictions up to this
+        share of the noise variance: a model whose predictions are wider still (a flexible correction extrapolated
+        beyond the readings it was fitted on) is not tested by them, and does not explain them by being vague.
     graded_remainder : float
         The most a model named short of the floor may leave [noise units of held-out excess]: a family that removes
         most of a large excess but leaves several noise units has a second effect beside it, which naming it
@@ -87,6 +91,7 @@ class Rules:
     margin_se: float = 3.0
     graded_shrink: float = 0.9
     graded_remainder: float = 1.0
+    spread_max: float = 1.0
     log_bayes_clear: float = 10.0
     structure_alpha: float = 0.01
     circuit_dchi2: float = 3.0
@@ -116,9 +121,10 @@ class Judge:
 
     def floor_of(self, model) -> float:
         """The largest score at ``model``'s floor: its held-out residuals' expected mean square when it is right
-        (the noise and its parameters' uncertainty, ``mean(1 + h)``), plus ``floor_se`` standard errors."""
+        (the noise and its parameters' uncertainty, ``mean(1 + h)``, ``h`` counted up to ``Rules.spread_max``),
+        plus ``floor_se`` standard errors."""
         var = getattr(model, "heldout_var", None)
-        level = 1.0 if var is None else float(np.mean(var))
+        level = 1.0 if var is None else 1.0 + min(float(np.mean(var)) - 1.0, self.rules.spread_max)
         return level + self.rules.floor_se * self.se(level)
 
     @property

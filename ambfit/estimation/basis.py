@@ -14,7 +14,7 @@ group              columns
 =================  ====================================================================================
 shape              ``b^p xi^q`` (``p <= 6``, ``q <= 3``): the law's shape in flux density and gap
 coupling           the same times the other axis' mean squared current; powers of the other axis' position
-                   (from 0: its origin is not known) times this axis' flux, current and their products
+                   times this axis' flux, current and their products
 control            the other axis' signed control current times this axis' current stiffness
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
@@ -127,10 +127,10 @@ class Basis:
         if "coupling" in self.groups:
             cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", f["o"] * horseshoes(p, q))
                      for p, q in mono if p in (0, 2)]
-            # a polynomial of the other axis' displacement from the centre, y0 + y (y0 not known: from power 0),
-            # scaled by this axis' flux or current (a shared back iron carries its bias flux)
+            # powers of the other axis' displacement, scaled by this axis' flux or current (a shared back iron
+            # carries its bias flux); no power 0: a term in this axis' readings alone is not the other axis'
             eta = f["eta"]
-            for r in (0, 1, 2, 3):
+            for r in (1, 2, 3):
                 cols += [("coupling", f"eta^{r}{name}", eta**r * v) for name, v in (
                     ("", np.ones_like(xi)), (" (b_t^2 + b_b^2)", bt**2 + bb**2), (" (b_t^2 - b_b^2)", bt**2 - bb**2),
                     (" (i_t + i_b)", f["it"] + f["ib"]), (" i_t i_b", f["it"] * f["ib"]))]
