@@ -116,6 +116,21 @@ def clock(df: pd.DataFrame) -> np.ndarray | None:
     return (t - start).to_numpy()
 
 
+STEADY_K = 0.01
+"""A temperature column that varies by less than this [K] over the rows measures no thermal state."""
+
+
+def thermometer(df: pd.DataFrame) -> np.ndarray | None:
+    """Each row's temperature [°C], or ``None`` when the rows have no thermometer: no ``temperature_C`` column, or
+    one that does not change (by less than :data:`STEADY_K`: a logged room or set-point temperature).  A drift is
+    then followed in time (:class:`ambfit.physics.effects.ThermalDrift`), not pinned to a constant."""
+    if "temperature_C" not in df.columns:
+        return None
+    t = df["temperature_C"].to_numpy(float)
+    known = t[np.isfinite(t)]
+    return t if known.size and np.ptp(known) >= STEADY_K else None
+
+
 def readings(data: Dataset | pd.DataFrame):
     """The rows as :class:`ambfit.physics.model.Readings` in SI units; time counts from the start of the rows'
     clock (:func:`clock`), wherever the clock's zero is."""
@@ -129,7 +144,7 @@ def readings(data: Dataset | pd.DataFrame):
         axis=ax, i_top=df["i_top_A"].to_numpy(float), i_bottom=df["i_bottom_A"].to_numpy(float),
         x=np.where(ax == 0, v, w), y=np.where(ax == 0, w, v), bias=df["bias_A"].to_numpy(float),
         time=clock(df),
-        temperature=df["temperature_C"].to_numpy(float) if "temperature_C" in df.columns else None,
+        temperature=thermometer(df),
         dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
         **dict(zip(("i_top_other", "i_bottom_other"), other_axis_currents(df))),
     )

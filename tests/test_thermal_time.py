@@ -165,3 +165,15 @@ def test_parameters_no_reading_depends_on_take_no_degree_of_freedom():
     drift = ambfit.fit(data, effects=(E.ThermalDrift(),), throw=False)
     assert len(drift.names) - len(ideal.names) == 8
     assert drift.dof == ideal.dof - 4
+
+
+def test_a_temperature_column_that_does_not_change_is_no_thermometer(timed):
+    """A logged room or set-point temperature measures no thermal state: the drift is followed in time, as
+    without the column, not pinned to a constant temperature."""
+    steady = timed.assign(temperature_C=22.0)
+    assert rows_mod.thermometer(steady) is None
+    a = ambfit.fit(timed, effects=(E.ThermalDrift(),))
+    b = ambfit.fit(steady, effects=(E.ThermalDrift(),))
+    np.testing.assert_allclose(b.values, a.values, rtol=1e-9)
+    warming = timed.assign(temperature_C=22.0 + np.linspace(0.0, 0.5, len(timed)))
+    np.testing.assert_array_equal(rows_mod.thermometer(warming), warming.temperature_C.to_numpy())
