@@ -3,8 +3,8 @@
 
 The cases cover the ways a verdict is reached: the bundled data (``none``, the protocol's blind spot), a library
 law, a pair, laws of families the library does not write (a coupling through the other axis' currents named by
-its signature, an exponential drift in time that no model brings to the floor, a non-linear position sensor too
-weak to single out), iron reluctance that saturation explains alike
+its signature, an exponential drift in time that its signature's settling curves reach (the case is named for the
+verdict it had before they were there), a non-linear position sensor too weak to single out), iron reluctance that saturation explains alike
 (``undecided``, with the protocol that would separate them), and the FEM development data (the magnetic circuit,
 its pieces as families).  Inputs are stored as they were simulated, so
 only the diagnosis is compared.  Keys must come in the same order, and strings, flags and integers must be equal.

@@ -98,3 +98,18 @@ def test_on_clean_data_no_widened_law_predicts_better_than_the_ideal_law(design)
     judge = Judge(len(ideal.heldout_z), ideal.score, Rules())
     for family, groups in FAMILY_GROUPS.items():
         assert not judge.clearly_better(widened(ideal, data, groups, {}), ideal), family
+
+
+def test_the_lagged_temperature_is_a_first_order_lag_in_time_order():
+    from ambfit.estimation.basis import _lagged
+
+    tau = np.array([0.3, 0.0, 0.1, 0.2, 0.2, 0.4])              # out of order, a moment read twice
+    step = np.array([1.0, 0.0, 1.0, 1.0, 1.0, 1.0])             # a step at tau = 0.1
+    got = _lagged(tau, step, 0.1)
+    np.testing.assert_allclose(got[[1, 2, 3, 0, 5]], 1.0 - np.exp(-np.array([0.0, 1.0, 2.0, 3.0, 4.0])), rtol=1e-12)
+    assert got[3] == got[4]                                      # one moment, one state
+    gap = step.copy()
+    gap[0] = np.nan                                              # a reading without a temperature holds the lag
+    held = _lagged(tau, gap, 0.1)
+    assert held[0] == held[3] and held[5] > held[0]
+    assert np.all(_lagged(tau, np.full(6, np.nan), 0.1) == 0.0)

@@ -177,3 +177,14 @@ def test_a_temperature_column_that_does_not_change_is_no_thermometer(timed):
     np.testing.assert_allclose(b.values, a.values, rtol=1e-9)
     warming = timed.assign(temperature_C=22.0 + np.linspace(0.0, 0.5, len(timed)))
     np.testing.assert_array_equal(rows_mod.thermometer(warming), warming.temperature_C.to_numpy())
+
+
+def test_the_clock_is_one_run_only_when_every_experiment_follows_the_one_before(timed):
+    t = timed.time_s.to_numpy()
+    three = timed.assign(experiment=np.repeat(["a", "b", "c"], [100, 100, len(timed) - 200]))
+    np.testing.assert_array_equal(rows_mod.clock(three), t - t.min())
+    # c's clock restarted: each experiment counts from its own first reading
+    restart = three.assign(time_s=np.where(three.experiment == "c", t - t[200], t))
+    got = rows_mod.clock(restart)
+    assert got[0] == got[100] == got[200] == 0.0
+    assert rows_mod.clock(timed.drop(columns="time_s")) is None

@@ -179,9 +179,10 @@ class Basis:
              "eta": np.asarray(readings.y) * self.sin_alpha / (X_SCALE * self.g_ref),
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
         if "drift" in self.groups:
-            temp = np.nan_to_num((np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span)
+            temp = (np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span
             tau = np.asarray(readings.time, dtype=float) / self.t_ref
-            f |= {"tau": tau, "theta": temp} | {f"theta_lag{j}": _lagged(tau, temp, s) for j, s in enumerate(SETTLE)}
+            f |= {"tau": tau, "theta": np.nan_to_num(temp)} | {f"theta_lag{j}": _lagged(tau, temp, s)
+                                                               for j, s in enumerate(SETTLE)}
         if "memory" in self.groups:
             from ambfit.rows import play_states
 
@@ -235,14 +236,16 @@ class Basis:
 def _lagged(tau: np.ndarray, theta: np.ndarray, lag: float) -> np.ndarray:
     """``theta`` passed through a first-order lag of time constant ``lag`` (units of ``tau``), in time order from
     the first reading's value: ``y += (1 - exp(-dt / lag)) (theta - y)`` (exact for a temperature held between
-    readings)."""
+    readings); a reading without a temperature (NaN) holds the lag where it is.  Zero without any temperature."""
     out = np.zeros_like(theta)
-    if theta.size == 0:
+    known = np.isfinite(theta)
+    if not known.any():
         return out
     order = np.argsort(tau, kind="stable")
     gain = -np.expm1(-np.diff(tau[order], prepend=tau[order][0]) / lag)
-    y = theta[order][0]
-    for k, (g, now) in zip(order, zip(gain, theta[order])):   # a recursion: each output needs the one before
-        y += g * (now - y)
+    y = theta[known][np.argmin(tau[known])]
+    for k, g, now in zip(order, gain, theta[order]):     # a recursion: each output needs the one before
+        if np.isfinite(now):
+            y += g * (now - y)
         out[k] = y
     return out

@@ -30,8 +30,9 @@ class ThermalDrift(Effect):
 
     where ``t`` counts from the start of the rows' clock (:func:`ambfit.rows.clock`: the file's first reading
     when its experiments were read one after another, each experiment's first when each restarted its clock),
-    so the fitted gap and origin are those at that start, and nothing depends on where the clock's zero is.  A row with neither is taken
-    at ``ref_C``, i.e. without drift.
+    so the fitted gap and origin are those at that start, and nothing depends on where the clock's zero is.  A
+    row with neither is taken at ``ref_C``, i.e. without drift; a temperature column that does not change is no
+    thermometer (:func:`ambfit.rows.thermometer`).
 
     Differential expansion of rotor and stator (Δα ≈ 5e-6 /K over a 17.5 mm radius) gives about 0.1 µm/K on
     the gap; sensor-mount growth moves the origin 0.3-2 µm/K.  On the rig the coils heat the bearing by
