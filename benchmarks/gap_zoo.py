@@ -15,7 +15,7 @@ Each verdict is scored against the truth:
 | right | the verdict's ``+``-joined families are the truth's; ``none`` for no effect; ``unexplained`` or ``undecided`` for an effect of no family |
 | right_with_extra | every truth family is named, and others besides |
 | undecided_with_truth | ``undecided``, and every truth family is among the candidates (each a family or a ``+`` set) |
-| no_claim | ``none``, ``unexplained`` or ``undecided`` without the truth, for a true effect (or not ``none`` without naming a family, for no effect) |
+| no_claim | ``none``, ``unexplained`` or ``undecided`` without the truth, for a true effect (or not ``none`` without naming a family, for no effect); ``error``: the diagnosis stopped with a fit's error (its reason is kept) |
 | wrong_claim | a named verdict that does not name every truth family, or any family named on no-effect or no-family data |
 
 A draw is *visible* when the ideal law's held-out excess (``heldout_excess_before``) is above one noise unit.
@@ -41,7 +41,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 CATEGORIES = ("right", "right_with_extra", "undecided_with_truth", "no_claim", "wrong_claim")
-NOT_NAMED = ("none", "unexplained", "undecided")
+NOT_NAMED = ("none", "unexplained", "undecided", "error")
 TARGETS = {"right": 0.85, "wrong_claim": 0.02}
 """What the product is judged on: right at least, wrong claims at most (and every no-effect file ``none``)."""
 
@@ -67,7 +67,12 @@ def one_draw(item: int, seed) -> dict:
 
     case, data = zoo.draw(np.random.default_rng(seed))
     t0 = time.perf_counter()
-    rec = ambfit.diagnose(data).to_json()      # the bearing description defaults to the paper's
+    try:
+        rec = ambfit.diagnose(data).to_json()      # the bearing description defaults to the paper's
+    except ambfit.FitError as exc:
+        # the diagnosis stops with the fit's reason (a user sees it as an error, not a verdict): no claim
+        rec = {"verdict": "error", "error": str(exc).splitlines()[0], "heldout_excess_before": None, "shrink": None,
+               "confounded_with": []}
     seconds = time.perf_counter() - t0
     candidates = rec.get("candidates", [])
     grade = rec.get("grade")
@@ -75,7 +80,7 @@ def one_draw(item: int, seed) -> dict:
             "laws": case.describe()["laws"], "protocol": case.protocol_kind, "rows": len(data),
             "dropped": list(case.dropped), "verdict": rec["verdict"], "candidates": candidates,
             "confounded_with": rec["confounded_with"], "category": score(case.truth, rec["verdict"], candidates),
-            "excess_before": rec["heldout_excess_before"], "shrink": rec["shrink"],
+            "excess_before": rec["heldout_excess_before"], "shrink": rec["shrink"], "error": rec.get("error"),
             "grade": None if grade is None else {k: grade[k] for k in ("model", "by", "removes", "remainder",
                                                                          "at_floor", "explains")},
             "seconds": seconds}
