@@ -116,7 +116,7 @@ def test_diagnosis_names_the_family_when_its_law_differs():
 
     data = rig.simulate(rig.PAPER_RIG, _design(), [RayleighHysteresis(ratio=np.array([0.01, 0.008]))], seed=5).data
     d = diagnosis.diagnose(data, check_force=False, pairs=False)
-    assert d.verdict == "hysteresis", d.summary()
+    assert d.verdict == "hysteresis", str(d)
     assert d.law.log_bayes_max > Rules().log_bayes_clear
     assert d.law.law.shrink < 0.9 <= d.law.shrink == d.shrink
     rec = d.to_json()

@@ -206,12 +206,12 @@ def test_short_of_the_floor_a_model_that_removes_nearly_all_and_beats_the_rest_i
     v = decide(Rules(), start, [near, law("saturation", 6.0, start=start)])
     assert v.name == "hysteresis" and not v.grade.at_floor
     assert decide(Rules(graded_shrink=0.95), start, [near]).name == "unexplained"
-    # removing 0.9 of a larger excess still leaves more than a noise unit: a second effect beside it, not named
-    big = ideal(300.0)
-    most = law("hysteresis", 2.5, start=big)                    # leaves 1.6 of 17 noise units: removes 0.9
+    # removing 0.9 of a larger excess still leaves two noise units: a second effect beside it, not named
+    big = ideal(600.0)
+    most = law("hysteresis", 5.0, start=big)                    # leaves 2.2 of 24 noise units: removes 0.9
     assert most.shrink >= Rules().graded_shrink and most.after > Rules().graded_remainder
     assert decide(Rules(), big, [most, law("saturation", 60.0, start=big)]).kind == "unexplained"
-    assert decide(Rules(graded_remainder=2.0), big, [most]).name == "hysteresis"
+    assert decide(Rules(graded_remainder=3.0), big, [most]).name == "hysteresis"
     # ... and with a rival that it does not beat: undecided
     v = decide(Rules(), start, [near, law("cross_coupling", 0.32, start=start)])
     assert v.kind == "undecided"

@@ -55,8 +55,9 @@ class Rules:
     graded_remainder : float
         The most a model named short of the floor may leave [noise units of held-out excess]: a family that removes
         most of a large excess but leaves several noise units has a second effect beside it, which naming it
-        alone would hide (the FEM development bearing's circuit leaves 0.63 and is named; a drift law widened by
-        its signature that left 3.2 beside drifting iron reluctance in the law zoo is not).
+        alone would hide (the FEM development bearing's circuit leaves 0.63 and a current-dependent hysteresis
+        widened by its signature 1.4, both named; a drift law widened by its signature that left 3.2 beside
+        drifting iron reluctance in the law zoo is not).
     spread_max : float
         A model's floor counts the width its parameters' uncertainty adds to its held-out predictions up to this
         share of the noise variance: a model whose predictions are wider still (a flexible correction extrapolated
@@ -93,7 +94,7 @@ class Rules:
     floor_se: float = 3.0
     margin_se: float = 3.0
     graded_shrink: float = 0.9
-    graded_remainder: float = 1.0
+    graded_remainder: float = 2.0
     spread_max: float = 1.0
     log_bayes_clear: float = 10.0
     structure_alpha: float = 0.01
