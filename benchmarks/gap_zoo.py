@@ -62,6 +62,8 @@ def score(truth: tuple, verdict: str, candidates=()) -> str:
 
 def one_draw(item: int, seed) -> dict:
     """Draw case ``item`` from its own seed, simulate it and diagnose it blind."""
+    import jax
+
     import ambfit
     from ambfit.rig import zoo
 
@@ -74,6 +76,9 @@ def one_draw(item: int, seed) -> dict:
         rec = {"verdict": "error", "error": str(exc).splitlines()[0], "heldout_excess_before": None, "shrink": None,
                "confounded_with": []}
     seconds = time.perf_counter() - t0
+    # every draw has its own row count, so its programs are compiled for it alone; a worker that kept them all
+    # grew to about 10 GB over 150 draws
+    jax.clear_caches()
     candidates = rec.get("candidates", [])
     grade = rec.get("grade")
     return {"index": item, "kind": case.kind, "truth": case.label, "families": list(case.truth),
