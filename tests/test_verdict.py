@@ -254,3 +254,38 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
         "structure_alpha", "circuit_dchi2", "separate_log_bayes", "time_tied_r2", "occam", "pairs", "pair_verdict"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
+
+
+def test_a_widened_law_below_the_floor_sets_every_widened_law_aside():
+    """A widened law that predicts held-out readings better than their noise has learnt the noise (one load per
+    axis lets a correction flatten the law): no widened law's score is then a test of it."""
+    start = ideal(10.0)
+    leaky = dataclasses.replace(widened("cross_coupling", 0.0, 9.0, groups=("coupling", "control")),
+                                heldout_z=NOISE * 0.4)
+    graded = widened("iron_reluctance", 0.05, 8.0, start=start)   # would be named
+    assert Judge(N, start.score).below_floor(leaky) and Judge(N, start.score).clear(leaky)
+    assert decide(Rules(), start, [graded]).name == "iron_reluctance"
+    v = decide(Rules(), start, [leaky, graded])
+    assert v.kind == "unexplained" and v.unjudged == (leaky.label,)
+    assert decide(Rules(), start, [graded]).unjudged == ()
+    # a library law is rigid: it is judged as before, and the verdict says what was set aside
+    v = decide(Rules(), start, [leaky, graded, law("hysteresis", 0.0, start=start)])
+    assert v.name == "hysteresis" and v.unjudged == (leaky.label,)
+    # a widened law below the floor whose signature is not clear is only not a candidate
+    vague = dataclasses.replace(leaky, log_bayes={"coupling": 1.0})
+    assert decide(Rules(), start, [vague, graded]).name == "iron_reluctance"
+
+
+def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_them():
+    import types
+
+    import pandas as pd
+
+    from ambfit.diagnosis import text
+
+    decision = Verdict("unexplained", unjudged=("leakage widened by its shape signature",))
+    one = pd.DataFrame({"axis": ["v", "w", "v", "w"], "load_N": [7.0, 7.0, 7.0, 7.0]})
+    line = text.unjudged(types.SimpleNamespace(decision=decision, operating=one))
+    assert line.startswith("widened laws not judged: leakage widened") and "one load per axis" in line
+    several = one.assign(load_N=[7.0, 7.0, 0.0, 0.0])
+    assert "one load" not in text.unjudged(types.SimpleNamespace(decision=decision, operating=several))

@@ -145,6 +145,8 @@ class Diagnosis:
             rec["candidates"] = list(self.decision.candidates)
             if self.separation is not None:
                 rec["separate_by"] = self.separation.to_json()
+        if self.decision.unjudged:
+            rec["widened_laws_not_judged"] = {"models": list(self.decision.unjudged), "reason": text.unjudged(self)}
         if blind := text.blind_spot(self):
             rec["blind_spot"] = blind
         if self.best_pair is not None:

@@ -89,6 +89,16 @@ def verdict(dg) -> str:
     return text
 
 
+def unjudged(dg) -> str:
+    """Why the widened laws took no part in the verdict, and what data would let them."""
+    op = dg.operating
+    one = "load_N" in op and int(op.groupby("axis")["load_N"].nunique().max()) == 1
+    return (f"widened laws not judged: {', '.join(dg.decision.unjudged)} predicted the held-out readings better "
+            "than their noise (a correction that learnt how the readings' noise moves the force"
+            + ("; with one load per axis the force's change across loads is not observed, and a correction can "
+               "flatten the law there); several known loads per axis would test them" if one else ")"))
+
+
 def findings(dg) -> list[str]:
     """What an undecided verdict cannot tell and what would; the grade, law and discrepancy findings (part of
     :func:`verdict`; the report shows them)."""
@@ -105,6 +115,8 @@ def findings(dg) -> list[str]:
                 out.append(f"the readings' time runs with the sweep (the set-points, biases and loads explain "
                            f"{100 * sep.time_tied:.0f} % of it): a drift cannot be told from an effect of the "
                            "operating point; shuffle the order of the set-points and biases")
+    if dg.decision.unjudged:
+        out.append(unjudged(dg))
     if dg.grade is not None:
         g = dg.grade
         out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "

@@ -226,6 +226,9 @@ class Verdict:
         law when nothing is named): its force check is reported as ``best``.
     candidates : tuple of str
         ``undecided``: the models that explain the data, best first.
+    unjudged : tuple of str
+        Widened laws that predicted the held-out readings better than their noise: the held-out test cannot judge
+        a flexible law on these data, so none of them took part in the decision (:func:`decide`).
     """
 
     kind: str
@@ -236,6 +239,7 @@ class Verdict:
     shrink: float = 0.0
     best: object = None
     candidates: tuple = ()
+    unjudged: tuple = ()
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -302,6 +306,18 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
     """
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
+    # a clear widened law below the floor predicts the readings' noise: its correction has learnt how the noise of
+    # a reading moves the force, which readings at one load per axis allow (the force's slope across loads is not
+    # observed, so a correction can flatten the law there).  The other widened laws share that freedom: their
+    # held-out scores do not test them, and none is used
+    unjudged = tuple(c.label for c in candidates if c.kind == "signature" and judge.clear(c) and judge.below_floor(c))
+    if unjudged:
+        candidates = [c for c in candidates if c.kind != "signature"]
+    return dataclasses.replace(_decide(judge, ideal, candidates, structured), unjudged=unjudged)
+
+
+def _decide(judge: Judge, ideal, candidates: list, structured: bool) -> Verdict:
+    rules = judge.rules
     usable = [c for c in candidates if not judge.below_floor(c) and (c.kind != "signature" or judge.clear(c))
               and (c.kind != "pair" or rules.pair_verdict)]
     usable.sort(key=lambda c: c.score)
