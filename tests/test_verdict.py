@@ -137,6 +137,15 @@ def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_res
     # a family's widened law (more flexible) that predicts as well does not displace the pair (Occam) ...
     rival = widened("position_gain", 0.0, 0.4, groups=("position_sensor",), start=start)
     assert decide(Rules(), start, [single, pair, rival]).name == "saturation+current_offset"
+    # ... one that explains too and predicts better on average, if not clearly, leaves the pair not singled out
+    behind = law("saturation+current_offset", 0.02, start=start)     # about two standard errors behind
+    judge = Judge(N, start.score)
+    assert judge.explains(rival) and judge.ahead(rival, behind) and not judge.clearly_better(rival, behind)
+    v = decide(Rules(), start, [single, behind, rival])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "position_gain"}
+    assert decide(Rules(ahead_se=50.0), start, [single, behind, rival]).name == "saturation+current_offset"
+    assert decide(Rules(), start, [single, pair, dataclasses.replace(rival, heldout_z=behind.heldout_z)]
+                  ).name == "saturation+current_offset"
     # ... but without that preference the data cannot tell the pair from it
     v = decide(Rules(occam=False), start, [single, pair, rival])
     assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "position_gain"}
@@ -252,7 +261,7 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert decide(Rules(floor_tolerance=0.1), weak, [law("fringing", 0.2, start=weak)]).kind == "unexplained"
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
-        "structure_alpha", "circuit_dchi2", "separate_log_bayes", "time_tied_r2", "occam", "pairs", "pair_verdict"}
+        "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs", "pair_verdict"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 
