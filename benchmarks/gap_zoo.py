@@ -42,6 +42,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 CATEGORIES = ("right", "right_with_extra", "undecided_with_truth", "no_claim", "wrong_claim")
 NOT_NAMED = ("none", "unexplained", "undecided", "error")
+DEVELOPED_ON = 100
+"""Draws of the default study seed looked at while the diagnosis was developed (its first ``DEVELOPED_ON``); the
+summaries give the draws beyond them on their own: the figures the development did not see."""
 TARGETS = {"right": 0.85, "wrong_claim": 0.02}
 """What the product is judged on: right at least, wrong claims at most (and every no-effect file ``none``)."""
 
@@ -105,7 +108,8 @@ def fractions(draws: list) -> dict:
 def summarise(draws: list) -> dict:
     from ambfit.rig import zoo
 
-    groups = {"all": draws, "visible": [d for d in draws if visible(d)]}
+    groups = {"all": draws, "visible": [d for d in draws if visible(d)],
+              f"not seen in development (#{DEVELOPED_ON} on)": [d for d in draws if d["index"] >= DEVELOPED_ON]}
     per_family = {f: fractions([d for d in draws if f in d["families"]]) for f in zoo.FAMILIES}
     per_protocol = {p: fractions([d for d in draws if d["protocol"] == p]) for p in zoo.PROTOCOLS}
     per_kind = {k: fractions([d for d in draws if d["kind"] == k]) for k in zoo.KINDS}
@@ -155,6 +159,12 @@ def markdown(summary: dict, draws: list, args) -> list[str]:
           f"{_pct(_sum(all_, 'right', 'undecided_with_truth'))}), wrong claims at most {_pct(TARGETS['wrong_claim'])} (here "
           f"{_pct(all_['wrong_claim'])}), every no-effect file `none` (here {s['no_effect_none']['none']} of "
           f"{s['no_effect_none']['of']}).", ""]
+    unseen = s["overall"][f"not seen in development (#{DEVELOPED_ON} on)"]
+    if unseen["n"]:
+        md[-1:-1] = [f"On the {unseen['n']} draws not looked at while the diagnosis was developed (#{DEVELOPED_ON} "
+                     f"on): right {_pct(unseen['right'])}, right or undecided with the truth "
+                     f"{_pct(_sum(unseen, 'right', 'undecided_with_truth'))}, wrong claims "
+                     f"{_pct(unseen['wrong_claim'])}."]
     md += _table("draws", s["overall"]) + _table("kind", s["per_kind"]) + _table("protocol", s["per_protocol"])
     md += _table("family (every draw holding it)", s["per_family"]) + _table("law class", s["per_law"])
     verdicts = sorted({v for row in s["confusion"].values() for v in row})
