@@ -8,10 +8,13 @@ Two models' scores then differ by their errors, and their paired difference is k
 score, as in a real diagnosis."""
 
 import dataclasses
+import types
 
 import numpy as np
+import pandas as pd
 import pytest
 
+from ambfit.diagnosis import text
 from ambfit.diagnosis.heldout import Candidate
 from ambfit.diagnosis.signatures import Signature
 from ambfit.diagnosis.verdict import Judge, Rules, Verdict, decide, needs_pairs, needs_signatures
@@ -138,12 +141,12 @@ def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_res
     rival = widened("position_gain", 0.0, 0.4, groups=("position_sensor",), start=start)
     assert decide(Rules(), start, [single, pair, rival]).name == "saturation+current_offset"
     # ... one that explains too and predicts better on average, if not clearly, leaves the pair not singled out
-    behind = law("saturation+current_offset", 0.02, start=start)     # about two standard errors behind
+    behind = law("saturation+current_offset", 0.02, start=start)     # 1.6 standard errors behind
     judge = Judge(N, start.score)
     assert judge.explains(rival) and judge.ahead(rival, behind) and not judge.clearly_better(rival, behind)
     v = decide(Rules(), start, [single, behind, rival])
     assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "position_gain"}
-    assert decide(Rules(ahead_se=50.0), start, [single, behind, rival]).name == "saturation+current_offset"
+    assert decide(Rules(ahead_se=3.0), start, [single, behind, rival]).name == "saturation+current_offset"
     assert decide(Rules(), start, [single, pair, dataclasses.replace(rival, heldout_z=behind.heldout_z)]
                   ).name == "saturation+current_offset"
     # ... but without that preference the data cannot tell the pair from it
@@ -261,7 +264,8 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert decide(Rules(floor_tolerance=0.1), weak, [law("fringing", 0.2, start=weak)]).kind == "unexplained"
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
-        "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs", "pair_verdict"}
+        "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs",
+        "pair_verdict"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 
@@ -282,19 +286,25 @@ def test_a_widened_law_below_the_floor_sets_every_widened_law_aside():
     assert v.name == "hysteresis" and v.unjudged == (leaky.label,)
     # a widened law below the floor whose signature is not clear is only not a candidate
     vague = dataclasses.replace(leaky, log_bayes={"coupling": 1.0})
-    assert decide(Rules(), start, [vague, graded]).name == "iron_reluctance"
+    v = decide(Rules(), start, [vague, graded])
+    assert v.name == "iron_reluctance" and v.unjudged == ()
 
 
 def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_them():
-    import types
+    decision = Verdict("unexplained", unjudged=("leakage widened by its shape signature",
+                                                "current_gain widened by its current_sensor signature"))
 
-    import pandas as pd
+    def said(operating):
+        return text.unjudged(types.SimpleNamespace(decision=decision, operating=operating))
 
-    from ambfit.diagnosis import text
-
-    decision = Verdict("unexplained", unjudged=("leakage widened by its shape signature",))
     one = pd.DataFrame({"axis": ["v", "w", "v", "w"], "load_N": [7.0, 7.0, 7.0, 7.0]})
-    line = text.unjudged(types.SimpleNamespace(decision=decision, operating=one))
-    assert line.startswith("widened laws not judged: leakage widened") and "one load per axis" in line
+    line = said(one)
+    assert line.startswith("every widened law set aside: leakage widened by its shape signature and current_gain")
+    assert "fewer than two known loads on an axis" in line and line.endswith("several known loads per axis would "
+                                                                             "test them")
     several = one.assign(load_N=[7.0, 7.0, 0.0, 0.0])
-    assert "one load" not in text.unjudged(types.SimpleNamespace(decision=decision, operating=several))
+    assert "fewer than two" not in said(several) and said(several).endswith("would test them")
+    # one axis with one load, loads unknown, nothing at all: the loads are what is missing
+    assert "fewer than two" in said(one.assign(load_N=[7.0, 7.0, 0.0, 7.0]))
+    assert "fewer than two" in said(one.drop(columns="load_N"))
+    assert "fewer than two" in said(one.iloc[:0])

@@ -22,7 +22,11 @@ when its best model is clearly better than every other family's that explains th
 is ``undecided`` and lists them (``candidates``, best first).  Families sharing a signature are told apart by
 their own laws, or not at all.  When nothing explains the data the verdict is ``unexplained``, with the model that
 removes most reported (``best``), unless one removes nearly all of the excess and beats every other family's model:
-it is named, graded short of the floor.  :func:`needs_pairs` and :func:`needs_signatures` say, from the same rules,
+it is named, graded short of the floor.  A more flexible model that explains the data and is *ahead* of the
+simplest explanation (better by ``Rules.ahead_se`` standard errors, short of clearly) is its rival.  A clear
+widened law *below* the floor has learnt how the readings' noise moves the force (one load per axis lets a
+correction flatten the law): then no widened law is judged by its held-out score (``Verdict.unjudged``).
+:func:`needs_pairs` and :func:`needs_signatures` say, from the same rules,
 whether the scores so far call for more candidates.  Nothing here fits: every function is pure, and unit tests
 drive it with hand-made scores.
 """
@@ -81,15 +85,18 @@ class Rules:
         The readings' time runs with the sweep when the set-points, biases and loads explain more than this share
         of its variance.
     ahead_se : float
-        Ahead: a paired difference of held-out deviances beyond this many of its standard errors, short of
-        ``margin_se`` (about a one-in-six chance when two models predict alike).
+        Ahead: a paired difference of held-out deviances beyond this many of its standard errors, at most
+        ``margin_se`` (when two models predict alike, one is ahead of the other with probability ``P(Z < -ahead_se)``,
+        about one in six at 1).  With :attr:`occam`, on the law zoo's first 100 draws (those studied while the rules
+        were made) 1 turns 2 of 7 wrong claims and 2 right verdicts into undecided ones, 3 of them holding the
+        truth, where 0 turns 4 right ones and 1.5 one wrong claim fewer; on 20 cases of the rig's own laws none of
+        them changes a verdict.
     occam : bool
         A more flexible model (a pair against a law, a widened law against either) that is not clearly better
         rivals a simpler one that explains the data only when it explains them too and is ahead of it: where the
         simpler predicts about as well, it wins (the Occam factor a held-out score alone barely charges); where the
-        flexible one is ahead, if not clearly, the data have not singled out the simpler (on the law zoo's first
-        100 draws this turns 2 of 7 wrong claims and 2 right verdicts into undecided ones, 3 of them holding the
-        truth; on 20 cases of the rig's own laws it changes no verdict).  False: any model not clearly worse is a rival.
+        flexible one is ahead, if not clearly, the data have not singled out the simpler.  False: any model not
+        clearly worse is a rival.
     pairs : bool
         Try pairs of effects when no single one explains the data.
     pair_verdict : bool
@@ -111,6 +118,11 @@ class Rules:
     occam: bool = True
     pairs: bool = True
     pair_verdict: bool = True
+
+    def __post_init__(self):
+        if not 0.0 <= self.ahead_se <= self.margin_se:
+            raise ValueError(f"ahead_se ({self.ahead_se}) must lie between 0 and margin_se ({self.margin_se}): "
+                             "ahead is short of clearly better")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -321,6 +333,10 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         were scored (ties keep it).
     structured : bool
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
+
+    A widened law whose signature is clear and whose score is below the floor sets every widened law aside: the
+    verdict is decided by the laws and pairs alone (nothing explaining, ``unexplained``; a little above the floor
+    with no law clearly better, ``none``) and lists those below the floor in ``unjudged``.
     """
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
     # a clear widened law below the floor predicts the readings' noise: its correction has learnt how the noise of
@@ -334,6 +350,7 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
 
 
 def _decide(judge: Judge, ideal, candidates: list, structured: bool) -> Verdict:
+    """:func:`decide` on the models that take part."""
     rules = judge.rules
     usable = [c for c in candidates if not judge.below_floor(c) and (c.kind != "signature" or judge.clear(c))
               and (c.kind != "pair" or rules.pair_verdict)]
@@ -362,11 +379,11 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
     model, of any tier (a flexible model must be beaten, not ignored), whether that reaches the floor or not.
 
     The rivals are those ``top`` is not clearly better than (a more flexible one, with ``Rules.occam``, only
-    when it explains the data and predicts them better on average).  A model naming another's families and more adds
-    nothing these data single out: of ``top`` and its rivals only the minimal ones count.  One left: it is named.
-    Several sharing families: those are named (a second effect the data cannot name is left in
-    ``confounded_with``).  Else ``undecided`` among them, best first.  Families whose laws are widened by one
-    signature cannot be told apart by it: they are rivals whatever their own laws do."""
+    when it explains the data and is ahead of ``top`` by ``Rules.ahead_se`` standard errors).  A model naming
+    another's families and more adds nothing these data single out: of ``top`` and its rivals only the minimal
+    ones count.  One left: it is named.  Several sharing families: those are named (a second effect the data
+    cannot name is left in ``confounded_with``).  Else ``undecided`` among them, best first.  Families whose laws
+    are widened by one signature cannot be told apart by it: they are rivals whatever their own laws do."""
     best_of = {}
     for c in usable:                              # each family set's best model
         best_of.setdefault(frozenset(c.families), c)
