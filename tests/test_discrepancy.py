@@ -5,6 +5,7 @@ import pytest
 
 from ambfit import rig
 from ambfit.diagnosis import Rules
+from ambfit.estimation.basis import X_SCALE
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.estimation.fit import fit
 from ambfit.estimation.measure import FittedModel, force_check, predict
@@ -106,6 +107,12 @@ def test_model_file_with_discrepancy_is_checked(saturated):
         FittedModel.from_state(state, res.bearing)
     with pytest.raises(ModelFileError, match="no discrepancy model"):
         FittedModel.from_json({"baseline_fit": {"model_state": res.model_state()}}, res.bearing, use="discrepancy")
+    # a basis saved with another displacement scale has the same terms and other columns: refused, not used
+    saved = d.to_json()
+    assert saved["basis"]["x_scale"] == X_SCALE
+    other = saved | {"basis": saved["basis"] | {"x_scale": 2 * X_SCALE}}
+    with pytest.raises(ModelFileError, match="x_scale"):
+        FittedModel.from_state(res.model_state() | {"discrepancy": other}, res.bearing)
 
 
 def test_diagnosis_names_the_family_when_its_law_differs():
