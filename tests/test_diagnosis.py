@@ -13,6 +13,7 @@ import pytest
 
 from ambfit import diagnosis as D
 from ambfit import rig
+from ambfit.diagnosis.heldout import BIAS_RANGES
 from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
 
@@ -81,6 +82,15 @@ def test_folds_follow_the_operating_regions():
     assert name == "leave-one-bias-out" and len(tests) == 3 and tests[0].tolist() == [True, False, False] * 2
     name, tests = D.folds(df.drop(columns="load_id").assign(bias_A=[1.4, 1.6] * 3))
     assert name == "alternate iterations" and tests[1].tolist() == [True, True, True, False, False, False]
+    # many biases: neighbouring ones are held out together, in BIAS_RANGES ranges of about equal count
+    many = pd.DataFrame({"axis": "v", "bias_A": np.repeat(np.linspace(0.8, 2.0, 20), 2)[::-1],
+                         "iteration": 1})
+    name, tests = D.folds(many)
+    assert name == f"leave-one-bias-range-out ({BIAS_RANGES} ranges of 20 biases)" and len(tests) == BIAS_RANGES
+    assert np.all(np.sum(tests, axis=0) == 1)                   # every reading held out once
+    held = [np.unique(many["bias_A"][t]) for t in tests]
+    assert all(len(h) in (2, 3) for h in held)                      # 20 biases in 8 ranges
+    assert all(a.max() < b.min() for a, b in zip(held, held[1:]))   # contiguous, in order
 
 
 def test_diagnosis_record_follows_the_formula_on_a_saturating_rig():

@@ -25,11 +25,18 @@ BLOCKS_PER_FOLD = 4
 readings the fold's fit sees (interpolation in time), the first and the last at its ends (extrapolation)."""
 
 
+BIAS_RANGES = 8
+"""Most folds over biases: with more biases than this, neighbouring ones are held out together, in this many
+ranges of about equal count (an improvised protocol with 60 biases would otherwise refit every model 60 times,
+each fold nearly the whole data set)."""
+
+
 def folds(data: pd.DataFrame, scheme: str = "regions") -> tuple[str, list]:
     """Block cross-validation folds.  Returns ``(name, [bool test masks])``.
 
     ``scheme="regions"``: over operating regions: leave one load out when there are three or more load groups,
-    else leave one bias out, else alternate iterations.  ``scheme="time"``: the readings in the order they were
+    else leave one bias out (one range of neighbouring biases when there are more than :data:`BIAS_RANGES`), else
+    alternate iterations.  ``scheme="time"``: the readings in the order they were
     taken (``time_s``, else the rows' order) cut into ``FOLDS * BLOCKS_PER_FOLD`` contiguous blocks, block ``j``
     in fold ``j mod FOLDS``: every fold holds readings from the whole run, each between readings its fit sees,
     so a drift is tested by interpolation as well as extrapolation, and every load, bias and set-point region is
@@ -48,8 +55,14 @@ def folds(data: pd.DataFrame, scheme: str = "regions") -> tuple[str, list]:
     if "load_id" in df and df["load_id"].nunique() >= 3:
         return "leave-one-load-out", [(df["load_id"] == v).to_numpy() for v in df["load_id"].unique()]
     b = np.round(df["bias_A"].to_numpy(float), 6)
-    if len(np.unique(b)) >= 3:
-        return "leave-one-bias-out", [b == v for v in np.unique(b)]
+    biases = np.unique(b)
+    if len(biases) > BIAS_RANGES:
+        # neighbouring biases held out together: each fold an operating range the fit does not see
+        rank = np.searchsorted(biases, b) * BIAS_RANGES // len(biases)
+        return f"leave-one-bias-range-out ({BIAS_RANGES} ranges of {len(biases)} biases)", [
+            rank == k for k in range(BIAS_RANGES)]
+    if len(biases) >= 3:
+        return "leave-one-bias-out", [b == v for v in biases]
     it = pd.to_numeric(df["iteration"], errors="coerce").fillna(0).to_numpy() if "iteration" in df else np.arange(len(df))
     return "alternate iterations", [(it % 2) == 0, (it % 2) == 1]
 
