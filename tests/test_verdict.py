@@ -183,6 +183,15 @@ def test_families_sharing_a_signature_cannot_be_told_apart_by_it():
     leakage = widened("leakage", 0.0, 0.5, start=start)          # its own law goes further, short of the floor
     v = decide(Rules(), start, [fringing.law, leakage.law, fringing, leakage])
     assert v.kind == "undecided" and set(v.candidates) == {"fringing", "leakage"}
+    # ... also when the other family's own law scores a little lower than its widened law (its best model is then
+    # the law, clearly worse than the top, but its widened law explains on the same signature)
+    top = widened("current_gain", 0.0, 3.0, groups=("current_sensor",), start=start)
+    other = widened("current_offset", 0.12, 0.05, groups=("current_sensor",), start=start)
+    judge = Judge(N, start.score)
+    assert other.law.score < other.score and judge.explains(other)
+    assert judge.clearly_better(top, other.law) and judge.clearly_better(top, other)
+    v = decide(Rules(), start, [top.law, other.law, top, other])
+    assert v.kind == "undecided" and set(v.candidates) == {"current_gain", "current_offset"}
     # a signature of its own, the other's far off: named
     hyst = widened("hysteresis", 0.0, 3.0, groups=("hysteresis", "memory"), start=start)
     assert decide(Rules(), start, [hyst.law, leakage.law, hyst, widened("leakage", 1.0, 0.5, start=start)]

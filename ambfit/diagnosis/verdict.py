@@ -397,8 +397,13 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
         judge.rules.occam and TIERS.index(c.kind) > TIERS.index(top.kind) and not judge.clearly_better(c, top)
         and not (judge.explains(c) and judge.ahead(c, top)))]
     if top.kind == "signature":
-        rivals += [c for c in best_of.values() if c.kind == "signature" and c.groups == top.groups
-                   and judge.explains(c) and not any(c is r for r in rivals)]
+        # any family's widened law on the same signature, its best model or not (its own law may score lower)
+        held = {frozenset(top.families)} | {frozenset(r.families) for r in rivals}
+        for c in usable:
+            if (c.kind == "signature" and c.groups == top.groups and judge.explains(c)
+                    and frozenset(c.families) not in held):
+                rivals.append(c)
+                held.add(frozenset(c.families))
     group = [top, *sorted(rivals, key=lambda c: c.score)]
     sets = [frozenset(c.families) for c in group]
     minimal = [c for c, fams in zip(group, sets) if not any(other < fams for other in sets)]
