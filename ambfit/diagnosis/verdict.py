@@ -89,8 +89,8 @@ class Rules:
         ``margin_se`` (when two models predict alike, one is ahead of the other with probability ``P(Z < -ahead_se)``,
         about one in six at 1).  With :attr:`occam`, on the law zoo's first 100 draws (those studied while the rules
         were made) 1 turns 2 of 7 wrong claims and 2 right verdicts into undecided ones, 3 of them holding the
-        truth, where 0 turns 4 right ones and 1.5 one wrong claim fewer; on 20 cases of the rig's own laws none of
-        them changes a verdict.
+        truth; 0 turns the same 2 wrong claims and 4 right verdicts, 1.5 only 1 wrong claim; on 20 cases of the
+        rig's own laws none of them changes a verdict.
     occam : bool
         A more flexible model (a pair against a law, a widened law against either) that is not clearly better
         rivals a simpler one that explains the data only when it explains them too and is ahead of it: where the
