@@ -203,17 +203,14 @@ class Basis:
         return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self) | {"groups": list(self.groups), "p_max": P_MAX, "q_max": Q_MAX,
-                                           "x_scale": X_SCALE, "settle": list(SETTLE), "play_widths": list(PLAY_WIDTHS)}
+        return dataclasses.asdict(self) | {"groups": list(self.groups)} | _constants()
 
     @classmethod
     def from_json(cls, record: dict) -> Basis:
         """The basis of a saved discrepancy; one saved with other constants (:data:`P_MAX`, :data:`Q_MAX`,
         :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`) would compute other columns under the same
         coefficients, and is refused."""
-        ours = {"p_max": P_MAX, "q_max": Q_MAX, "x_scale": X_SCALE, "settle": list(SETTLE),
-                "play_widths": list(PLAY_WIDTHS)}
-        for key, value in ours.items():
+        for key, value in _constants().items():
             if key in record and not np.allclose(np.asarray(record[key], dtype=float), value, rtol=1e-12, atol=0.0):
                 raise ValueError(f"the discrepancy's basis was saved with {key} = {record[key]}, this ambfit's is "
                                  f"{value}: its coefficients belong to other columns; fit the discrepancy again")
@@ -241,6 +238,11 @@ class Basis:
     def group_index(self) -> np.ndarray:
         """Index into ``groups`` of every column."""
         return np.array([self.groups.index(g) for g, _ in self.terms()])
+
+
+def _constants() -> dict:
+    """The module's constants that shape the columns, as a saved basis records them."""
+    return {"p_max": P_MAX, "q_max": Q_MAX, "x_scale": X_SCALE, "settle": list(SETTLE), "play_widths": list(PLAY_WIDTHS)}
 
 
 def _lagged(tau: np.ndarray, theta: np.ndarray, lag: float) -> np.ndarray:
