@@ -6,6 +6,7 @@
 
 import math
 import types
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -155,3 +156,23 @@ def test_recent_drops_the_least_recently_used():
     assert r.get("a") == 1          # "a" used: "b" is now the least recent
     r.put("c", 3)
     assert r.get("b") is None and r.get("a") == 1 and r.get("c") == 3 and len(r) == 2
+
+
+def test_ideal_fit_stalled_near_its_minimum_is_the_diagnosis_reference(monkeypatch):
+    # a law far from the readings can stall a few 1e-5 of χ² short of the estimate's EDM limit (1e-6); the
+    # diagnosis compares χ² in noise units and keeps it; a stall further off than BASELINE_EDM still stops it
+    import dataclasses
+
+    import ambfit
+    from ambfit.diagnosis import attribution
+
+    df = pd.read_csv(Path(__file__).resolve().parents[1] / "data" / "paper_table2.csv")
+    res = ambfit.fit(df)
+    stalled = dataclasses.replace(res, edm=9.3e-5)
+    assert not stalled.converged and stalled.well_conditioned
+    monkeypatch.setattr(attribution, "fit", lambda *a, **k: stalled)
+    assert attribution._baseline(df, res.bearing, {}) is stalled
+    far = dataclasses.replace(res, edm=2 * attribution.BASELINE_EDM)
+    monkeypatch.setattr(attribution, "fit", lambda *a, **k: far)
+    with pytest.raises(ambfit.FitError, match="EDM 0.02"):
+        attribution._baseline(df, res.bearing, {})

@@ -38,6 +38,13 @@ from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
+BASELINE_EDM = 1e-2
+"""The ideal law's fit is the diagnosis's reference, not an estimate to report: a point from which a Gauss-Newton
+step would still gain less than this much χ² (its EDM) is taken as its minimum.  An estimate asks for
+:data:`~ambfit.estimation.core.EDM_MAX` (1e-3 standard errors); a diagnosis compares χ² across models in noise
+units, where 0.01 is nothing, and a law far from the readings (a mechanical spring, 18 σ off) can stall short of
+the estimate's limit and still locate its misfit exactly."""
+
 MAX_SEPARATED = 4
 """The protocol that separates an ``undecided`` verdict's candidates is sought for its best few (every ordered pair
 of them is a comparison on every protocol scored)."""
@@ -104,10 +111,19 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     # the ideal law and every candidate share one compiled solve (a cold diagnosis is dominated by compiling)
     with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]), owned(df), \
             _Each(threads) as each, contextlib.ExitStack() as later:
-        base = baseline if baseline is not None else fit(df, bearing=bearing, **noise)
+        base = baseline if baseline is not None else _baseline(df, bearing, noise)
         scorer = Scorer(df, base, bearing=bearing, noise=noise, max_steps=max_steps, each=each, progress=progress,
                         scheme=folds)
         return _diagnose(scorer, cands, rules, check_force=check_force, discrepancy=discrepancy, later=later)
+
+
+def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:
+    """The ideal law's fit of every row: raises :class:`~ambfit.FitError` when the design does not identify it or
+    it stopped further than :data:`BASELINE_EDM` from its minimum."""
+    res = fit(df, bearing=bearing, throw=False, **noise)
+    if not (res.well_conditioned and res.edm < BASELINE_EDM):
+        res.raise_for_health()
+    return res
 
 
 def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, discrepancy: bool,
