@@ -22,7 +22,7 @@ import pandas as pd
 from ambfit._recent import Recent
 from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
-from ambfit.rows import readings
+from ambfit.rows import clock, readings
 
 
 class Problem(eqx.Module):
@@ -231,12 +231,15 @@ def _join_keys(joined: pd.DataFrame, frames: list[pd.DataFrame], set_id: np.ndar
     return list(zip(cur, pos, *(has[c] for c in ("load_id", "experiment", "time_s", "temperature_C"))))
 
 
-def _slicer(prob: Problem):
+def _slicer(prob: Problem, replace: dict | None = None):
     """A function ``(lo, hi, k_free, gidx) -> Problem`` of rows ``lo:hi`` of ``prob`` (NumPy leaves), built from
-    the flattened problem: thousands of data sets' problems without a module constructor each."""
+    the flattened problem: thousands of data sets' problems without a module constructor each.  ``replace``:
+    leaves (by key path, e.g. ``".readings.time"``) to take instead of ``prob``'s, one entry per row."""
     paths, tree = jax.tree_util.tree_flatten_with_path(prob)
     names = [jax.tree_util.keystr(path) for path, _ in paths]
-    leaves = [np.asarray(leaf) for _, leaf in paths]
+    leaves = [np.asarray((replace or {}).get(name, leaf)) for name, (_, leaf) in zip(names, paths)]
+    if missing := set(replace or {}) - set(names):
+        raise KeyError(f"no leaf {sorted(missing)} in the problem")
 
     k_at, g_at = (next(i for i, name in enumerate(names) if name.endswith(end)) for end in (".k_free", ".gidx"))
 
@@ -271,8 +274,11 @@ def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
     set_id = np.repeat(np.arange(len(lengths)), lengths)
     groups = _joined_groups(joined, set_id)
     prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups)
-    rows = _slicer(prob)
     offsets = np.cumsum([0] + list(lengths))
+    # each data set's clock is its own (whether its experiments ran on one clock is decided per table)
+    own = {".readings.time": np.concatenate([clock(joined.iloc[lo:hi]) for lo, hi in zip(offsets[:-1], offsets[1:])])
+           } if "time_s" in joined else {}
+    rows = _slicer(prob, own)
     gidx, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
     # each data set's load groups are numbered one after another from its first: its own numbers start at 0
     starts = offsets[:-1]
