@@ -5,7 +5,9 @@ through :func:`write_with` (or :func:`write_bytes`, :func:`write_text`, :func:`w
 
 - a regular file (or a new one) is written to a temporary file in the destination's folder, flushed to disk and
   renamed over the destination only when complete: a full disk, a crash or Ctrl-C leaves the old file as it was
-  and no temporary file behind.  The new file keeps the old one's permissions (and owner, where allowed).
+  and no temporary file behind.  A process killed outright (SIGKILL, a power cut) cannot clean up: its
+  temporary file (``.NAME.PID.XXXX.tmp``) is removed by the next write of the same file, once no process of
+  that number runs.  The new file keeps the old one's permissions (and owner, where allowed).
 - a symbolic link is followed: the file it points to is replaced as above and the link stays a link.
 - a character device, FIFO or other non-regular file (``/dev/null``, a named pipe) is written into directly;
   it is never replaced by a regular file.
@@ -26,6 +28,7 @@ Example
 from __future__ import annotations
 
 import errno
+import glob
 import json
 import os
 import stat
@@ -54,6 +57,17 @@ def unwritable(path: str | os.PathLike, *, folder: bool = False, parents: bool =
     created (as a report's folder is), so only the nearest existing one must be a writable folder.
     """
     path = Path(path)
+    try:
+        return _unwritable(path, folder, parents)
+    except OSError as exc:              # a name the file system refuses (too long, a bad byte), a vanished folder
+        return f"{path}: cannot be written ({exc.strerror or exc})"
+
+
+TEMPORARY_SUFFIX = 24
+"""How much longer than its destination's a temporary file's name is (``.NAME.PID.XXXXXXXX.tmp``)."""
+
+
+def _unwritable(path: Path, folder: bool, parents: bool) -> str | None:
     dest = destination(path)
     if dest.is_symlink():
         return f"{path}: a loop of symbolic links"
@@ -86,6 +100,14 @@ def unwritable(path: str | os.PathLike, *, folder: bool = False, parents: bool =
         return f"{path}: the folder {parent} does not exist"
     if not os.access(probe, os.W_OK):
         return f"{path}: the folder {probe} is not writable"
+    if not folder and (st is None or stat.S_ISREG(st.st_mode)):
+        try:
+            name_max = os.pathconf(probe, "PC_NAME_MAX")
+        except (OSError, ValueError, AttributeError):
+            name_max = 255
+        if (n := len(os.fsencode(dest.name))) + TEMPORARY_SUFFIX > name_max:
+            return (f"{path}: the file name is {n} bytes long; this file system allows {name_max - TEMPORARY_SUFFIX} "
+                    "for an output (it is first written under a longer temporary name beside it)")
     return None
 
 
@@ -113,9 +135,10 @@ def write_with(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> 
         except OSError as exc:
             raise _error(path, exc) from None
         return dest
+    _remove_abandoned(dest)
     tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp")
+        fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.{os.getpid()}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -132,6 +155,61 @@ def write_with(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> 
             except OSError:
                 pass
     return dest
+
+
+def _remove_abandoned(dest: Path) -> None:
+    """Remove the temporary files of earlier writes of ``dest`` whose process no longer runs."""
+    try:
+        left = list(dest.parent.glob(f".{glob.escape(dest.name)}.*.tmp"))
+    except OSError:
+        return
+    for tmp in left:
+        pid = tmp.name[len(dest.name) + 2:].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid() or _running(int(pid)):
+            continue
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+
+
+def _running(pid: int) -> bool:
+    """Whether a process of number ``pid`` runs (always taken to on Windows, where signal 0 is Ctrl-C)."""
+    if os.name == "nt":
+        return True
+    try:
+        os.kill(pid, 0)
+    except PermissionError:                 # another user's process
+        return True
+    except (OSError, OverflowError):        # none of that number
+        return False
+    return True
+
+
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+"""What makes a spreadsheet read a cell as a formula (OWASP "CSV injection")."""
+
+
+def formula_safe(frame):
+    """``frame`` (a pandas DataFrame) with every text cell a spreadsheet would run as a formula (``=cmd|...``,
+    ``@SUM(...)``) quoted by a leading apostrophe; numbers, negative ones too, are left as they are."""
+    import pandas as pd
+
+    out = frame.copy()
+    for c in out.columns:
+        if not (out[c].dtype == object or pd.api.types.is_string_dtype(out[c].dtype)):
+            continue
+        out[c] = [f"'{v}" if isinstance(v, str) and v.startswith(FORMULA_START) and not _is_number(v) else v
+                  for v in out[c]]
+    return out
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> Path:

@@ -8,6 +8,10 @@ scatters by about 10 %).
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
+
 import numpy as np
 
 TAU_TOLERANCE = 0.1
@@ -67,13 +71,39 @@ PROGRESS_CHUNKS = 20
 
 
 def advance(sampler, start, n: int, tally: Tally, what: str) -> None:
-    """``n`` more steps of ``sampler`` from ``start`` (None: where it stopped), reporting after each piece."""
+    """``n`` more steps of ``sampler`` from ``start`` (None: where it stopped), reporting after each piece; Ctrl-C
+    stops the run at the end of the piece (:func:`interrupt_between_pieces`)."""
     tally(what)
     chunk = max(1, -(-n // PROGRESS_CHUNKS))
-    for done in range(0, n, chunk):
-        k = min(chunk, n - done)
-        sampler.run_mcmc(start if done == 0 else None, k, progress=False)
-        tally(what, k)
+    with interrupt_between_pieces() as check:
+        for done in range(0, n, chunk):
+            k = min(chunk, n - done)
+            sampler.run_mcmc(start if done == 0 else None, k, progress=False)
+            tally(what, k)
+            check()
+
+
+@contextlib.contextmanager
+def interrupt_between_pieces():
+    """Hold Ctrl-C (SIGINT) while emcee runs and raise :class:`KeyboardInterrupt` when ``check()`` is called after a
+    piece: emcee prints every walker's position and a traceback for any exception in the log-probability, the
+    interrupt too.  Only in the main thread and under Python's own SIGINT handler (else ``check`` does nothing
+    and an interrupt arrives as usual)."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield lambda: None
+        return
+    held = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+
+    def check():
+        if held:
+            raise KeyboardInterrupt
+
+    try:
+        yield check
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def run_until_settled(samplers, n_steps: int, max_steps: int, min_tau_multiple: float, tally: Tally):

@@ -131,8 +131,9 @@ def _marker(record, source: str) -> tuple[str, str | None, str | None, list[str]
         raise _bad(source, "kind", kind, f"this file holds no fitted model for force (kinds with one: "
                    f"{', '.join(KINDS)})")
     if "groups" in record:
-        raise _bad(source, "groups", f"{len(record['groups'])} groups", "one fit per group; force needs one model "
-                   "(identify one file without --by and give its --json)")
+        groups = record["groups"]
+        raise _bad(source, "groups", f"{len(groups)} groups" if isinstance(groups, (list, dict)) else groups,
+                   "one fit per group; force needs one model (identify one file without --by and give its --json)")
     if kind == "identify" and _foreign(record.get("method", "least_squares")):
         raise _bad(source, "method", record["method"], _FOREIGN[record["method"]])
     return kind, None if schema is None else str(schema), version, notes

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import sys
 import tomllib
 from pathlib import Path
 
@@ -115,6 +116,15 @@ class Bearing:
                 raise BearingError(f"{name} must be a positive number, got {value!r}")
         if not (isinstance(self.rotor_mass, (int, float)) and math.isfinite(self.rotor_mass) and self.rotor_mass >= 0):
             raise BearingError(f"rotor_mass must be a number >= 0 [kg], got {self.rotor_mass!r}")
+        if not self.pole_angle < math.pi / 2:   # each pole of a pair leans off the axis by less than a right angle
+            raise BearingError(f"pole_angle_deg must lie between 0 and 90 (each pole's angle from its axis: 22.5 on "
+                               f"an 8-pole bearing), got {math.degrees(self.pole_angle):g}")
+        if not self.lamination <= 1:
+            raise BearingError(f"lamination (the iron's stacking factor) must lie in (0, 1], got {self.lamination!r}")
+        for name in ("position_gain_tolerance", "current_gain_tolerance"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
+                raise BearingError(f"{name} must be a fraction in [0, 1) (0.001 is 0.1 %), got {value!r}")
 
     # --- derived quantities -------------------------------------------------------------------------------
 
@@ -194,6 +204,11 @@ class Bearing:
             raise BearingError(f"{path}: cannot read the bearing description ({exc.strerror})") from None
         except tomllib.TOMLDecodeError as exc:
             raise BearingError(f"{path}: not valid TOML ({exc})") from None
+        except RecursionError:
+            raise BearingError(f"{path}: not a bearing description (its tables or arrays nest too deeply to "
+                               "read)") from None
+        except ValueError as exc:              # an integer beyond sys.get_int_max_str_digits
+            raise BearingError(f"{path}: not a bearing description ({exc.args[0].split(';')[0]})") from None
         except UnicodeDecodeError:             # a binary file: TOML is UTF-8 text
             raise BearingError(f"{path}: not a TOML file (binary content, not UTF-8 text)") from None
         return cls.from_dict(d, source=str(path))
@@ -230,8 +245,11 @@ class Bearing:
             field, conv = scale[key]
             value = d.pop(key)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise BearingError(f"{source}: {key} must be a number, got {value!r}")
-            kw[field] = conv(value)
+                raise BearingError(f"{source}: {key} must be a number, got {_short(value)}")
+            try:
+                kw[field] = float(conv(value))
+            except OverflowError:            # an integer beyond any float (a 400-digit number)
+                raise BearingError(f"{source}: {key} = {_short(value)} is beyond any physical value") from None
         if "pole_area" in kw and "pole_width" not in kw:
             kw["pole_width"] = math.sqrt(kw["pole_area"])   # no width given: a square face
         if material is not None:
@@ -243,12 +261,23 @@ class Bearing:
             raise BearingError(f"{source}: {exc}") from None
 
 
+def _short(value) -> str:
+    """``repr(value)`` cut to 60 characters (a 5000-digit number or a long list stays readable)."""
+    try:
+        text = repr(value)
+    except ValueError:                        # an integer too long for repr (sys.get_int_max_str_digits)
+        return f"an integer of more than {sys.get_int_max_str_digits()} digits"
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _material(material, source: str) -> dict:
     try:
         b = tuple(float(v) for v in material["B_T"])
         h = tuple(float(v) for v in material["H_A_per_m"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise BearingError(f"{source}: [material] needs numeric lists B_T and H_A_per_m") from None
+    if not all(map(math.isfinite, b + h)):
+        raise BearingError(f"{source}: [material] B_T and H_A_per_m must be finite numbers")
     if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
         raise BearingError(f"{source}: [material] B_T must ascend and match H_A_per_m in length")
     return {"b_curve": b, "h_curve": h}

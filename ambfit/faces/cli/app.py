@@ -16,6 +16,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console, ConsoleDimensions
+from rich.markup import escape
 
 from ambfit._output import OutputError, unwritable
 from ambfit._output import write_json as _write_json
@@ -29,9 +30,48 @@ PIPE_WIDTH = 100_000
 cell (a long file name) is cut and no line is wrapped."""
 
 
+class StreamError(Exception):
+    """Standard output or error could not be written (a full device, a reader that closed the pipe)."""
+
+    def __init__(self, exc: OSError):
+        super().__init__(exc.strerror or str(exc))
+        self.errno = exc.errno
+
+
+class _Stream:
+    """A console's stream whose failures to write are :class:`StreamError` s, told apart from the files a
+    command reads and writes."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str):
+        try:
+            return self._stream.write(text)
+        except OSError as exc:
+            raise StreamError(exc) from exc
+
+    def flush(self):
+        try:
+            return self._stream.flush()
+        except OSError as exc:
+            raise StreamError(exc) from exc
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 class _Console(Console):
     """A rich Console as wide as the terminal, or unbounded when its stream is not one (judged at each print, so
-    a stream redirected later is served too)."""
+    a stream redirected later is served too), whose stream's failures are :class:`StreamError` s."""
+
+    @property
+    def file(self):
+        return _Stream(Console.file.fget(self))
+
+    @file.setter
+    def file(self, new_file) -> None:
+        Console.file.fset(self, new_file)
 
     @property
     def size(self) -> ConsoleDimensions:
@@ -43,9 +83,12 @@ class _Console(Console):
         Console.size.fset(self, new_size)
 
 
+INTERRUPTED = "interrupted; no output was written half-way (outputs are written atomically)"
+
+
 class _App(typer.Typer):
     """The Typer app whose commands end an output that cannot be written (a full disk, a file vanished after the
-    checks) in one line and exit 2, whichever command writes it."""
+    checks) in one line and exit 2, and Ctrl-C in one line and exit 130, whichever command it is."""
 
     def command(self, *args, **kwargs):
         register = super().command(*args, **kwargs)
@@ -57,6 +100,8 @@ class _App(typer.Typer):
                     return fn(*a, **kw)
                 except OutputError as exc:
                     fail(str(exc))
+                except KeyboardInterrupt:       # (Typer would end it in silence)
+                    fail(INTERRUPTED, 130)
 
             register(run)
             return fn
@@ -71,6 +116,43 @@ app = _App(
 )
 console = _Console()
 err = _Console(stderr=True)
+
+
+PLAIN = {"µ": "u", "μ": "u", "σ": "sigma", "χ": "chi", "Δ": "d", "α": "alpha", "β": "beta", "θ": "theta",
+         "Ω": "Ohm", "±": "+/-", "≤": "<=", "≥": ">=", "≈": "~", "×": "x", "·": "*", "→": "->", "←": "<-",
+         "—": "--", "–": "-", "…": "...", "°": " deg", "²": "^2", "³": "^3", "√": "sqrt", "∞": "inf", "‖": "||",
+         "‘": "'", "’": "'", "“": '"', "”": '"', "≠": "!="}
+"""How the command line writes what a terminal or pipe without those characters cannot show (an ASCII or
+Latin-1 stream: ``LANG=C`` on an old system, ``PYTHONIOENCODING=ascii``): µm as "um", χ² as "chi^2"."""
+
+
+def plain_text(text: str, encoding: str) -> str:
+    """``text`` with every character ``encoding`` cannot write spelled as :data:`PLAIN` says, else by its
+    compatibility decomposition without accents, else "?"."""
+    import unicodedata
+
+    try:
+        text.encode(encoding)
+        return text
+    except (UnicodeEncodeError, LookupError):
+        pass
+    out = []
+    for ch in text:
+        bare = "".join(c for c in unicodedata.normalize("NFKD", ch) if not unicodedata.combining(c))
+        for spelling in (ch, PLAIN.get(ch), bare or None, "?"):
+            try:
+                if spelling is not None and spelling.encode(encoding):
+                    break
+            except (UnicodeEncodeError, LookupError):
+                continue
+        out.append(spelling)
+    return "".join(out)
+
+
+def plain(error: UnicodeEncodeError) -> tuple[str, int]:
+    """The ``ambfit.plain`` codec error handler: :func:`plain_text` of what the stream's encoding lacks."""
+    return plain_text(error.object[error.start:error.end], error.encoding), error.end
+
 
 
 def _version(value: bool):
@@ -94,16 +176,16 @@ BearingOption = Annotated[Path | None, typer.Option(
 
 def fail(msg: str, code: int = 2):
     """A one-line error and exit ``code`` (2: input, 3: fit)."""
-    err.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
+    err.print(f"[bold red]error:[/] {escape(msg)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
 def warn(msg: str):
-    err.print(f"[bold yellow]warning:[/] {msg}", highlight=False, soft_wrap=True)
+    err.print(f"[bold yellow]warning:[/] {escape(msg)}", highlight=False, soft_wrap=True)
 
 
 def note(msg: str):
-    console.print(msg, highlight=False, soft_wrap=True)
+    console.print(msg, markup=False, highlight=False, soft_wrap=True)
 
 
 def bearing_of(path: Path | None):
@@ -133,7 +215,7 @@ def judge(flags, accept: bool, what: str = "the result is"):
         if accept:
             warn(str(f))
         else:
-            err.print(f"[bold red]implausible:[/] {f}", highlight=False, soft_wrap=True)
+            err.print(f"[bold red]implausible:[/] {escape(str(f))}", highlight=False, soft_wrap=True)
     if flags and not accept:
         fail(f"{what} implausible for this bearing (see above); check units and signs, or give the right "
              "--bearing; --accept-implausible goes on anyway", 3)
@@ -179,19 +261,23 @@ def check_output(*paths: Path | None, folder: bool = False, parents: bool = Fals
 def write_json(record: dict, path: Path):
     """Write ``record`` as JSON (:mod:`ambfit._output`: atomically, through links, into devices)."""
     _write_json(path, record)
-    console.print(f"wrote {path}")
+    console.print(f"wrote {path}", markup=False, highlight=False)
 
 
 def show_table(rows: list[dict], title: str, left: tuple[str, ...] = ()):
     """A list of ``{column: text}`` rows (as results give them) as a console table."""
     from rich.table import Table
+    from rich.text import Text
 
-    t = Table(title=title)
+    def cell(text) -> Text:     # spelled so that the stream can write it, before widths are measured; literal
+        return Text(plain_text(str(text), console.encoding))
+
+    t = Table(title=cell(title))
     columns = list(dict.fromkeys(c for r in rows for c in r))
     for c in columns:     # a cell too wide for a terminal folds onto the next line: a file name is never cut
-        t.add_column(c, justify="left" if c in left else "right", overflow="fold")
+        t.add_column(cell(c), justify="left" if c in left else "right", overflow="fold")
     for r in rows:
-        t.add_row(*(str(r.get(c, "")) for c in columns))
+        t.add_row(*(cell(r.get(c, "")) for c in columns))
     console.print(t)
 
 

@@ -101,8 +101,10 @@ def campaign(
     if json_out is not None:
         write_json(res.to_json(), json_out)
     if table is not None:
-        write_csv(res.table(), table)
-        console.print(f"wrote {table}")
+        from ambfit._output import formula_safe
+
+        write_csv(formula_safe(res.table()), table)       # a label is never run by a spreadsheet
+        console.print(f"wrote {table}", markup=False, highlight=False)
     if len(res.used) < 3:
         fail(f"{data.name}: only {len(res.used)} window(s) identified: no drift can be estimated; use wider "
              "windows or --by experiment", 3)

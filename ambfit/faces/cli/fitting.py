@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from ambfit.faces.cli.app import console, err, note, warn
+from ambfit.faces.cli.app import console, err, escape, note, warn
 from ambfit.faces.cli.options import number
 
 CurrentNoiseOption = Annotated[float | None, typer.Option(
@@ -51,7 +51,7 @@ def say(kind: str, text: str) -> None:
     elif kind == "note":
         note(text)
     else:
-        err.print(f"[bold red]{kind}:[/] {text}", highlight=False, soft_wrap=True)
+        err.print(f"[bold red]{kind}:[/] {escape(text)}", highlight=False, soft_wrap=True)
 
 
 def _collector(messages: list):
@@ -198,7 +198,7 @@ def _write_table(rows: list[dict], column: str | None, path: Path):
     """Write the groups table as CSV (:mod:`ambfit._output`: atomically, through links, into devices)."""
     import pandas as pd
 
-    from ambfit._output import write_text
+    from ambfit._output import formula_safe, write_text
 
     frame = pd.DataFrame(rows)
     value_name = column if column and column not in frame.columns else "by_value"
@@ -208,5 +208,5 @@ def _write_table(rows: list[dict], column: str | None, path: Path):
         frame = frame.rename(columns={"_value": value_name})
     for c in ("n_rows", "dof", "outliers", "duplicates_dropped"):
         frame[c] = frame[c].astype("Int64")
-    write_text(path, frame.to_csv(index=False))
-    console.print(f"wrote {path} ({len(frame)} row(s))")
+    write_text(path, formula_safe(frame).to_csv(index=False))   # a label is never run by a spreadsheet
+    console.print(f"wrote {path} ({len(frame)} row(s))", markup=False, highlight=False)

@@ -9,12 +9,14 @@ from typing import Annotated
 import typer
 
 from ambfit.faces.cli.app import (
+    AcceptOption,
     BearingOption,
     app,
     bearing_of,
     check_output,
     console,
     fail,
+    judge,
     show_table,
     warn,
     write_json,
@@ -49,12 +51,15 @@ def force(
     use: Annotated[str | None, typer.Option("--use", help="Which model of a diagnose JSON: verdict, discrepancy "
                                             "(with the model-discrepancy correction) or ideal; default: the "
                                             "verdict's, else the discrepancy model, else the ideal law.")] = None,
+    accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
     """Force [N] the bearing applies along each reading's axis, with its standard error, from a fitted model.
 
     The error propagates the model's parameter covariance (every parameter, effects included) and, if
-    given, the noise of the readings.  Needs k, i.e. a model fitted with known loads.
+    given, the noise of the readings.  Needs k, i.e. a model fitted with known loads.  The model and the
+    readings are judged against the bearing as identify judges them (a k or gap the bearing cannot have,
+    currents in mA or beyond the coil limit): exit 3 unless --accept-implausible.
     """
     import numpy as np
 
@@ -69,8 +74,15 @@ def force(
         fail(str(exc))
     for line in fm.file.warnings:
         warn(line)
+    from ambfit.estimation import model_file, plausibility
+
+    judge(plausibility.check_result(dict(zip(fm.names, np.asarray(fm.values, float))), desc), accept_implausible,
+          f"{model.name}: the model is")
     frame = _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bottom_other)
-    from ambfit.estimation import model_file
+    flags = plausibility.check_data(frame, desc, str(data) if data is not None else "the reading given")
+    if data is None:       # one reading: its position is any number of µm; its currents and load are judged
+        flags = [f for f in flags if f.column not in ("v_um", "w_um")]
+    judge(flags, accept_implausible, f"{data.name if data is not None else 'the reading'}: the data are")
 
     try:
         missing_k = model_file.unfitted_k(fm.file, frame["axis"], record)
@@ -105,7 +117,7 @@ def force(
         from ambfit.data import write_csv
 
         write_csv(result.assign(model_file=str(model), model_ambfit_version=made["model_ambfit_version"]), out)
-        console.print(f"wrote {out}")
+        console.print(f"wrote {out}", markup=False, highlight=False)
     if json_out is not None:
         from ambfit import __version__
 
@@ -124,8 +136,10 @@ def _read_record(model: Path):
         fail(f"{model}: is a directory, not a model JSON")
     except UnicodeDecodeError:
         fail(f"{model}: not a model JSON (not UTF-8 text: a binary file?)")
-    except (OSError, json.JSONDecodeError, RecursionError) as exc:
+    except (OSError, RecursionError) as exc:
         fail(f"{model}: not a model JSON ({exc})")
+    except ValueError as exc:         # bad JSON, or an integer beyond sys.get_int_max_str_digits
+        fail(f"{model}: not a model JSON ({str(exc).split(';')[0]})")
 
 
 def _bearing(model: Path, record, bearing: Path | None, use: str | None):

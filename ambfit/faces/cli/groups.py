@@ -159,9 +159,7 @@ def _groups_on_engine(jobs, heads, opts: _Options, workers, scheduler, bar) -> l
         with engine.using(workers, scheduler) as eng:
             done = eng.map_batches(functools.partial(_groups_task, opts=opts), items, progress=bar, what="groups")
     except engine.EngineError as exc:
-        from rich.markup import escape
-
-        fail(escape(str(exc)), 2)           # (escaped: "ambfit[dask]" is not markup)
+        fail(str(exc), 2)                   # (fail prints it literally: "ambfit[dask]" is not markup)
     results = iter(done)
     entries = []
     for head, (_, _, ds) in zip(heads, jobs):

@@ -28,6 +28,9 @@ SAMPLER_OPTIONS = {"n_steps": "--steps", "max_steps": "--max-steps", "n_ensemble
                    "n_walkers": "--walkers"}
 """The command line's name of each setting :class:`ambfit.estimation.bayes.SettingError` names."""
 MAX_ENSEMBLES = 64
+MAX_WALKERS = 1_024
+"""Walkers per ensemble: each costs one log-probability per step (and its chain's memory); a thousand is a
+hundred times the parameters of the richest model, past any gain in sampling."""
 MIN_STEPS = 100
 """Fewest steps to start with: the burn-in alone is two autocorrelation times."""
 
@@ -46,7 +49,7 @@ def sample(
                                            "needed when it is reached).")] = 30000,
     ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
                                            help="Independent emcee ensembles (R-hat compares them).")] = 4,
-    walkers: Annotated[int | None, typer.Option(callback=number(2), help="Walkers per ensemble (default "
+    walkers: Annotated[int | None, typer.Option(callback=number(2, MAX_WALKERS), help="Walkers per ensemble (default "
                                                 "max(32, 4 x parameters); at least twice the parameters).")] = None,
     nominal_gap_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True), help="Centre the gap prior on this nominal gap [µm] "
                                                           "(log-sd --gap-prior-log-sd).")] = None,
@@ -94,7 +97,7 @@ def sample(
     if out is not None:
         # serialised in memory first: HDF5 writing to a full disk fails uncleanly, Python's writes fail cleanly
         write_bytes(out, res.datatree.to_netcdf(engine="h5netcdf"))
-        console.print(f"wrote {out}")
+        console.print(f"wrote {out}", markup=False, highlight=False)
     if json_out is not None:
         from ambfit.estimation.model_file import stamp
 
@@ -103,6 +106,6 @@ def sample(
         from ambfit.faces import plots
 
         plots.save(plots.plot_pair(res, result=res.ls), pair_png, close=True)
-        console.print(f"wrote {pair_png}")
+        console.print(f"wrote {pair_png}", markup=False, highlight=False)
     if not record["converged"]:
         raise typer.Exit(3)

@@ -123,7 +123,7 @@ def simulate(
     data_mod.write_csv(sim.data, out)
     if truth is not None:
         rig.write_truth(sim.truth, truth)
-    console.print(f"wrote {len(sim.data)} rows to {out}")
+    console.print(f"wrote {len(sim.data)} rows to {out}", markup=False, highlight=False)
 
 
 def effects_of(texts: list[str] | None, bearing=None) -> list:
@@ -151,6 +151,10 @@ def protocol_of(path: Path, bearing):
         fail(f"--protocol {path}: cannot be read ({exc.strerror})")
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         fail(f"--protocol {path}: not a TOML file ({exc})")
+    except RecursionError:
+        fail(f"--protocol {path}: not a protocol (its tables or arrays nest too deeply to read)")
+    except ValueError as exc:                 # an integer beyond sys.get_int_max_str_digits
+        fail(f"--protocol {path}: not a protocol ({str(exc).split(';')[0]})")
     try:
         effects = []
         for e in desc.pop("effect", []):
@@ -249,7 +253,7 @@ def origin_search(
     show_table(res.display_rows(), res.title)
     if out is not None:
         data_mod.write_csv(res.data, out)
-        console.print(f"wrote {len(res.data)} rows to {out}")
+        console.print(f"wrote {len(res.data)} rows to {out}", markup=False, highlight=False)
     if json_out is not None:
         write_json(res.to_json(), json_out)
     if truth is not None:

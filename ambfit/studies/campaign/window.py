@@ -18,6 +18,14 @@ from ambfit.estimation.units import GEOMETRY
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 PARAMS = GEOMETRY
+
+MAX_WINDOWS = 2_000
+"""Rolling windows a campaign may be cut into: each is a least-squares fit of its own (a tenth of a second to a
+second), so 2,000 are minutes of work; a width or step of a nanosecond would ask for billions."""
+
+MAX_WINDOW_ROWS = 2_000_000
+"""Readings all windows may hold together: overlapping windows each copy their readings (a step a thousandth of
+the width holds every reading a thousand times)."""
 """The parameters whose drift and jumps a campaign studies (internal names, SI)."""
 
 
@@ -133,8 +141,21 @@ def windows(data, width_s: float, step_s: float | None = None, *, column: str = 
     if not (np.isfinite(step) and step > 0):
         raise ValueError(f"the window step must be a positive number of seconds, got {step_s!r}")
     t = frame["time_s"].to_numpy(float)
-    t0, out = float(t.min()), []
-    for k in range(int(np.floor((t.max() - t0) / step)) + 1):
+    t0, span = float(t.min()), float(t.max() - t.min())
+    n = math.floor(span / step) + 1
+    if n > MAX_WINDOWS:
+        raise DataError(f"windows every {step:g} s over the campaign's {span:g} s would be {n:.3g} windows, each a "
+                        f"fit of its own; at most {MAX_WINDOWS:,} (minutes of work): give a longer step or window",
+                        file=source, column="time_s")
+    ts = np.sort(t)
+    starts = t0 + step * np.arange(n)
+    held = int(np.sum(np.searchsorted(ts, starts + width_s, side="left") - np.searchsorted(ts, starts, side="left")))
+    if held > MAX_WINDOW_ROWS:
+        raise DataError(f"windows {width_s:g} s wide every {step:g} s would hold {held:.3g} readings together (each "
+                        f"reading in about {held / len(t):.0f} windows); at most {MAX_WINDOW_ROWS:,}: give a step "
+                        "closer to the width", file=source, column="time_s")
+    out = []
+    for k in range(n):
         lo = t0 + k * step
         sel = (t >= lo) & (t < lo + width_s)
         if sel.any():
