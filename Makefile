@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install data paper notebooks clean
+.PHONY: demo test test-fast install data paper notebooks clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 12) else "ambfit needs Python >= 3.12; found " + sys.version.split()[0] + " (install 3.12 or set PYTHON=python3.12)")'
@@ -24,6 +24,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check ambfit tests benchmarks notebooks
 	$(BIN)/python -m pytest -q -n 2
+
+# The tests without the long ones (notebooks, the README's commands, two-worker runs): for a developer's loop.
+test-fast: $(STAMP)
+	$(BIN)/ruff check ambfit tests benchmarks notebooks
+	$(BIN)/python -m pytest -q -n 2 -m "not slow"
 
 # The seed paper's Tables 1-4 and Figs. 2, 3, 5 rerun on the rig, side by side with the paper (about 6 min).
 paper: $(STAMP)

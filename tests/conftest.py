@@ -1,6 +1,5 @@
 import os
 
-import pytest
 from hypothesis import HealthCheck, settings
 
 import ambfit  # noqa: F401  (switches JAX to float64 before any test makes an array)
@@ -14,12 +13,3 @@ settings.register_profile(
 settings.register_profile("explore", parent=settings.get_profile("ambfit"), derandomize=False)
 settings.load_profile(os.environ.get("AMBFIT_HYPOTHESIS_PROFILE", "ambfit"))
 
-
-def pytest_collection_modifyitems(config, items):
-    # Slow statistical studies live in benchmarks/; run them here only with `-m slow`.
-    if "slow" in (config.getoption("-m") or ""):
-        return
-    skip = pytest.mark.skip(reason="slow statistical study: run with -m slow or see benchmarks/")
-    for item in items:
-        if "slow" in item.keywords:
-            item.add_marker(skip)

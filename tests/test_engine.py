@@ -213,6 +213,7 @@ def _where(items):
 
 
 @needs_dask
+@pytest.mark.slow          # two worker processes
 def test_workers_are_separate_float64_processes(cluster):
     assert cluster.kind == "local" and cluster.n_workers == 2
     seen = cluster.map_batches(_where, range(8), chunk_size=1)
@@ -236,6 +237,7 @@ def _simulate_and_fit(items, seeds):
 
 
 @needs_dask
+@pytest.mark.slow          # two worker processes
 def test_same_numbers_in_process_and_on_two_workers_in_any_chunks(cluster):
     ref = engine.Engine().map_batches(_simulate_and_fit, range(9), seed=3, chunk_size=5)
     for size in (2, 4):
@@ -250,6 +252,7 @@ def test_same_numbers_in_process_and_on_two_workers_in_any_chunks(cluster):
 
 
 @needs_dask
+@pytest.mark.slow          # two worker processes
 def test_sbc_and_paper_tables_are_identical_on_two_workers(cluster):
     from ambfit.studies import paper, sbc
 
@@ -275,6 +278,7 @@ def test_an_unreachable_scheduler_is_named():
 
 
 @needs_dask
+@pytest.mark.slow          # two worker processes
 def test_a_task_error_reaches_the_caller(cluster):
     with pytest.raises(ZeroDivisionError):
         cluster.map(functools.partial(divmod, 1), [1, 0, 2], chunk_size=1)

@@ -162,6 +162,7 @@ def test_workers_and_scheduler_exclude_each_other_and_need_dask(tmp_path, table2
 
 @pytest.mark.skipif(__import__("importlib").util.find_spec("distributed") is None,
                     reason="dask[distributed] is not installed (pip install 'ambfit[dask]')")
+@pytest.mark.slow          # two worker processes
 def test_a_fleet_on_two_worker_processes_gives_the_same_table(bearings, tmp_path, table2):
     # A (fine), B (implausible), C (not identifiable), D (one reading 50 mA off: named and left out), E (a duplicate)
     d = table2.assign(bearing="D", experiment="D", load_id="D" + table2["load_id"].astype(str))

@@ -22,6 +22,7 @@ def test_the_five_notebooks_exist():
                      "04_sim_to_real_gap", "05_experiment_design"]
 
 
+@pytest.mark.slow          # a Jupyter kernel per notebook, compiling its fits afresh
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path, monkeypatch):
     jupytext = pytest.importorskip("jupytext")

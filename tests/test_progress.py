@@ -6,7 +6,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 from typer.testing import CliRunner
 
 from ambfit.faces.cli import app
@@ -71,17 +70,13 @@ def test_cli_prints_no_progress_into_a_pipe(tmp_path):
     assert "\r" not in r.output and "0:00:0" not in r.output          # no bar redraws, no elapsed-time column
 
 
-def test_help_is_fast_and_imports_nothing_heavy():
-    code = ("import sys, time; t = time.perf_counter(); import ambfit.faces.cli; "
-            "print(time.perf_counter() - t, [m for m in ('jax', 'pandas', 'matplotlib', 'scipy', 'rich.progress') "
-            "if m in sys.modules])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout.split(" ", 1)
-    assert out[1].strip() == "[]"
+def test_help_imports_nothing_heavy():
+    # what keeps `ambfit --help` fast: the command line imports no numerical stack (its time is measured against
+    # a peer in benchmarks/ls_speed.py, not asserted here: a loaded CI machine fails any wall-clock bound)
+    code = ("import sys; import ambfit.faces.cli; "
+            "print([m for m in ('jax', 'pandas', 'matplotlib', 'scipy', 'rich.progress') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
     exe = str(Path(sys.executable).with_name("ambfit"))
-    times = []
-    for _ in range(3):
-        t = subprocess.run([sys.executable, "-c", f"import subprocess, time; t = time.perf_counter(); "
-                            f"subprocess.run([{exe!r}, '--help'], capture_output=True); print(time.perf_counter() - t)"],
-                           capture_output=True, text=True, timeout=60).stdout
-        times.append(float(t))
-    assert np.min(times) < 0.5, times        # ``ambfit --help`` answers within half a second
+    r = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "identify" in r.stdout

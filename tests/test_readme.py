@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -41,6 +43,7 @@ def _in_process(argv: list[str]) -> tuple[int, str]:
     return code, out.getvalue()
 
 
+@pytest.mark.slow          # every README command, one after another
 def test_every_command_line_example_runs(tmp_path, monkeypatch):
     commands = readme_commands()
     assert len(commands) >= 10 and all(c.startswith(".venv/bin/ambfit ") for c in commands)
