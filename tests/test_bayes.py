@@ -180,3 +180,17 @@ def test_progress_is_one_labelled_callback_and_the_sampler_draws_nothing(table2,
     assert {w.split(": ")[1][:14] for w, _, _ in calls} == {"ensemble 1 of ", "ensemble 2 of "}
     with pytest.raises(TypeError, match="callback"):
         bayes.sample(table2, n_ensembles=1, n_steps=10, ls=ls, progress=True)
+
+
+def test_the_json_interval_is_the_contracts_94_percent_hdi(short_run):
+    # contract section 2: the 94 % highest-density interval, here computed by hand over the pooled draws (the
+    # narrowest window holding floor(0.94 n) of the sorted draws); a 90 % interval would sit 0.2 sd inside it
+    js = short_run.to_json()
+    assert js["hdi_prob"] == 0.94
+    for name, key in (("g_v0", "g_v0_um"), ("v0", "v0_um")):
+        x = np.sort(np.asarray(short_run.datatree.posterior[name]).ravel())
+        k = int(np.floor(0.94 * len(x)))
+        i = int(np.argmin(x[k:] - x[:len(x) - k]))
+        p = js["params"][key]
+        assert p["hdi_low"] == pytest.approx(x[i], abs=0.02 * p["std"]), name
+        assert p["hdi_high"] == pytest.approx(x[i + k], abs=0.02 * p["std"]), name
