@@ -251,9 +251,11 @@ def test_an_unknown_xla_flag_is_named_before_it_aborts(tmp_path):
 
 
 def test_ctrl_c_during_sample_ends_in_one_line(tmp_path):
-    p = subprocess.Popen([EXE, "sample", str(DEFAULT), "--json", str(tmp_path / "s.json")], stdout=subprocess.PIPE,
+    # a run far too long to end on its own (200,000 steps), so that the interrupt always finds it running: in the
+    # sampling, or on a slow machine still compiling, where it must end the same way
+    p = subprocess.Popen([EXE, "sample", str(DEFAULT), "--ensembles", "2", "--steps", "200000", "--max-steps",
+                          "200000", "--json", str(tmp_path / "s.json")], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
-    # into the sampling (a cold start compiles first: interrupted there too, it must end the same way)
     time.sleep(8)
     p.send_signal(signal.SIGINT)
     out, err = p.communicate(timeout=120)
