@@ -70,11 +70,15 @@ PROGRESS_CHUNKS = 20
 """Progress reports per run of one ensemble: the run goes in this many pieces (the same chain as one run)."""
 
 
+PIECE_STEPS = 200
+"""Most steps in one piece: Ctrl-C waits at most this long (a piece of a 200,000-step run would be minutes)."""
+
+
 def advance(sampler, start, n: int, tally: Tally, what: str) -> None:
     """``n`` more steps of ``sampler`` from ``start`` (None: where it stopped), reporting after each piece; Ctrl-C
     stops the run at the end of the piece (:func:`interrupt_between_pieces`)."""
     tally(what)
-    chunk = max(1, -(-n // PROGRESS_CHUNKS))
+    chunk = min(max(1, -(-n // PROGRESS_CHUNKS)), PIECE_STEPS)
     with interrupt_between_pieces() as check:
         for done in range(0, n, chunk):
             k = min(chunk, n - done)
