@@ -37,6 +37,10 @@ class BearingError(ValueError):
     """A bearing description that cannot be used; the message names the file and key."""
 
 
+TOLERANCE_DISTRIBUTIONS = ("uniform", "normal")
+"""How a bearing description's calibration tolerances are read (:attr:`Bearing.tolerance_distribution`)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Bearing:
     """An 8-pole heteropolar radial bearing as drawn (SI units).
@@ -66,7 +70,15 @@ class Bearing:
     lamination : float
         Nominal lamination (stacking) coefficient in Eq. 3 [-].
     position_gain_tolerance, current_gain_tolerance : float
-        Relative calibration tolerances of the position sensors and current channels.
+        Relative calibration tolerances of the position sensors and current channels (0.0025 and 0.001).
+    current_offset_tolerance : float
+        Calibration tolerance of each current channel's zero [A] (1 mA).
+    load_scale_tolerance : float
+        Relative tolerance of the known loads (masses, gravity, lever; 0.001).
+    tolerance_distribution : str
+        How a tolerance ``a`` is read (the GUM, JCGM 100 4.3.7): ``"uniform"``, the error lies within ±a, all values
+        alike (standard uncertainty ``a / sqrt(3)``, the reading of a data-sheet limit); ``"normal"``, ``a`` is
+        itself a standard uncertainty (a calibration certificate's).
     bore_diameter : float
         Stator bore [m].
     rotor_mass : float
@@ -100,6 +112,9 @@ class Bearing:
     lamination: float = 0.95
     position_gain_tolerance: float = 0.0025
     current_gain_tolerance: float = 0.001
+    current_offset_tolerance: float = 1e-3
+    load_scale_tolerance: float = 0.001
+    tolerance_distribution: str = "uniform"
     bore_diameter: float = 35e-3
     rotor_mass: float = 1.0
     b_curve: tuple = ()
@@ -121,7 +136,14 @@ class Bearing:
                                f"an 8-pole bearing), got {math.degrees(self.pole_angle):g}")
         if not self.lamination <= 1:
             raise BearingError(f"lamination (the iron's stacking factor) must lie in (0, 1], got {self.lamination!r}")
-        for name in ("position_gain_tolerance", "current_gain_tolerance"):
+        if self.tolerance_distribution not in TOLERANCE_DISTRIBUTIONS:
+            raise BearingError(f"tolerance_distribution must be one of {', '.join(TOLERANCE_DISTRIBUTIONS)}, got "
+                               f"{self.tolerance_distribution!r}")
+        if not (isinstance(self.current_offset_tolerance, (int, float)) and 0 <= self.current_offset_tolerance
+                <= self.max_current):
+            raise BearingError(f"current_offset_tolerance_mA must lie between 0 and the current limit, got "
+                               f"{self.current_offset_tolerance * 1e3!r}")
+        for name in ("position_gain_tolerance", "current_gain_tolerance", "load_scale_tolerance"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
                 raise BearingError(f"{name} must be a fraction in [0, 1) (0.001 is 0.1 %), got {value!r}")
@@ -179,7 +201,10 @@ class Bearing:
                "backup_clearance_um": self.backup_clearance * 1e6, "max_current_A": self.max_current,
                "polarity": self.polarity, "iron_path_mm": self.iron_path * 1e3, "lamination": self.lamination,
                "position_gain_tolerance": self.position_gain_tolerance,
-               "current_gain_tolerance": self.current_gain_tolerance, "bore_diameter_mm": self.bore_diameter * 1e3,
+               "current_gain_tolerance": self.current_gain_tolerance,
+               "current_offset_tolerance_mA": self.current_offset_tolerance * 1e3,
+               "load_scale_tolerance": self.load_scale_tolerance, "tolerance_distribution": self.tolerance_distribution,
+               "bore_diameter_mm": self.bore_diameter * 1e3,
                "rotor_mass_kg": self.rotor_mass}
         if self.b_curve:
             out["material"] = {"B_T": list(self.b_curve), "H_A_per_m": list(self.h_curve)}
@@ -225,6 +250,8 @@ class Bearing:
                  "max_current_A": ("max_current", float), "iron_path_mm": ("iron_path", lambda v: v * 1e-3),
                  "lamination": ("lamination", float), "position_gain_tolerance": ("position_gain_tolerance", float),
                  "current_gain_tolerance": ("current_gain_tolerance", float),
+                 "current_offset_tolerance_mA": ("current_offset_tolerance", lambda v: v * 1e-3),
+                 "load_scale_tolerance": ("load_scale_tolerance", float),
                  "bore_diameter_mm": ("bore_diameter", lambda v: v * 1e-3),
                  "rotor_mass_kg": ("rotor_mass", float)}
         kw = {}
@@ -232,11 +259,14 @@ class Bearing:
             kw["name"] = str(d.pop("name"))
         if "polarity" in d:
             kw["polarity"] = str(d.pop("polarity")).upper()
+        if "tolerance_distribution" in d:
+            kw["tolerance_distribution"] = str(d.pop("tolerance_distribution")).lower()
         material = d.pop("material", None)
         extra = []
         for key in list(d):
             if key not in scale:
-                near = difflib.get_close_matches(key, [*scale, "name", "polarity", "material"], n=1, cutoff=0.75)
+                near = difflib.get_close_matches(key, [*scale, "name", "polarity", "material", "tolerance_distribution"],
+                                                 n=1, cutoff=0.75)
                 if near:
                     raise BearingError(f"{source}: unknown key {key!r}; did you mean {near[0]!r}? "
                                        f"(keys carry their unit: {', '.join(sorted(scale))})")

@@ -250,6 +250,30 @@ def _effects(names: list[str], bearing) -> tuple:
     return tuple(out)
 
 
+def _add_budget(record: dict, ds, res, kw: dict) -> None:
+    """The GUM budget (:mod:`ambfit.estimation.budget`) into the record's params (``u_combined``, ``budget``) and
+    ``uncertainty_budget``, and shown: ``std`` stays the readings' noise alone."""
+    from ambfit.estimation.budget import budget
+
+    b = budget(ds, res, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"], require_k=kw["require_k"])
+    for key, extra in b.to_contract().items():
+        record["params"].setdefault(key, {}).update(extra)
+    desc = res.bearing
+    record["uncertainty_budget"] = {
+        "method": "GUM (JCGM 100): type A from the fit, type B from the bearing description's calibration "
+                  "tolerances, sensitivities by refitting at ±u",
+        "distribution": desc.tolerance_distribution,
+        "terms": [{"term": t.name, "tolerance": t.tolerance, "unit": t.unit, "u": t.u} for t in b.terms],
+        "failed": list(b.failed)}
+    show_table(b.summary_rows(), f"uncertainty: the readings' noise and the calibration tolerances "
+               f"({desc.tolerance_distribution}: current gain ±{100 * desc.current_gain_tolerance:g} %, current zero "
+               f"±{desc.current_offset_tolerance * 1e3:g} mA, position gain ±{100 * desc.position_gain_tolerance:g} %, "
+               f"loads ±{100 * desc.load_scale_tolerance:g} %)", left=("parameter", "largest calibration term"))
+    if b.failed:
+        warn(f"the calibration terms {', '.join(b.failed)} could not be propagated (their refits did not converge); "
+             "u_combined leaves them out")
+
+
 def _identify_ls(ds, name, opts: _Options) -> dict:
     from ambfit.estimation import fit
 
@@ -266,6 +290,8 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
     _warn_health(res)
     record = res.to_json()
     kw = opts.fit_kw()
+    if res.converged and res.well_conditioned:
+        _add_budget(record, ds, res, kw)
     if opts.discrepancy and res.converged:
         import numpy as np
 

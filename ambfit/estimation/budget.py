@@ -1,0 +1,214 @@
+"""The uncertainty budget in the GUM's sense (JCGM 100:2008): the readings' noise (type A) and the calibration the
+bearing description declares (type B), combined.
+
+A fit's standard errors count only the noise of the readings.  A real rig also reads its currents and positions
+through channels calibrated to a tolerance: a current channel 0.1 % high, a current zero 1 mA off, a position
+sensor 0.25 % high, loads 0.1 % heavy.  Such an error is the same in every reading, so no number of readings
+averages it away, and it moves the estimate.  Each declared tolerance is one input quantity ``δ`` of zero
+expectation and standard uncertainty ``u`` (:attr:`~ambfit.physics.bearing.Bearing.tolerance_distribution`:
+a uniform ±a gives ``a / √3``); its sensitivity ``c = ∂θ̂/∂δ`` is measured by refitting the readings as that
+error would have recorded them, at ``δ = ±u`` from the fit (a central difference, GUM 5.1.3).  The combined
+covariance is ``V = V_A + Σ_k (c_k u_k)(c_k u_k)ᵀ`` (the terms are independent), and each parameter's budget names
+each term's share of its combined variance.
+
+The terms (:func:`terms`): the gain of each coil's current channel (per axis, top and bottom), the zero of each
+coil's current channel, the gain of each axis' position sensor, and the scale of the known loads.
+
+Example
+-------
+>>> from ambfit.rig import protocol, virtual as rig
+>>> from ambfit.estimation.fit import fit
+>>> data = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=1).data
+>>> b = budget(data, fit(data))
+>>> b.u_combined("v0") > b.std("v0")          # the calibration adds to the noise
+True
+>>> [name for name, u, share in b.shares("v0")][:2]       # the origin's largest terms
+["readings' noise (type A)", 'current gain, axis v, top']
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pandas as pd
+
+from ambfit.estimation.units import CONTRACT_PARAMS
+from ambfit.physics.bearing import AXES, Bearing
+
+NOISE_TERM = "readings' noise (type A)"
+"""The budget's name of the statistical term: the fit's own standard error."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Term:
+    """One calibration input quantity: ``name`` in words, its declared ``tolerance`` (in ``unit``), its standard
+    uncertainty ``u`` and how an error ``delta`` of it changes the recorded table (``record(frame, delta)``)."""
+
+    name: str
+    tolerance: float
+    unit: str
+    u: float
+    record: Callable[[pd.DataFrame, float], pd.DataFrame] = dataclasses.field(repr=False, compare=False)
+
+
+def standard_uncertainty(tolerance: float, distribution: str) -> float:
+    """``u`` of a tolerance ``a``: ``a / sqrt(3)`` for a uniform ±a (GUM 4.3.7), ``a`` itself for ``"normal"``."""
+    return tolerance / math.sqrt(3.0) if distribution == "uniform" else tolerance
+
+
+def _gain(column: str, rows: str | None):
+    def record(frame: pd.DataFrame, delta: float) -> pd.DataFrame:
+        out = frame.copy()
+        at = slice(None) if rows is None else (out["axis"] == rows).to_numpy()
+        out.loc[at, column] = out.loc[at, column].astype(float) * (1.0 + delta)
+        return out
+
+    return record
+
+
+def _offset(column: str, rows: str):
+    def record(frame: pd.DataFrame, delta: float) -> pd.DataFrame:
+        out = frame.copy()
+        at = (out["axis"] == rows).to_numpy()
+        out.loc[at, column] = out.loc[at, column].astype(float) + delta
+        return out
+
+    return record
+
+
+def terms(frame: pd.DataFrame, bearing: Bearing) -> list[Term]:
+    """The calibration terms the bearing description declares and these readings depend on: a coil's channels
+    only where its axis has readings, the load scale only where known loads are."""
+    dist = bearing.tolerance_distribution
+    out = []
+    axes = [ax for ax in AXES if (frame["axis"] == ax).any()]
+    for ax in axes:
+        for coil in ("top", "bottom"):
+            tol = bearing.current_gain_tolerance
+            if tol > 0:
+                out.append(Term(f"current gain, axis {ax}, {coil}", tol, "relative", standard_uncertainty(tol, dist),
+                                _gain(f"i_{coil}_A", ax)))
+    for ax in axes:
+        for coil in ("top", "bottom"):
+            tol = bearing.current_offset_tolerance
+            if tol > 0:
+                out.append(Term(f"current zero, axis {ax}, {coil}", tol, "A", standard_uncertainty(tol, dist),
+                                _offset(f"i_{coil}_A", ax)))
+    for ax in AXES:
+        tol = bearing.position_gain_tolerance
+        if tol > 0 and f"{ax}_um" in frame:
+            out.append(Term(f"position gain, axis {ax}", tol, "relative", standard_uncertainty(tol, dist),
+                            _gain(f"{ax}_um", None)))
+    tol = bearing.load_scale_tolerance
+    if tol > 0 and "load_N" in frame and np.isfinite(pd.to_numeric(frame["load_N"], errors="coerce")).any():
+        out.append(Term("load scale", tol, "relative", standard_uncertainty(tol, dist), _gain("load_N", None)))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """Type-A and type-B uncertainty of a fit's parameters (SI units).
+
+    ``names`` and ``values`` are the fit's; ``cov_a`` its statistical covariance; ``contributions[k]`` the shift
+    ``c_k u_k`` of every parameter that term ``terms[k]`` makes at one standard uncertainty (NaN where its refits
+    failed, named in ``failed``)."""
+
+    names: list
+    values: np.ndarray
+    cov_a: np.ndarray
+    terms: tuple
+    contributions: np.ndarray
+    failed: tuple = ()
+
+    @property
+    def cov_b(self) -> np.ndarray:
+        c = np.nan_to_num(self.contributions)
+        return c.T @ c
+
+    @property
+    def cov(self) -> np.ndarray:
+        """The combined covariance ``V_A + V_B``."""
+        return self.cov_a + self.cov_b
+
+    def std(self, name: str) -> float:
+        """The statistical (type A) standard error of ``name``."""
+        i = self.names.index(name)
+        return float(math.sqrt(self.cov_a[i, i]))
+
+    def u_combined(self, name: str) -> float:
+        """The combined standard uncertainty of ``name`` (GUM 5.1.2)."""
+        i = self.names.index(name)
+        return float(math.sqrt(self.cov[i, i]))
+
+    def shares(self, name: str) -> list[tuple[str, float, float]]:
+        """``(term, u, share)`` of ``name``'s combined variance, largest first, the readings' noise among them."""
+        i = self.names.index(name)
+        total = self.cov[i, i]
+        rows = [(NOISE_TERM, math.sqrt(self.cov_a[i, i]))]
+        rows += [(t.name, abs(float(c))) for t, c in zip(self.terms, self.contributions[:, i]) if np.isfinite(c)]
+        return sorted(((n, u, u * u / total if total > 0 else 0.0) for n, u in rows), key=lambda r: -r[2])
+
+    def to_contract(self) -> dict:
+        """Per contract key (section 2): ``u_combined`` and ``budget`` (each term's tolerance, ``u`` in the
+        parameter's unit and share of the combined variance), in the contract's units."""
+        out = {}
+        tolerance = {t.name: (t.tolerance, t.unit) for t in self.terms}
+        for name, key, factor in CONTRACT_PARAMS:
+            if name not in self.names:
+                continue
+            out[key] = {"u_combined": self.u_combined(name) * factor,
+                        "budget": [{"term": n, "tolerance": tolerance.get(n, (None, None))[0],
+                                    "tolerance_unit": tolerance.get(n, (None, None))[1], "u": u * factor,
+                                    "share": share} for n, u, share in self.shares(name)]}
+        return out
+
+    def summary_rows(self) -> list[dict]:
+        """One row per head parameter: value, statistical error, combined uncertainty, the largest term."""
+        from ambfit.estimation.units import DISPLAY
+
+        rows = []
+        for name, _, _ in CONTRACT_PARAMS:
+            if name not in self.names:
+                continue
+            unit, f = DISPLAY[name]
+            top = next((s for s in self.shares(name) if s[0] != NOISE_TERM), None)
+            rows.append({"parameter": f"{name} [{unit}]", "std (noise)": f"{self.std(name) * f:.3g}",
+                         "u_combined": f"{self.u_combined(name) * f:.3g}",
+                         "largest calibration term": "-" if top is None else f"{top[0]} ({100 * top[2]:.0f} %)"})
+        return rows
+
+
+def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None = None, **fit_kw) -> Budget:
+    """The GUM budget of the fit ``res`` of ``data``: its statistical covariance and, for every calibration term
+    of the bearing description (:func:`terms`), the parameters' shift at ``±u`` measured by refitting.
+
+    ``refit(frame) -> FitResult`` refits a table as the fit was made (default: :func:`ambfit.estimation.fit.fit`
+    with ``res``'s effects, bearing, loss and rows, from ``res``, with ``fit_kw``, e.g. the declared noise the
+    fit was given; the outlier test is not run again, so that every refit fits the same rows).
+    """
+    from ambfit.data import Dataset
+    from ambfit.estimation.fit import fit
+
+    frame = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
+    bearing = bearing or res.bearing
+    if refit is None:
+        keep = res.fitted_rows.astype(float)
+
+        def refit(table):
+            return fit(table, res.effects, bearing=res.bearing, start_from=res, mask=keep, loss=res.loss,
+                       alpha=0.0, throw=False, **fit_kw)
+
+    found = terms(frame, bearing)
+    contributions = np.full((len(found), len(res.names)), np.nan)
+    failed = []
+    for k, term in enumerate(found):
+        ends = [refit(term.record(frame, sign * term.u)) for sign in (1.0, -1.0)]
+        if not all(e.converged and list(e.names) == list(res.names) for e in ends):
+            failed.append(term.name)
+            continue
+        contributions[k] = (np.asarray(ends[0].values) - np.asarray(ends[1].values)) / 2.0
+    return Budget(list(res.names), np.asarray(res.values), np.asarray(res.cov), tuple(found), contributions,
+                  tuple(failed))

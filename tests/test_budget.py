@@ -1,0 +1,100 @@
+"""The GUM uncertainty budget (:mod:`ambfit.estimation.budget`) against numbers computed independently.
+
+Whether its combined interval covers the truth at 95 % when the calibration really is off within its tolerances
+is a statistical study: benchmarks/uncertainty_budget.py (reports/benchmarks/uncertainty_budget.md).
+"""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from ambfit import rig
+from ambfit.estimation.budget import NOISE_TERM, budget, standard_uncertainty, terms
+from ambfit.estimation.fit import fit
+from ambfit.faces.cli import app
+from ambfit.physics.bearing import PAPER_BEARING, Bearing, BearingError
+from ambfit.rig import protocol
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT = ROOT / "data" / "paper_table2.csv"
+
+
+@pytest.fixture(scope="module")
+def table2():
+    spec = rig.PAPER_RIG
+    return rig.simulate(spec, protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=7).data
+
+
+@pytest.fixture(scope="module")
+def fitted(table2):
+    res = fit(table2)
+    return res, budget(table2, res)
+
+
+def test_standard_uncertainty_of_a_tolerance():
+    # GUM 4.3.7: a uniform ±a has u = a / sqrt(3); a "normal" tolerance is already a standard uncertainty
+    assert standard_uncertainty(0.003, "uniform") == pytest.approx(0.003 / 1.7320508075688772, rel=1e-15)
+    assert standard_uncertainty(0.003, "normal") == 0.003
+
+
+def test_the_terms_are_the_declared_channels(table2):
+    names = [t.name for t in terms(table2, PAPER_BEARING)]
+    assert len(names) == 11 and len(set(names)) == 11           # 4 gains, 4 zeros, 2 position gains, the loads
+    assert "current gain, axis v, top" in names and "load scale" in names
+    assert [t.name for t in terms(table2, PAPER_BEARING.with_(load_scale_tolerance=0.0))] == names[:-1]
+
+
+def test_a_gain_error_moves_the_origin_as_its_sensitivity_says(table2, fitted):
+    # an independent measurement: the v-axis top current read 0.5 % high (the tester's probe) and refitted from
+    # scratch; the budget's shift at one u (0.1 %/sqrt 3), scaled to 0.5 %, predicts it within 3 %
+    res, b = fitted
+    k = [t.name for t in b.terms].index("current gain, axis v, top")
+    high = table2.assign(i_top_A=np.where(table2["axis"] == "v", table2["i_top_A"] * 1.005, table2["i_top_A"]))
+    moved = fit(high).value("v0") - res.value("v0")
+    predicted = b.contributions[k][res.names.index("v0")] * 0.005 / b.terms[k].u
+    assert abs(moved) > 5 * res.error("v0")                      # far outside the statistical error bar
+    assert predicted == pytest.approx(moved, rel=0.03)
+
+
+def test_the_combined_uncertainty_adds_the_terms_in_quadrature(fitted):
+    res, b = fitted
+    for name in ("g_v0", "v0", "k_w"):
+        rows = b.shares(name)
+        by_hand = math.sqrt(sum(u * u for _, u, _ in rows))
+        assert b.u_combined(name) == pytest.approx(by_hand, rel=1e-12)
+        assert sum(share for _, _, share in rows) == pytest.approx(1.0, rel=1e-12)
+        assert dict((n, u) for n, u, _ in rows)[NOISE_TERM] == pytest.approx(res.error(name), rel=1e-12)
+        assert b.u_combined(name) > res.error(name)
+
+
+def test_identify_reports_std_and_the_combined_uncertainty(tmp_path):
+    out = tmp_path / "fit.json"
+    r = CliRunner().invoke(app, ["identify", str(DEFAULT), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "u_combined" in r.output and "largest calibration term" in r.output
+    rec = json.loads(out.read_text())
+    res = fit(pd.read_csv(DEFAULT))
+    for key, name in (("v0_um", "v0"), ("g_w0_um", "g_w0")):
+        p = rec["params"][key]
+        assert p["std"] == pytest.approx(res.error(name) * 1e6, rel=1e-9)      # std stays the statistical error
+        assert p["u_combined"] > p["std"]
+        assert p["u_combined"] == pytest.approx(math.sqrt(sum(t["u"] ** 2 for t in p["budget"])), rel=1e-12)
+        assert p["budget"][0]["share"] >= p["budget"][-1]["share"]
+    assert len(rec["uncertainty_budget"]["terms"]) == 11 and rec["uncertainty_budget"]["failed"] == []
+
+
+def test_the_bearing_file_declares_the_tolerances(tmp_path):
+    toml = tmp_path / "b.toml"
+    toml.write_text('current_offset_tolerance_mA = 2.5\nload_scale_tolerance = 0.002\ntolerance_distribution = '
+                    '"normal"\n')
+    b = Bearing.from_toml(toml)
+    assert (b.current_offset_tolerance, b.load_scale_tolerance, b.tolerance_distribution) == (2.5e-3, 0.002, "normal")
+    assert Bearing.from_dict(b.to_dict()).tolerance_distribution == "normal"
+    toml.write_text('tolerance_distribution = "triangular"\n')
+    with pytest.raises(BearingError, match="tolerance_distribution must be one of uniform, normal"):
+        Bearing.from_toml(toml)
