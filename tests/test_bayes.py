@@ -1,6 +1,7 @@
 """Posterior sampling, ArviZ output, solution-space map and design recommendation (fast versions)."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -118,6 +119,13 @@ def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
     assert r.exit_code == 3 and "too short" in r.output     # 300 steps is well below 50 tau
     rec = json.loads(js.read_text())
     assert rec["method"] == "bayes" and out.exists()
+    # the calibration's type-B terms beside the posterior sd (GUM): u_combined^2 = sd^2 + the terms', by hand
+    for key in ("g_v0_um", "w0_um"):
+        p = rec["params"][key]
+        sd = next(t["u"] for t in p["budget"] if t["term"] == "posterior sd (type A)")
+        assert sd == pytest.approx(p["std"], rel=1e-12)
+        assert p["u_combined"] == pytest.approx(math.sqrt(sum(t["u"] ** 2 for t in p["budget"])), rel=1e-12)
+        assert p["u_combined"] > p["std"]
 
 
 def test_sbc_small_fast_version():

@@ -138,31 +138,38 @@ class Budget:
         i = self.names.index(name)
         return float(math.sqrt(self.cov_a[i, i]))
 
-    def u_combined(self, name: str) -> float:
-        """The combined standard uncertainty of ``name`` (GUM 5.1.2)."""
+    def u_combined(self, name: str, type_a: float | None = None) -> float:
+        """The combined standard uncertainty of ``name`` (GUM 5.1.2); ``type_a``: another statistical standard
+        uncertainty in place of the fit's (a posterior's sd)."""
         i = self.names.index(name)
-        return float(math.sqrt(self.cov[i, i]))
+        a = self.cov_a[i, i] if type_a is None else type_a**2
+        return float(math.sqrt(a + self.cov_b[i, i]))
 
-    def shares(self, name: str) -> list[tuple[str, float, float]]:
-        """``(term, u, share)`` of ``name``'s combined variance, largest first, the readings' noise among them."""
+    def shares(self, name: str, type_a: float | None = None,
+               type_a_name: str = NOISE_TERM) -> list[tuple[str, float, float]]:
+        """``(term, u, share)`` of ``name``'s combined variance, largest first, the readings' noise among them
+        (``type_a``, ``type_a_name``: another statistical term, see :meth:`u_combined`)."""
         i = self.names.index(name)
-        total = self.cov[i, i]
-        rows = [(NOISE_TERM, math.sqrt(self.cov_a[i, i]))]
+        total = self.u_combined(name, type_a) ** 2
+        rows = [(type_a_name, math.sqrt(self.cov_a[i, i]) if type_a is None else float(type_a))]
         rows += [(t.name, abs(float(c))) for t, c in zip(self.terms, self.contributions[:, i]) if np.isfinite(c)]
         return sorted(((n, u, u * u / total if total > 0 else 0.0) for n, u in rows), key=lambda r: -r[2])
 
-    def to_contract(self) -> dict:
+    def to_contract(self, type_a: dict | None = None, type_a_name: str = NOISE_TERM) -> dict:
         """Per contract key (section 2): ``u_combined`` and ``budget`` (each term's tolerance, ``u`` in the
-        parameter's unit and share of the combined variance), in the contract's units."""
+        parameter's unit and share of the combined variance), in the contract's units.  ``type_a``: ``{name:
+        standard uncertainty [SI]}`` in place of the fit's statistical errors (a posterior's sd), named
+        ``type_a_name``."""
         out = {}
         tolerance = {t.name: (t.tolerance, t.unit) for t in self.terms}
         for name, key, factor in CONTRACT_PARAMS:
             if name not in self.names:
                 continue
-            out[key] = {"u_combined": self.u_combined(name) * factor,
+            a = None if type_a is None else type_a.get(name)
+            out[key] = {"u_combined": self.u_combined(name, a) * factor,
                         "budget": [{"term": n, "tolerance": tolerance.get(n, (None, None))[0],
                                     "tolerance_unit": tolerance.get(n, (None, None))[1], "u": u * factor,
-                                    "share": share} for n, u, share in self.shares(name)]}
+                                    "share": share} for n, u, share in self.shares(name, a, type_a_name)]}
         return out
 
     def summary_rows(self) -> list[dict]:

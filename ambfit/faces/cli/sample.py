@@ -35,6 +35,29 @@ MIN_STEPS = 100
 """Fewest steps to start with: the burn-in alone is two autocorrelation times."""
 
 
+def _add_budget(record: dict, ds, res, noise: dict) -> None:
+    """The calibration's type-B terms (:mod:`ambfit.estimation.budget`, sensitivities of the least-squares fit
+    the sampler started from) combined with each parameter's posterior sd: ``u_combined`` and ``budget``."""
+    import numpy as np
+
+    from ambfit.estimation.budget import budget
+    from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY
+
+    if not (res.ls.converged and res.ls.well_conditioned):
+        return
+    b = budget(ds, res.ls, **noise)
+    sd = {name: float(np.std(np.asarray(res.datatree.posterior[name]), ddof=1)) / DISPLAY[name][1]
+          for name, _, _ in CONTRACT_PARAMS if name in res.datatree.posterior}
+    for key, extra in b.to_contract(sd, "posterior sd (type A)").items():
+        if key in record["params"]:
+            record["params"][key].update(extra)
+    record["uncertainty_budget"] = {"method": "GUM (JCGM 100): type A the posterior sd, type B the bearing "
+                                              "description's calibration tolerances through the least-squares fit",
+                                    "failed": list(b.failed)}
+    note("u_combined (posterior sd with the calibration tolerances): " + ", ".join(
+        f"{name} {b.u_combined(name, sd[name]) * DISPLAY[name][1]:.3g} {DISPLAY[name][0]}" for name in sd))
+
+
 @app.command()
 def sample(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
@@ -94,6 +117,7 @@ def sample(
         fail(str(exc), 3)
     note(res.summary())
     record = res.to_json()
+    _add_budget(record, ds, res, declared_noise(current_noise_ma, position_noise_um))
     if out is not None:
         # serialised in memory first: HDF5 writing to a full disk fails uncleanly, Python's writes fail cleanly
         write_bytes(out, res.datatree.to_netcdf(engine="h5netcdf"))
