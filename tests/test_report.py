@@ -274,6 +274,10 @@ def test_data_report_cli_writes_all_sections(tmp_path):
                         "diagnosis"}
     assert f"Verdict: <b>{rec['diagnosis']['verdict']}</b>" in page
     assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
+    # the combined uncertainty (GUM) beside the noise-only error, the same number in the page and the JSON
+    v0 = rec["least_squares"]["params"]["v0_um"]
+    assert "u_combined (with calibration)" in page and f"{v0['u_combined']:.3g}" in page
+    assert v0["u_combined"] > v0["std"]
 
 
 def test_data_report_cli_rejects_bad_data(tmp_path):

@@ -40,14 +40,16 @@ def overview(path, data) -> dict:
             "n_load_groups": int(df["load_id"].nunique()) if "load_id" in df else 1}
 
 
-def identification(result, closed=None) -> dict:
+def identification(result, closed=None, budget=None) -> dict:
     """Least-squares estimates beside the closed form's.
 
     ``result``: :class:`~ambfit.estimation.results.FitResult`; ``closed``: a
     :class:`~ambfit.estimation.closed_form.ClosedFormResult`, the
-    :class:`~ambfit.estimation.closed_form.ClosedFormError` that says why it does not apply, or None.
+    :class:`~ambfit.estimation.closed_form.ClosedFormError` that says why it does not apply, or None;
+    ``budget``: its :class:`~ambfit.estimation.budget.Budget` (the combined uncertainty and its largest term).
     """
-    from ambfit.estimation.units import CONTRACT_PARAMS, pm, with_unit
+    from ambfit.estimation.budget import NOISE_TERM
+    from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, pm, with_unit
 
     closed_error = str(closed) if isinstance(closed, Exception) else None
     cf = closed.params() if closed is not None and closed_error is None else None
@@ -57,6 +59,10 @@ def identification(result, closed=None) -> dict:
             continue
         text, unit = with_unit(name, result.value(name), result.error(name))
         row = {"parameter": f"{name} [{unit}]", "least squares": text}
+        if budget is not None:
+            top = next((b for b in budget.shares(name) if b[0] != NOISE_TERM), None)
+            row["u_combined (with calibration)"] = f"{budget.u_combined(name) * DISPLAY[name][1]:.3g}"
+            row["largest calibration term"] = "–" if top is None else f"{top[0]} ({100 * top[2]:.0f} %)"
         if cf is not None:       # the closed form's block is in the contract's units, which are the display units
             c = cf.get(key)
             row["closed form (Eq. 5-7)"] = "–" if c is None else pm(c["value"], np.nan if c["std"] is None else c["std"])
@@ -64,7 +70,8 @@ def identification(result, closed=None) -> dict:
     ident = pd.DataFrame(rows)
     return {"table": table(ident), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
             "dof": result.dof, "condition": result.condition, "weak_direction": result.weak_direction,
-            "noise_source": result.noise_source, "closed_form": closed is not None, "closed_error": closed_error}
+            "noise_source": result.noise_source, "closed_form": closed is not None, "closed_error": closed_error,
+            "budget": budget is not None}
 
 
 def posterior(result, *, draw: bool = True) -> dict:
@@ -216,7 +223,14 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         record["closed_form"] = closed.to_json()
     except closed_form.ClosedFormError as exc:
         closed = exc
-    out = {"identification": identification(res, closed)}
+    b = None
+    if res.converged and res.well_conditioned:
+        from ambfit.estimation.budget import budget
+
+        b = budget(ds, res, **noise)
+        for key, extra in b.to_contract().items():
+            record["least_squares"]["params"].setdefault(key, {}).update(extra)
+    out = {"identification": identification(res, closed, b)}
 
     def sample():
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
