@@ -107,3 +107,15 @@ def test_non_finite_rows_are_named_by_their_data_row():
     kept, renumbered = fit_many([sub, sub.reset_index(drop=True)])
     first = [int(re.search(r"the first data row (\d+)", str(e)).group(1)) for e in (kept, renumbered)]
     assert first[0] == first[1] + 40
+
+
+def test_a_table_with_an_empty_std_cell_is_built_as_alone_beside_complete_ones():
+    # its noise source names its own empty cell (which row, of how many): a joined build must say the same
+    # (beside a table without the column, whose current noise is estimated from the residuals too)
+    a, b = _variant(11, frozenset(), 0.0, False), _variant(12, frozenset({"i_top_std_A"}), 0.0, False)
+    a.loc[a.index[2], "i_top_std_A"] = np.nan
+    _, built, _ = build_problems([a, b])
+    for frame, (prob, meta) in zip([a, b], built):
+        assert meta == build_problem(frame)[1]
+    assert "i_top_std_A has 1 empty cell(s)" in built[0][1].noise_source
+    assert "no i_top_std_A column" in built[1][1].noise_source

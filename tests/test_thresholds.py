@@ -113,3 +113,44 @@ def test_one_empty_std_cell_means_the_column_is_not_used_for_any_row():
     df.loc[df.index[df["axis"] == "v"][3], "v_std_um"] = np.nan
     _, meta = build_problem(df)
     assert "position noise taken as 0" in meta.noise_source
+
+
+# --- silent answers that are now said ---------------------------------------------------------------------------
+
+def test_std_columns_that_overstate_the_noise_are_named():
+    # the bundled data: χ²/dof 1.16 on 74 dof; the std columns doubled divide χ² by 4 (0.29): below chance
+    from ambfit.estimation.fit import fit
+
+    df = pd.read_csv(DEFAULT)
+    assert fit(df).noise_as_declared is True
+    doubled = df.assign(**{c: df[c] * 2 for c in ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")})
+    res = fit(doubled)
+    assert res.noise_as_declared is False and res.reduced_chi2 == pytest.approx(0.29, abs=0.01)
+    text = dict((name, text) for name, _, text in res.checks())["noise_as_declared"]
+    assert "overstate the noise about 1.9-fold" in text
+    assert fit(df.drop(columns=["i_top_std_A", "i_bottom_std_A"])).noise_as_declared is None     # estimated
+
+
+def test_force_constants_of_the_two_axes_may_differ_by_a_quarter_not_more():
+    from ambfit.estimation import plausibility
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    k = PAPER_BEARING.force_constant(1.0) * 0.95
+    assert not [f for f in plausibility.check_result({"k_v": 1.2 * k, "k_w": k}, PAPER_BEARING)
+                if f.quantity == "k_v / k_w"]
+    flags = [f for f in plausibility.check_result({"k_v": k, "k_w": k / 1.3}, PAPER_BEARING)
+             if f.quantity == "k_v / k_w"]
+    assert len(flags) == 1 and flags[0].value == pytest.approx(1.3)
+
+
+def test_loads_halved_on_one_axis_are_not_an_answer(tmp_path):
+    from typer.testing import CliRunner
+
+    from ambfit.faces.cli import app
+
+    df = pd.read_csv(DEFAULT)
+    df.loc[df["axis"] == "w", "load_N"] *= 0.5
+    path = tmp_path / "half.csv"
+    df.to_csv(path, index=False)
+    r = CliRunner().invoke(app, ["identify", str(path)])
+    assert r.exit_code == 3 and "k_v / k_w = 2.0" in r.output, r.output

@@ -41,6 +41,11 @@ from ambfit.physics.bearing import AXES, Bearing
 K_FACTOR_RANGE = (0.4, 1.15)
 """Lamination factor ``k / (MU_0 A (2N)^2 cos(alpha) / 4)`` a real radial bearing can have."""
 
+K_AXIS_RATIO = 1.25
+"""Largest ratio of the two axes' force constants: the bearing description draws both axes alike (the same poles,
+turns and iron), so manufacturing and the axes' different effective gaps part them by a few per cent; loads
+halved or doubled on one axis (a unit or a lever mistake) part them twofold."""
+
 GAP_RANGE = (0.7, 1.3)
 """Effective gap over the drawn gap."""
 
@@ -110,6 +115,12 @@ def check_result(values: dict[str, float], bearing: Bearing) -> list[Flag]:
     lo, hi = K_FACTOR_RANGE
     g_lo, g_hi = GAP_RANGE
     nominal = bearing.nominal_gap
+    kv, kw = values.get("k_v"), values.get("k_w")
+    if kv is not None and kw is not None and math.isfinite(kv) and math.isfinite(kw) and kv > 0 and kw > 0 \
+            and not 1 / K_AXIS_RATIO <= kv / kw <= K_AXIS_RATIO:
+        flags.append(Flag("k_v / k_w", kv / kw, f"within {1 / K_AXIS_RATIO:.2f}-{K_AXIS_RATIO:.2f} on a bearing drawn "
+                          "alike on both axes", "the known loads of one axis in another unit or scale (a lever arm, "
+                          "grams, a halved or doubled load), or a current channel of one axis mis-scaled"))
     for ax in AXES:
         k = values.get(f"k_{ax}")
         if k is not None and math.isfinite(k):

@@ -89,6 +89,24 @@ class Meta:
         return "estimated" in self.noise_source
 
 
+def _empty_cells(df: pd.DataFrame, columns: tuple, ax: np.ndarray | None = None) -> str:
+    """Why std columns that are there are not used: `` (i_top_std_A has 1 empty cell of 80, row 6: ...)``, or ""
+    when the columns are absent.  ``ax``: position columns count only on their own axis' rows."""
+    there = [c for c in columns if c in df]
+    if not there:
+        return ""
+    parts, first = [], None
+    for c in there:
+        empty = df[c].isna().to_numpy() & (True if ax is None else np.asarray(ax) == columns.index(c))
+        if empty.any():
+            parts.append(f"{c} has {int(empty.sum())} empty cell(s) of {len(df)}")
+            first = first if first is not None else int(np.argmax(empty))
+    missing = [c for c in columns if c not in df]
+    parts += [f"no {c} column" for c in missing]
+    return (f" ({'; '.join(parts)}{'' if first is None else f', first on data row {first + 1}'}: std columns are used "
+            "only when complete; fill them, or declare the noise)")
+
+
 def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
     n = len(df)
 
@@ -102,16 +120,18 @@ def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
         st, sb = np.full(n, float(sigma_i)), np.full(n, float(sigma_i))
         sources.append(f"current {sigma_i * 1e3:g} mA declared")
     elif np.isnan(st).any() or np.isnan(sb).any():
+        gaps = _empty_cells(df, ("i_top_std_A", "i_bottom_std_A"))
         st, sb = np.full(n, 1e-3), np.full(n, 1e-3)
-        sources.append("current estimated from the residuals")
+        sources.append("current estimated from the residuals" + gaps)
     else:
         sources.append("current from the std columns")
     if sigma_x is not None:
         sx = np.full(n, float(sigma_x))
         sources.append(f"position {sigma_x * 1e6:g} µm declared")
     elif np.isnan(sx).any():
+        gaps = _empty_cells(df, ("v_std_um", "w_std_um"), ax)
         sx = np.zeros(n)
-        sources.append("position noise taken as 0 (no std column)")
+        sources.append("position noise taken as 0 " + (f"{gaps[1:]}" if gaps else "(no std column)"))
     else:
         sources.append("position from the std columns")
     return st, sb, sx, "; ".join(sources)
@@ -228,7 +248,10 @@ def _join_keys(joined: pd.DataFrame, frames: list[pd.DataFrame], set_id: np.ndar
     else:
         w = (joined["axis"] == "w").to_numpy()
         pos = complete(np.where(w, col("w_std_um"), col("v_std_um")), np.ones(n, bool))
-    return list(zip(cur, pos, *(has[c] for c in ("load_id", "experiment", "time_s", "temperature_C"))))
+    # a table whose std columns are there but incomplete is built alone: its noise source names its own empty cells
+    own = np.where((~cur & (has["i_top_std_A"] | has["i_bottom_std_A"])) | (~pos & (has["v_std_um"] | has["w_std_um"])),
+                   np.arange(n), -1)
+    return list(zip(cur, pos, *(has[c] for c in ("load_id", "experiment", "time_s", "temperature_C")), own))
 
 
 def _slicer(prob: Problem, replace: dict | None = None):

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import html
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -181,6 +182,22 @@ class FitResult:
             return None
         return bool(self.p_value >= self.thresholds.p_min)
 
+    @property
+    def chi2_lower_p(self) -> float:
+        """Probability of a χ² at most this large if the model and the noise levels were right."""
+        from scipy.special import chdtr
+
+        return float(chdtr(self.dof, self.chi2))
+
+    @property
+    def noise_as_declared(self) -> bool | None:
+        """χ² not improbably small for the declared noise (lower-tail p-value >= ``p_min``): std columns twice or
+        ten times the real noise give χ²/dof 0.25 or 0.01, every error bar as many times too wide; None when the
+        noise was estimated."""
+        if self.noise_estimated or self.dof < 1:
+            return None
+        return bool(self.chi2_lower_p >= self.thresholds.p_min)
+
     def checks(self) -> list[tuple[str, bool | None, str]]:
         """Every health check as ``(name, passed, cause and fix)``; ``passed`` is None when it cannot be judged."""
         from ambfit.estimation.convergence import not_converged
@@ -202,6 +219,11 @@ class FitResult:
             ("adequate", self.adequate,
              f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
              f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose"),
+            ("noise_as_declared", self.noise_as_declared,
+             f"χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof is improbably small for the declared noise (p = "
+             f"{self.chi2_lower_p:.2g} of a χ² this small): the std columns or --current-noise-ma/--position-noise-um "
+             f"overstate the noise about {1 / math.sqrt(max(self.reduced_chi2, 1e-12)):.2g}-fold, and every error "
+             "bar with it; give the real noise (or leave it out to estimate it from the residuals)"),
             ("plausible", not self.implausible, "; ".join(map(str, self.implausible)) +
              " (ambfit identify exits 3 unless --accept-implausible)"),
             ("no_outliers", not self.outliers, self._outlier_text()),
