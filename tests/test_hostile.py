@@ -265,10 +265,15 @@ def test_ctrl_c_inside_emcee_is_held_until_the_piece_ends():
                 time.sleep(0.05)                   # the signal is handled while the piece still runs
             Sampler.completed += 1
 
-    with pytest.raises(KeyboardInterrupt):
-        advance(Sampler(), None, 2000, Tally(None, 2000), "steps")
-    assert Sampler.pieces == Sampler.completed == 1     # the piece it came in ran to its end, and no other
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler          # the handler is given back
+    # Python's own SIGINT handler, as in the command line (a pytest-xdist worker ignores SIGINT)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            advance(Sampler(), None, 2000, Tally(None, 2000), "steps")
+        assert Sampler.pieces == Sampler.completed == 1     # the piece it came in ran to its end, and no other
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler          # the handler is given back
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_ctrl_c_during_a_command_ends_in_one_line(monkeypatch, tmp_path):
