@@ -252,20 +252,44 @@ def _consistency(df: pd.DataFrame, problems: _Problems):
                              r, "load_N", df["load_N"].iloc[r])
 
 
+NEAR = {"i_top_A": 1e-5, "i_bottom_A": 1e-5, "v_um": 1e-3, "w_um": 1e-3, "bias_A": 1e-5, "load_N": 1e-6}
+"""How close a reading's numbers must be to another's, with the same labels, to be a copy [the column's unit]:
+10 µA and 1 nm, a hundredth of the finest noise a rig reads (0.1 mA, 0.1 µm), so two real readings agree this
+closely on all four channels with a chance below 1e-8; a copy exported again at another precision (or nudged to
+pass as new) does."""
+
+
 def duplicate_rows(df: pd.DataFrame) -> list[tuple[int, int]]:
-    """Exact duplicate readings as ``(row, first row it repeats)``, rows counted from 1 as in messages.
+    """Duplicate readings as ``(row, first row it repeats)``, rows counted from 1 as in messages: the same labels
+    (axis, load, experiment, iteration, time) and every number within :data:`NEAR` of the first's.
 
     A duplicated reading counts twice in a fit and makes its error bars too small by up to sqrt(2).
     """
-    cols = [c for c in (*REQUIRED, "load_N", "load_id", "experiment", "iteration", "time_s") if c in df.columns]
-    first = {}
+    labels = [c for c in ("axis", "load_id", "experiment", "iteration", "time_s") if c in df.columns]
+    numbers = [c for c in NEAR if c in df.columns]
+    values = df[numbers].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    tol = np.array([NEAR[c] for c in numbers])
     out = []
-    for r, key in enumerate(map(tuple, df[cols].astype(str).to_numpy())):
-        if key in first:
-            out.append((r + 1, first[key] + 1))
-        else:
-            first[key] = r
-    return out
+    keys = df[labels].astype(str).agg("\x1f".join, axis=1) if labels else pd.Series("", index=df.index)
+    for positions in keys.groupby(keys.to_numpy(), sort=False).indices.values():
+        if len(positions) < 2:
+            continue
+        block = values[positions]
+        order = np.argsort(block[:, 0], kind="stable")           # by the first number: copies are neighbours
+        for a, i in enumerate(order):
+            for j in order[a + 1:]:
+                if not block[j, 0] - block[i, 0] <= tol[0]:
+                    break
+                same = (np.abs(block[j] - block[i]) <= tol) | (np.isnan(block[j]) & np.isnan(block[i]))
+                if same.all():
+                    first, later = sorted((positions[i], positions[j]))
+                    out.append((int(later) + 1, int(first) + 1))
+    seen, unique = set(), []
+    for later, first in sorted(out):             # each repeat named once, against the earliest reading it repeats
+        if later not in seen:
+            seen.add(later)
+            unique.append((later, min(f for r, f in out if r == later)))
+    return unique
 
 
 def file_rows(df: pd.DataFrame) -> np.ndarray:

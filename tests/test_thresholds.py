@@ -154,3 +154,20 @@ def test_loads_halved_on_one_axis_are_not_an_answer(tmp_path):
     df.to_csv(path, index=False)
     r = CliRunner().invoke(app, ["identify", str(path)])
     assert r.exit_code == 3 and "k_v / k_w = 2.0" in r.output, r.output
+
+
+def test_a_copied_reading_is_a_duplicate_even_when_nudged_and_a_new_one_is_not():
+    from ambfit.data import duplicate_rows
+
+    df = pd.read_csv(DEFAULT)
+    assert duplicate_rows(df) == []
+    copies = df.iloc[[3, 10]].copy()
+    copies["i_top_A"] += 5e-6                                   # nudged by 5 µA, half the 10 µA of NEAR
+    copies["v_um"] = copies["v_um"].round(4)                    # exported again at 0.1 nm
+    assert duplicate_rows(pd.concat([df, copies], ignore_index=True)) == [(81, 4), (82, 11)]
+    apart = df.iloc[[3]].copy()
+    apart["i_top_A"] += 2e-5                                    # 20 µA apart: a new reading (0.02 noise std)
+    assert duplicate_rows(pd.concat([df, apart], ignore_index=True)) == []
+    relabelled = df.iloc[[3]].copy()
+    relabelled["experiment"] = "E9"                             # the same numbers in another experiment
+    assert duplicate_rows(pd.concat([df, relabelled], ignore_index=True)) == []

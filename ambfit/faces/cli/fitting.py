@@ -60,7 +60,7 @@ def _collector(messages: list):
 
 
 def drop_duplicates(ds, name: str, keep: bool, say=say):
-    """Name exact duplicate readings; unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``.
+    """Name duplicate readings (:func:`ambfit.data.duplicate_rows`: the same labels, numbers within 10 µA and 1 nm); unless ``keep``, count each once.  Returns ``(dataset, dropped rows)``.
 
     Rows are named as in the file (counted from 1): a group cut out of a file keeps the file's row numbers.
     """
@@ -76,11 +76,12 @@ def drop_duplicates(ds, name: str, keep: bool, say=say):
 
     listed = ", ".join(f"{row(r)} repeats {row(f)}" for r, f in dupes[:8]) + (" ..." if len(dupes) > 8 else "")
     if keep:
-        say("warn", f"{name}: {len(dupes)} exact duplicate reading(s) kept (--keep-duplicates): rows {listed}; "
+        say("warn", f"{name}: {len(dupes)} duplicate reading(s) kept (--keep-duplicates): rows {listed}; "
             "each counts twice and the error bars are too small (up to sqrt(2) when every row repeats)")
         return ds, []
     frame = ds.frame.drop(index=ds.frame.index[[r - 1 for r, _ in dupes]])
-    say("warn", f"{name}: {len(dupes)} exact duplicate reading(s) counted once (rows {listed}); a repeated reading "
+    say("warn", f"{name}: {len(dupes)} duplicate reading(s) counted once (rows {listed}; the same labels, every number "
+        "within 10 µA and 1 nm); a repeated reading "
         "is a copy, not a new measurement, and would shrink the error bars (--keep-duplicates counts them)")
     return Dataset(frame=frame, source=ds.source), [row(r) for r, _ in dupes]
 

@@ -59,7 +59,7 @@ def check(
                                                           "(default: the bearing's nominal gap).")] = None,
     bearing: BearingOption = None,
 ):
-    """List every problem of a data file at once (row, column, value, why), and exact duplicate readings.
+    """List every problem of a data file at once (row, column, value, why), and duplicate readings.
 
     Besides the contract's checks, every column is judged against the bearing description (--bearing): currents
     beyond the coil limit (mA for A?), loads beyond what the bearing can lift, positions too small to be µm
@@ -127,7 +127,7 @@ def identify(
                                        "Bonferroni bound, 1 % false alarms per file, are named and left out); "
                                        "'linear': plain least squares (outliers named, kept); 'huber', 'cauchy': "
                                        "robust losses.")] = Loss.auto,
-    keep_duplicates: Annotated[bool, typer.Option(help="Count exact duplicate readings as often as they appear "
+    keep_duplicates: Annotated[bool, typer.Option(help="Count duplicate readings as often as they appear "
                                                   "(default: once, with a warning naming them).")] = False,
     force_check: Annotated[bool, typer.Option(help="With two or more distinct known loads: leave each out, fit the "
                                               "rest, and compare the force predicted for its readings with it "
