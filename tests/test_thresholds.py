@@ -171,3 +171,15 @@ def test_a_copied_reading_is_a_duplicate_even_when_nudged_and_a_new_one_is_not()
     relabelled = df.iloc[[3]].copy()
     relabelled["experiment"] = "E9"                             # the same numbers in another experiment
     assert duplicate_rows(pd.concat([df, relabelled], ignore_index=True)) == []
+
+
+def test_the_outlier_bound_widens_when_the_noise_is_estimated_from_the_residuals():
+    from ambfit.estimation import robust
+
+    # known noise: Φ⁻¹(1 - 0.01/160) for 80 readings (Bonferroni, α = 1 %): scipy.stats.norm.ppf gives 3.8361
+    assert robust.threshold(80, 0.01) == pytest.approx(3.8361, abs=1e-4)
+    # estimated as 1.4826 MAD of the same 80 residuals: Student t with 80/2.72 = 29.4 dof at the same tail,
+    # scipy.stats.t.ppf(1 - 0.01/160, 80/2.72) = 4.4154; the normal bound flagged 3.8 % of clean files
+    assert robust.threshold(80, 0.01, estimated=True) == pytest.approx(4.4154, abs=1e-4)
+    # many readings: the scale is sharp, and the bound tends to the normal one
+    assert robust.threshold(100_000, 0.01, estimated=True) == pytest.approx(robust.threshold(100_000, 0.01), rel=2e-3)

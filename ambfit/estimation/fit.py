@@ -296,7 +296,7 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
         base = np.asarray(probs[s].mask, dtype=float)
         used = base > 0
         if s in t and not inherited[s] and np.all(np.isfinite(res.residuals[used])) and \
-                not np.any(np.abs(t[s][used]) > robust.threshold(int(used.sum()), alpha)):
+                not np.any(np.abs(t[s][used]) > robust.threshold(int(used.sum()), alpha, built[s][1].noise_estimated)):
             # clean (the common case of a study): plain least squares, as screen finds it, without a refit
             # (its loss, rows and weights were set as it was made)
             flags = plausibility.check_result(dict(zip(res.names, res.values)), models[bearings[s]].bearing)

@@ -63,7 +63,7 @@ def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: M
     if alpha <= 0:                                     # no outlier test
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)
     fitted = base > 0
-    limit = robust.threshold(int(fitted.sum()), alpha)
+    limit = robust.threshold(int(fitted.sum()), alpha, meta.noise_estimated)
     if t is None:
         t = _studentized(res, prob, meta, model)
     if not np.any(np.abs(t[fitted]) > limit):
