@@ -13,3 +13,9 @@ settings.register_profile(
 settings.register_profile("explore", parent=settings.get_profile("ambfit"), derandomize=False)
 settings.load_profile(os.environ.get("AMBFIT_HYPOTHESIS_PROFILE", "ambfit"))
 
+
+
+def pytest_collection_modifyitems(config, items):
+    # The long tests (marked slow) first: with two workers they then run beside the many short ones instead of
+    # alone at the end (the README's commands take as long as a hundred short tests).
+    items.sort(key=lambda item: (item.get_closest_marker("slow") is None, "test_readme" not in item.nodeid))
