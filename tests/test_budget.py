@@ -98,3 +98,19 @@ def test_the_bearing_file_declares_the_tolerances(tmp_path):
     toml.write_text('tolerance_distribution = "triangular"\n')
     with pytest.raises(BearingError, match="tolerance_distribution must be one of uniform, normal"):
         Bearing.from_toml(toml)
+
+
+def test_current_zeros_a_model_fits_are_not_budgeted_again():
+    # the rich design (four biases) identifies each coil's current zero: a model with current_offset fits them,
+    # their error is in its statistical covariance, and the budget holds only the other terms
+    from ambfit.physics.effects import CurrentOffset
+
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=3).data
+    res = fit(data, [CurrentOffset()])
+    b = budget(data, res)
+    names = [t.name for t in b.terms]
+    assert b.fitted == ("current zero",) and not [n for n in names if n.startswith("current zero")]
+    assert "current gain, axis v, top" in names and len(names) == 7
+    plain = budget(data, fit(data))
+    assert plain.fitted == () and len(plain.terms) == 11

@@ -79,9 +79,15 @@ def _offset(column: str, rows: str):
     return record
 
 
-def terms(frame: pd.DataFrame, bearing: Bearing) -> list[Term]:
+FITTED = {"current_offset": "current zero"}
+"""Effects whose fit estimates a calibration term (``effect name: the terms' name``): a model holding the effect
+fits the channels' zeros from the readings (several biases identify them), so they are not budgeted again."""
+
+
+def terms(frame: pd.DataFrame, bearing: Bearing, fitted: tuple = ()) -> list[Term]:
     """The calibration terms the bearing description declares and these readings depend on: a coil's channels
-    only where its axis has readings, the load scale only where known loads are."""
+    only where its axis has readings, the load scale only where known loads are; none that an effect of
+    ``fitted`` (effect names, :data:`FITTED`) estimates."""
     dist = bearing.tolerance_distribution
     out = []
     axes = [ax for ax in AXES if (frame["axis"] == ax).any()]
@@ -94,7 +100,7 @@ def terms(frame: pd.DataFrame, bearing: Bearing) -> list[Term]:
     for ax in axes:
         for coil in ("top", "bottom"):
             tol = bearing.current_offset_tolerance
-            if tol > 0:
+            if tol > 0 and "current_offset" not in fitted:
                 out.append(Term(f"current zero, axis {ax}, {coil}", tol, "A", standard_uncertainty(tol, dist),
                                 _offset(f"i_{coil}_A", ax)))
     for ax in AXES:
@@ -122,6 +128,8 @@ class Budget:
     terms: tuple
     contributions: np.ndarray
     failed: tuple = ()
+    fitted: tuple = ()
+    """The calibration terms the model fits instead (their error is in ``cov_a``), by name."""
 
     @property
     def cov_b(self) -> np.ndarray:
@@ -208,7 +216,8 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
             return fit(table, res.effects, bearing=res.bearing, start_from=res, mask=keep, loss=res.loss,
                        alpha=0.0, throw=False, **fit_kw)
 
-    found = terms(frame, bearing)
+    effects = tuple(type(e).name for e in res.effects)
+    found = terms(frame, bearing, effects)
     contributions = np.full((len(found), len(res.names)), np.nan)
     failed = []
     for k, term in enumerate(found):
@@ -217,5 +226,6 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
             failed.append(term.name)
             continue
         contributions[k] = (np.asarray(ends[0].values) - np.asarray(ends[1].values)) / 2.0
+    fitted = tuple(FITTED[e] for e in effects if e in FITTED)
     return Budget(list(res.names), np.asarray(res.values), np.asarray(res.cov), tuple(found), contributions,
-                  tuple(failed))
+                  tuple(failed), fitted)

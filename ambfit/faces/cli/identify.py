@@ -264,11 +264,16 @@ def _add_budget(record: dict, ds, res, kw: dict) -> None:
                   "tolerances, sensitivities by refitting at ±u",
         "distribution": desc.tolerance_distribution,
         "terms": [{"term": t.name, "tolerance": t.tolerance, "unit": t.unit, "u": t.u} for t in b.terms],
-        "failed": list(b.failed)}
+        "failed": list(b.failed), "fitted_instead": list(b.fitted)}
+    declared = {"current gain": f"±{100 * desc.current_gain_tolerance:g} %",
+                "current zero": f"±{desc.current_offset_tolerance * 1e3:g} mA",
+                "position gain": f"±{100 * desc.position_gain_tolerance:g} %",
+                "load scale": f"±{100 * desc.load_scale_tolerance:g} %"}
+    listed = ", ".join(f"{k} {v}" for k, v in declared.items() if k not in b.fitted)
     show_table(b.summary_rows(), f"uncertainty: the readings' noise and the calibration tolerances "
-               f"({desc.tolerance_distribution}: current gain ±{100 * desc.current_gain_tolerance:g} %, current zero "
-               f"±{desc.current_offset_tolerance * 1e3:g} mA, position gain ±{100 * desc.position_gain_tolerance:g} %, "
-               f"loads ±{100 * desc.load_scale_tolerance:g} %)", left=("parameter", "largest calibration term"))
+               f"({desc.tolerance_distribution}: {listed})", left=("parameter", "largest calibration term"))
+    for what in b.fitted:
+        note(f"{what}s: fitted by the model (their error is in std), not budgeted from the tolerance")
     if b.failed:
         warn(f"the calibration terms {', '.join(b.failed)} could not be propagated (their refits did not converge); "
              "u_combined leaves them out")
