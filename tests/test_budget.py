@@ -114,3 +114,24 @@ def test_current_zeros_a_model_fits_are_not_budgeted_again():
     assert "current gain, axis v, top" in names and len(names) == 7
     plain = budget(data, fit(data))
     assert plain.fitted == () and len(plain.terms) == 11
+
+
+def test_identify_advises_fitting_the_current_zeros_where_the_data_determine_them(tmp_path):
+    # zeros declared to ±10 mA dominate the origins' uncertainty; the rich design's four biases determine them
+    # (their prior shares are small), Table 2's two do not: advice on the first only
+    toml = tmp_path / "b.toml"
+    toml.write_text("current_offset_tolerance_mA = 10.0\n")
+    spec = rig.PAPER_RIG
+    rich = tmp_path / "rich.csv"
+    rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=3).data.to_csv(rich, index=False)
+    runner = CliRunner()
+    out = tmp_path / "rich.json"
+    r = runner.invoke(app, ["identify", str(rich), "--bearing", str(toml), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    advice = json.loads(out.read_text())["uncertainty_budget"]["fit_instead"]
+    assert advice["effect"] == "current_offset" and advice["zero_share"] > 0.25
+    assert advice["u_combined_fitted"] < 0.5 * advice["u_combined"] and "--effect current_offset" in r.output
+    out = tmp_path / "t2.json"
+    r = runner.invoke(app, ["identify", str(DEFAULT), "--bearing", str(toml), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "fit_instead" not in json.loads(out.read_text())["uncertainty_budget"]
