@@ -126,6 +126,8 @@ def test_sample_cli_writes_netcdf_and_bayes_json(tmp_path):
         assert sd == pytest.approx(p["std"], rel=1e-12)
         assert p["u_combined"] == pytest.approx(math.sqrt(sum(t["u"] ** 2 for t in p["budget"])), rel=1e-12)
         assert p["u_combined"] > p["std"]
+        # the posterior with the calibration marginalised is wider than the posterior alone
+        assert p["hdi_low_combined"] < p["hdi_low"] < p["hdi_high"] < p["hdi_high_combined"]
 
 
 def test_sbc_small_fast_version():

@@ -180,6 +180,20 @@ class Budget:
                                     "share": share} for n, u, share in self.shares(name, a, type_a_name)]}
         return out
 
+    def propagate(self, draws: dict, distribution: str, rng: np.random.Generator) -> dict:
+        """Posterior draws with the calibration marginalised (GUM Supplement 1's Monte Carlo on the linearised
+        sensitivities): each draw shifted by ``Σ_k c_k δ_k`` with every term's error ``δ_k`` drawn anew from its
+        distribution (uniform within ±tolerance, or normal of sd u).  ``draws``: ``{name: array [SI]}`` of this
+        budget's parameters; returns the same with the shifts added."""
+        n = len(next(iter(draws.values())))
+        ok = np.all(np.isfinite(self.contributions), axis=1)
+        if distribution == "uniform":          # unit-variance draws, scaled by the term's u below
+            z = rng.uniform(-math.sqrt(3.0), math.sqrt(3.0), size=(n, int(ok.sum())))
+        else:
+            z = rng.standard_normal((n, int(ok.sum())))
+        shift = z @ self.contributions[ok]     # the contributions are c_k u_k, z_k = δ_k / u_k
+        return {name: np.asarray(v, float) + shift[:, self.names.index(name)] for name, v in draws.items()}
+
     def summary_rows(self) -> list[dict]:
         """One row per head parameter: value, statistical error, combined uncertainty, the largest term."""
         from ambfit.estimation.units import DISPLAY

@@ -35,7 +35,7 @@ MIN_STEPS = 100
 """Fewest steps to start with: the burn-in alone is two autocorrelation times."""
 
 
-def _add_budget(record: dict, ds, res, noise: dict) -> None:
+def _add_budget(record: dict, ds, res, noise: dict, seed: int) -> None:
     """The calibration's type-B terms (:mod:`ambfit.estimation.budget`, sensitivities of the least-squares fit
     the sampler started from) combined with each parameter's posterior sd: ``u_combined`` and ``budget``."""
     import numpy as np
@@ -51,8 +51,19 @@ def _add_budget(record: dict, ds, res, noise: dict) -> None:
     for key, extra in b.to_contract(sd, "posterior sd (type A)").items():
         if key in record["params"]:
             record["params"][key].update(extra)
+    # the calibration marginalised: every posterior draw shifted by a calibration error drawn anew (GUM-S1)
+    draws = {name: np.asarray(res.datatree.posterior[name], float).ravel() / DISPLAY[name][1] for name in sd}
+    wide = b.propagate(draws, res.ls.bearing.tolerance_distribution, np.random.default_rng(seed))
+    for name, key, factor in CONTRACT_PARAMS:
+        if name in wide and key in record["params"]:
+            x = np.sort(wide[name]) * factor
+            k = int(np.floor(record["hdi_prob"] * len(x)))
+            i = int(np.argmin(x[k:] - x[:len(x) - k]))
+            record["params"][key].update(hdi_low_combined=float(x[i]), hdi_high_combined=float(x[i + k]))
     record["uncertainty_budget"] = {"method": "GUM (JCGM 100): type A the posterior sd, type B the bearing "
-                                              "description's calibration tolerances through the least-squares fit",
+                                              "description's calibration tolerances through the least-squares fit; "
+                                              "hdi_*_combined: the posterior with the calibration marginalised "
+                                              "(each draw shifted by a drawn calibration error, GUM Supplement 1)",
                                     "failed": list(b.failed)}
     note("u_combined (posterior sd with the calibration tolerances): " + ", ".join(
         f"{name} {b.u_combined(name, sd[name]) * DISPLAY[name][1]:.3g} {DISPLAY[name][0]}" for name in sd))
@@ -117,7 +128,7 @@ def sample(
         fail(str(exc), 3)
     note(res.summary())
     record = res.to_json()
-    _add_budget(record, ds, res, declared_noise(current_noise_ma, position_noise_um))
+    _add_budget(record, ds, res, declared_noise(current_noise_ma, position_noise_um), seed)
     if out is not None:
         # serialised in memory first: HDF5 writing to a full disk fails uncleanly, Python's writes fail cleanly
         write_bytes(out, res.datatree.to_netcdf(engine="h5netcdf"))
