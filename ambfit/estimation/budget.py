@@ -22,8 +22,9 @@ Example
 >>> b = budget(data, fit(data))
 >>> b.u_combined("v0") > b.std("v0")          # the calibration adds to the noise
 True
->>> [name for name, u, share in b.shares("v0")][:2]       # the origin's largest terms
-["readings' noise (type A)", 'current gain, axis v, top']
+>>> {name for name, u, share in b.shares("v0")[:3]} == {NOISE_TERM, "current gain, axis v, top",
+...                                                  "current gain, axis v, bottom"}      # the origin's largest
+True
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.estimation.units import CONTRACT_PARAMS
-from ambfit.physics.bearing import AXES, Bearing
+from ambfit.physics.bearing import AXES, TOLERANCE_DISTRIBUTIONS, Bearing
 
 NOISE_TERM = "readings' noise (type A)"
 """The budget's name of the statistical term: the fit's own standard error."""
@@ -56,6 +57,8 @@ class Term:
 
 def standard_uncertainty(tolerance: float, distribution: str) -> float:
     """``u`` of a tolerance ``a``: ``a / sqrt(3)`` for a uniform ±a (GUM 4.3.7), ``a`` itself for ``"normal"``."""
+    if distribution not in TOLERANCE_DISTRIBUTIONS:
+        raise ValueError(f"distribution must be one of {', '.join(TOLERANCE_DISTRIBUTIONS)}, got {distribution!r}")
     return tolerance / math.sqrt(3.0) if distribution == "uniform" else tolerance
 
 
@@ -84,10 +87,19 @@ FITTED = {"current_offset": "current zero"}
 fits the channels' zeros from the readings (several biases identify them), so they are not budgeted again."""
 
 
-def terms(frame: pd.DataFrame, bearing: Bearing, fitted: tuple = ()) -> list[Term]:
-    """The calibration terms the bearing description declares and these readings depend on: a coil's channels
-    only where its axis has readings, the load scale only where known loads are; none that an effect of
-    ``fitted`` (effect names, :data:`FITTED`) estimates."""
+def terms(frame: pd.DataFrame, bearing: Bearing, fitted_effects: tuple = ()) -> list[Term]:
+    """The calibration terms the bearing description declares and these readings depend on.
+
+    Parameters
+    ----------
+    frame : DataFrame
+        The readings (contract columns): a coil's channels count only where its axis has readings, the load
+        scale only where known loads are.
+    bearing : Bearing
+        Its tolerances and how they are distributed.
+    fitted_effects : tuple of str
+        Effect names of the model: no term that one of them estimates (:data:`FITTED`).
+    """
     dist = bearing.tolerance_distribution
     out = []
     axes = [ax for ax in AXES if (frame["axis"] == ax).any()]
@@ -100,7 +112,7 @@ def terms(frame: pd.DataFrame, bearing: Bearing, fitted: tuple = ()) -> list[Ter
     for ax in axes:
         for coil in ("top", "bottom"):
             tol = bearing.current_offset_tolerance
-            if tol > 0 and "current_offset" not in fitted:
+            if tol > 0 and "current_offset" not in fitted_effects:
                 out.append(Term(f"current zero, axis {ax}, {coil}", tol, "A", standard_uncertainty(tol, dist),
                                 _offset(f"i_{coil}_A", ax)))
     for ax in AXES:
@@ -122,17 +134,21 @@ class Budget:
     ``c_k u_k`` of every parameter that term ``terms[k]`` makes at one standard uncertainty (NaN where its refits
     failed, named in ``failed``)."""
 
-    names: list
+    names: tuple
     values: np.ndarray
     cov_a: np.ndarray
     terms: tuple
     contributions: np.ndarray
+    distribution: str = "uniform"
+    """How the terms' errors are distributed (:attr:`~ambfit.physics.bearing.Bearing.tolerance_distribution`)."""
     failed: tuple = ()
-    fitted: tuple = ()
-    """The calibration terms the model fits instead (their error is in ``cov_a``), by name."""
+    fitted_terms: tuple = ()
+    """The calibration terms the model fits instead (their error is in ``cov_a``), by name (:data:`FITTED`)."""
 
     @property
     def cov_b(self) -> np.ndarray:
+        """The calibration's (type B) covariance ``Σ_k (c_k u_k)(c_k u_k)ᵀ``; a failed term (``failed``) adds
+        nothing, and :meth:`to_json` says so."""
         c = np.nan_to_num(self.contributions)
         return c.T @ c
 
@@ -180,19 +196,28 @@ class Budget:
                                     "share": share} for n, u, share in self.shares(name, a, type_a_name)]}
         return out
 
-    def propagate(self, draws: dict, distribution: str, rng: np.random.Generator) -> dict:
+    def propagate(self, draws: dict, rng: np.random.Generator) -> dict:
         """Posterior draws with the calibration marginalised (GUM Supplement 1's Monte Carlo on the linearised
         sensitivities): each draw shifted by ``Σ_k c_k δ_k`` with every term's error ``δ_k`` drawn anew from its
-        distribution (uniform within ±tolerance, or normal of sd u).  ``draws``: ``{name: array [SI]}`` of this
+        :attr:`distribution` (uniform within ±tolerance, or normal of sd u).  ``draws``: ``{name: array [SI]}`` of this
         budget's parameters; returns the same with the shifts added."""
         n = len(next(iter(draws.values())))
         ok = np.all(np.isfinite(self.contributions), axis=1)
-        if distribution == "uniform":          # unit-variance draws, scaled by the term's u below
+        if self.distribution == "uniform":     # unit-variance draws, scaled by the term's u below
             z = rng.uniform(-math.sqrt(3.0), math.sqrt(3.0), size=(n, int(ok.sum())))
         else:
             z = rng.standard_normal((n, int(ok.sum())))
         shift = z @ self.contributions[ok]     # the contributions are c_k u_k, z_k = δ_k / u_k
         return {name: np.asarray(v, float) + shift[:, self.names.index(name)] for name, v in draws.items()}
+
+    def to_json(self, type_a_name: str = NOISE_TERM) -> dict:
+        """What the budget was made of: method, distribution, every term (tolerance, unit, u), the terms whose
+        refits failed (left out of u_combined) and those the model fits instead."""
+        return {"method": f"GUM (JCGM 100): type A {type_a_name}, type B the bearing description's calibration "
+                          "tolerances, sensitivities by refitting at ±u",
+                "distribution": self.distribution,
+                "terms": [{"term": t.name, "tolerance": t.tolerance, "unit": t.unit, "u": t.u} for t in self.terms],
+                "failed": list(self.failed), "fitted_instead": list(self.fitted_terms)}
 
     def summary_rows(self) -> list[dict]:
         """One row per head parameter: value, statistical error, combined uncertainty, the largest term."""
@@ -219,7 +244,7 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
     fit was given; the outlier test is not run again, so that every refit fits the same rows).
     """
     from ambfit.data import Dataset
-    from ambfit.estimation.fit import fit
+    from ambfit.estimation.fit import _FAILURES, fit
 
     frame = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     bearing = bearing or res.bearing
@@ -227,19 +252,82 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
         keep = res.fitted_rows.astype(float)
 
         def refit(table):
-            return fit(table, res.effects, bearing=res.bearing, start_from=res, mask=keep, loss=res.loss,
-                       alpha=0.0, throw=False, **fit_kw)
+            return fit(table, res.effects, bearing=res.bearing, start_from=res, mask=keep, alpha=0.0, throw=False,
+                       **({"loss": res.loss} | fit_kw))
 
     effects = tuple(type(e).name for e in res.effects)
     found = terms(frame, bearing, effects)
     contributions = np.full((len(found), len(res.names)), np.nan)
     failed = []
     for k, term in enumerate(found):
-        ends = [refit(term.record(frame, sign * term.u)) for sign in (1.0, -1.0)]
+        try:
+            ends = [refit(term.record(frame, sign * term.u)) for sign in (1.0, -1.0)]
+        except _FAILURES:               # the readings so recorded cannot be fitted at all: the term is not propagated
+            failed.append(term.name)
+            continue
         if not all(e.converged and list(e.names) == list(res.names) for e in ends):
             failed.append(term.name)
             continue
         contributions[k] = (np.asarray(ends[0].values) - np.asarray(ends[1].values)) / 2.0
-    fitted = tuple(FITTED[e] for e in effects if e in FITTED)
-    return Budget(list(res.names), np.asarray(res.values), np.asarray(res.cov), tuple(found), contributions,
-                  tuple(failed), fitted)
+    return Budget(tuple(res.names), np.asarray(res.values), np.asarray(res.cov), tuple(found), contributions,
+                  bearing.tolerance_distribution, tuple(failed), tuple(FITTED[e] for e in effects if e in FITTED))
+
+
+def declared_text(bearing: Bearing, fitted_terms: tuple = ()) -> str:
+    """The bearing description's tolerances in words (``uniform: current gain ±0.1 %, ...``), without the terms a
+    model fits instead."""
+    declared = {"current gain": f"±{100 * bearing.current_gain_tolerance:g} %",
+                "current zero": f"±{bearing.current_offset_tolerance * 1e3:g} mA",
+                "position gain": f"±{100 * bearing.position_gain_tolerance:g} %",
+                "load scale": f"±{100 * bearing.load_scale_tolerance:g} %"}
+    listed = ", ".join(f"{k} {v}" for k, v in declared.items() if k not in fitted_terms)
+    return f"{bearing.tolerance_distribution}: {listed}"
+
+
+ZERO_SHARE = 0.25
+"""The current zeros' share of a head parameter's combined variance above which :func:`fit_instead` asks whether
+the readings determine them (one Jacobian) and, if they do, fits them (one fit and its budget)."""
+
+
+def fit_instead(data, res, b: Budget, **fit_kw) -> dict | None:
+    """When the current zeros dominate an uncertainty of the ideal law's fit ``res`` (budget ``b``) and the
+    readings determine them (every offset keeps less than :data:`~ambfit.estimation.identification.MAX_PRIOR_SHARE`
+    of its prior's variance: several biases do), what fitting them with ``current_offset`` gives, as advice:
+    ``{"effect", "parameter", "zero_share", "u_combined", "u_combined_fitted", "text"}``; None otherwise.
+    ``fit_kw``: how ``res`` was fitted (noise, ``require_k``, ``loss``)."""
+    from ambfit.estimation.conditioning import effect_identification
+    from ambfit.estimation.fit import fit
+    from ambfit.estimation.identification import MAX_PRIOR_SHARE
+    from ambfit.estimation.units import DISPLAY
+    from ambfit.physics.effects import CurrentOffset
+
+    if res.effects:                          # (the identification is judged from the ideal law's estimate)
+        return None
+    heads = [n for n, _, _ in CONTRACT_PARAMS if n in b.names]
+    share = {n: sum(sh for t, _, sh in b.shares(n) if t.startswith(FITTED["current_offset"])) for n in heads}
+    worst = max(share, key=share.get, default=None)
+    if worst is None or share[worst] <= ZERO_SHARE:
+        return None
+    shares = effect_identification(data, [CurrentOffset()], res, bearing=res.bearing, sigma_i=fit_kw.get("sigma_i"),
+                                   sigma_x=fit_kw.get("sigma_x"))
+    if not shares or max(shares.values()) > MAX_PRIOR_SHARE:
+        return None
+    alt = fit(data, [CurrentOffset()], bearing=res.bearing, throw=False, **fit_kw)
+    if not (alt.converged and alt.well_conditioned):
+        return None
+    u_now, u_alt = b.u_combined(worst), budget(data, alt, **fit_kw).u_combined(worst)
+    unit, f = DISPLAY[worst]
+    return {"effect": "current_offset", "parameter": worst, "zero_share": share[worst], "u_combined": u_now * f,
+            "u_combined_fitted": u_alt * f,
+            "text": f"the current zeros make {100 * share[worst]:.0f} % of {worst}'s combined variance and these "
+                    f"readings determine them: --effect current_offset fits them instead ({worst} u_combined "
+                    f"{u_now * f:.3g} -> {u_alt * f:.3g} {unit})"}
+
+
+def narrowest_interval(x: np.ndarray, prob: float) -> tuple[float, float]:
+    """The narrowest interval holding ``floor(prob n)`` of the draws ``x`` (a highest-density interval of a
+    unimodal distribution)."""
+    x = np.sort(np.asarray(x, float))
+    k = int(np.floor(prob * len(x)))
+    i = int(np.argmin(x[k:] - x[:len(x) - k]))
+    return float(x[i]), float(x[i + k])

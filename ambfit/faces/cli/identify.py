@@ -253,77 +253,24 @@ def _effects(names: list[str], bearing) -> tuple:
 def _add_budget(record: dict, ds, res, kw: dict) -> None:
     """The GUM budget (:mod:`ambfit.estimation.budget`) into the record's params (``u_combined``, ``budget``) and
     ``uncertainty_budget``, and shown: ``std`` stays the readings' noise alone."""
-    from ambfit.estimation.budget import budget
+    from ambfit.estimation.budget import budget, declared_text, fit_instead
 
-    b = budget(ds, res, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"], require_k=kw["require_k"])
+    noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
+    b = budget(ds, res, **noise)
     for key, extra in b.to_contract().items():
         record["params"].setdefault(key, {}).update(extra)
-    desc = res.bearing
-    record["uncertainty_budget"] = {
-        "method": "GUM (JCGM 100): type A from the fit, type B from the bearing description's calibration "
-                  "tolerances, sensitivities by refitting at ±u",
-        "distribution": desc.tolerance_distribution,
-        "terms": [{"term": t.name, "tolerance": t.tolerance, "unit": t.unit, "u": t.u} for t in b.terms],
-        "failed": list(b.failed), "fitted_instead": list(b.fitted)}
-    declared = {"current gain": f"±{100 * desc.current_gain_tolerance:g} %",
-                "current zero": f"±{desc.current_offset_tolerance * 1e3:g} mA",
-                "position gain": f"±{100 * desc.position_gain_tolerance:g} %",
-                "load scale": f"±{100 * desc.load_scale_tolerance:g} %"}
-    listed = ", ".join(f"{k} {v}" for k, v in declared.items() if k not in b.fitted)
+    record["uncertainty_budget"] = b.to_json()
     show_table(b.summary_rows(), f"uncertainty: the readings' noise and the calibration tolerances "
-               f"({desc.tolerance_distribution}: {listed})", left=("parameter", "largest calibration term"))
-    for what in b.fitted:
+               f"({declared_text(res.bearing, b.fitted_terms)})", left=("parameter", "largest calibration term"))
+    for what in b.fitted_terms:
         note(f"{what}s: fitted by the model (their error is in std), not budgeted from the tolerance")
-    advice = _fit_instead(ds, res, b, kw)
+    advice = fit_instead(ds, res, b, **noise)
     if advice:
         record["uncertainty_budget"]["fit_instead"] = advice
         note(advice["text"])
     if b.failed:
         warn(f"the calibration terms {', '.join(b.failed)} could not be propagated (their refits did not converge); "
              "u_combined leaves them out")
-
-
-ZERO_SHARE = 0.25
-"""The current zeros' share of a head parameter's combined variance above which identify asks whether the data
-identify them (one extra fit with the ``current_offset`` effect) and, if they do, advises fitting them instead."""
-
-
-def _fit_instead(ds, res, b, kw: dict) -> dict | None:
-    """When the current zeros dominate an uncertainty and these readings determine them (several biases do): what
-    fitting them would give (``--effect current_offset``), as advice; None otherwise."""
-    from ambfit.estimation.conditioning import effect_identification
-    from ambfit.estimation.fit import fit
-    from ambfit.estimation.identification import MAX_PRIOR_SHARE
-    from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY
-    from ambfit.physics.effects import CurrentOffset
-
-    if any(type(e).name == "current_offset" for e in res.effects):
-        return None
-    heads = [n for n, _, _ in CONTRACT_PARAMS if n in b.names]
-    share = {n: sum(sh for t, _, sh in b.shares(n) if t.startswith("current zero")) for n in heads}
-    worst = max(share, key=share.get, default=None)
-    if worst is None or share[worst] <= ZERO_SHARE:
-        return None
-    if res.effects:                      # (the identification is judged from the ideal law's estimate)
-        return None
-    shares = effect_identification(ds, [CurrentOffset()], res, bearing=res.bearing, sigma_i=kw["sigma_i"],
-                                   sigma_x=kw["sigma_x"])
-    if not shares or max(shares.values()) > MAX_PRIOR_SHARE:
-        return None
-    alt = fit(ds, [CurrentOffset()], bearing=res.bearing, throw=False, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"],
-              require_k=kw["require_k"])
-    if not (alt.converged and alt.well_conditioned):
-        return None
-    from ambfit.estimation.budget import budget
-
-    u_now = b.u_combined(worst)
-    u_alt = budget(ds, alt, sigma_i=kw["sigma_i"], sigma_x=kw["sigma_x"], require_k=kw["require_k"]).u_combined(worst)
-    unit, f = DISPLAY[worst]
-    return {"effect": "current_offset", "parameter": worst, "zero_share": share[worst], "u_combined": u_now * f,
-            "u_combined_fitted": u_alt * f,
-            "text": f"the current zeros make {100 * share[worst]:.0f} % of {worst}'s combined variance and these "
-                    f"readings determine them: --effect current_offset fits them instead ({worst} u_combined "
-                    f"{u_now * f:.3g} -> {u_alt * f:.3g} {unit})"}
 
 
 def _identify_ls(ds, name, opts: _Options) -> dict:

@@ -19,6 +19,7 @@ from ambfit.faces.cli.app import (
     fail,
     note,
     read_data,
+    warn,
     write_json,
 )
 from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
@@ -40,7 +41,7 @@ def _add_budget(record: dict, ds, res, noise: dict, seed: int) -> None:
     the sampler started from) combined with each parameter's posterior sd: ``u_combined`` and ``budget``."""
     import numpy as np
 
-    from ambfit.estimation.budget import budget
+    from ambfit.estimation.budget import budget, narrowest_interval
     from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY
 
     if not (res.ls.converged and res.ls.well_conditioned):
@@ -53,18 +54,17 @@ def _add_budget(record: dict, ds, res, noise: dict, seed: int) -> None:
             record["params"][key].update(extra)
     # the calibration marginalised: every posterior draw shifted by a calibration error drawn anew (GUM-S1)
     draws = {name: np.asarray(res.datatree.posterior[name], float).ravel() / DISPLAY[name][1] for name in sd}
-    wide = b.propagate(draws, res.ls.bearing.tolerance_distribution, np.random.default_rng(seed))
+    wide = b.propagate(draws, np.random.default_rng(seed))
     for name, key, factor in CONTRACT_PARAMS:
         if name in wide and key in record["params"]:
-            x = np.sort(wide[name]) * factor
-            k = int(np.floor(record["hdi_prob"] * len(x)))
-            i = int(np.argmin(x[k:] - x[:len(x) - k]))
-            record["params"][key].update(hdi_low_combined=float(x[i]), hdi_high_combined=float(x[i + k]))
-    record["uncertainty_budget"] = {"method": "GUM (JCGM 100): type A the posterior sd, type B the bearing "
-                                              "description's calibration tolerances through the least-squares fit; "
-                                              "hdi_*_combined: the posterior with the calibration marginalised "
-                                              "(each draw shifted by a drawn calibration error, GUM Supplement 1)",
-                                    "failed": list(b.failed)}
+            lo, hi = narrowest_interval(wide[name] * factor, record["hdi_prob"])
+            record["params"][key].update(hdi_low_combined=lo, hdi_high_combined=hi)
+    record["uncertainty_budget"] = b.to_json("the posterior sd") | {
+        "hdi_combined": "the posterior with the calibration marginalised: each draw shifted by a calibration "
+                        "error drawn anew through the least-squares sensitivities (GUM Supplement 1)"}
+    if b.failed:
+        warn(f"the calibration terms {', '.join(b.failed)} could not be propagated (their refits did not converge); "
+             "u_combined leaves them out")
     note("u_combined (posterior sd with the calibration tolerances): " + ", ".join(
         f"{name} {b.u_combined(name, sd[name]) * DISPLAY[name][1]:.3g} {DISPLAY[name][0]}" for name in sd))
 
