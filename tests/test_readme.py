@@ -62,6 +62,11 @@ def test_every_command_line_example_runs(tmp_path, monkeypatch):
     for name in ("sat.csv", "sat.json", "posterior.nc", "bayes.json", "pair.png", "map.png", "diag.json",
                  "search.json", "reports/sat/index.html", "runs.csv", "runs.json"):
         assert (tmp_path / name).exists(), name
+    # what the commands write, run in the repository root as the README says, is ignored by git
+    written = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file() and "data" not in p.parts)
+    if (ROOT / ".git").exists():
+        kept = [w for w in written if subprocess.run(["git", "-C", str(ROOT), "check-ignore", "-q", w]).returncode]
+        assert not kept, f"README outputs not in .gitignore: {kept}"
     # what the comments promise: Table 2's protocol cannot see the saturation, the bias sweep names it
     import json
 
