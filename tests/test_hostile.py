@@ -161,6 +161,18 @@ def test_campaign_windows_are_bounded(tmp_path, monkeypatch, args, words):
     _one_line_error(runner.invoke(app, ["campaign", "--example", str(example), *args]), "time_s", *words)
 
 
+def test_simulated_protocols_are_bounded(tmp_path):
+    many = ",".join(f"{1 + 0.001 * i:.3f}" for i in range(200))
+    out = str(tmp_path / "x.csv")
+    _one_line_error(runner.invoke(app, ["simulate", "--preset", "perturbation", "--biases-a", many, "-o", out]),
+                    "--biases-a: 200 values; at most 100")
+    biases = ",".join(f"{1 + 0.005 * i:.3f}" for i in range(100))
+    offsets = ",".join(f"{1 + 0.2 * i:.1f}" for i in range(100))
+    r = runner.invoke(app, ["simulate", "--preset", "perturbation", "--biases-a", biases, "--offsets-um", offsets,
+                            "--iterations", "100", "-o", out])
+    _one_line_error(r, "2,000,000 steps", "at most 1,000,000")
+
+
 def test_walkers_are_bounded():
     _one_line_error(runner.invoke(app, ["sample", str(DEFAULT), "--walkers", "20000"]), "--walkers 20000",
                     "at most 1024")

@@ -28,6 +28,11 @@ from ambfit.faces.cli.options import number, numbers, text
 # would fill the memory.
 MAX_ITERATIONS = 10_000
 MAX_SEARCH_ITERATIONS = 1_000
+MAX_LEVELS = 100
+"""Values of ``--biases-a`` or ``--offsets-um``: every bias meets every offset and iteration, so the steps grow as
+their product."""
+MAX_STEPS = 1_000_000
+"""Steps one simulation may write (two readings each: 2 million rows, about 400 MB of CSV)."""
 
 
 class Preset(str, Enum):
@@ -111,9 +116,17 @@ def simulate(
             # ±40 µm on the paper's 60 µm clearance: two thirds of the bearing's, so the sweep stays within it
             proto = proto_mod.rich(center=center, rotor_kg=desc.rotor_mass, span=desc.backup_clearance * 2 / 3)
         else:
+            biases, offsets = biases_a.split(","), offsets_um.split(",")
+            for option, values in (("--biases-a", biases), ("--offsets-um", offsets)):
+                if len(values) > MAX_LEVELS:
+                    fail(f"{option}: {len(values)} values; at most {MAX_LEVELS} (every one meets every other "
+                         "option's value and every iteration: the steps grow as their product)")
             proto = proto_mod.perturbation(
-                [float(b) for b in biases_a.split(",")], [float(o) * 1e-6 for o in offsets_um.split(",")],
+                [float(b) for b in biases], [float(o) * 1e-6 for o in offsets],
                 center=center, iterations=iterations, loads=spec.loads)
+        if (n := len(proto.v_set)) > MAX_STEPS:
+            fail(f"the protocol has {n:,} steps ({2 * n:,} readings, about {n * 400 / 1e6:,.0f} MB of CSV); at most "
+                 f"{MAX_STEPS:,}: fewer iterations, biases or offsets")
         within_limits(spec, proto, effects, allow_beyond_limits)
         sim = rig.simulate(spec, proto, effects, rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6),
                            seed=seed, thermometer=temperature)
