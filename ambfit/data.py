@@ -72,6 +72,8 @@ class Dataset:
 
     frame: pd.DataFrame
     source: str = "<memory>"
+    notes: tuple = ()
+    """What reading the file took in its stride, in words (a semicolon-separated export, blank rows skipped)."""
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -92,8 +94,10 @@ class _Problems:
     def rows(self, mask, reason, column, values):
         """Report the rows where ``mask`` holds (all of them up to ``limit`` when lazy, else the first)."""
         idx = np.nonzero(np.asarray(mask))[0]
+        # rows as the file counts them: a frame whose blank rows were skipped keeps the file's positions as labels
+        labels = values.index if pd.api.types.is_integer_dtype(values.index) else pd.RangeIndex(len(values))
         for r in idx[: self.limit]:
-            self.add(reason, r, column, values.iloc[r])
+            self.add(reason, int(labels[r]), column, values.iloc[r])
         if len(idx) > self.limit:
             self.add(f"{len(idx) - self.limit} more rows with the same problem", None, column)
 
@@ -113,7 +117,9 @@ def read_csv(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_PO
         On the first of the contract's error cases, naming file, row, column and value
         (:func:`inspect` lists them all).
     """
-    return check(_read_raw(path), source=str(path), max_position_um=max_position_um)
+    raw = _read_raw(path)
+    ds = check(raw, source=str(path), max_position_um=max_position_um)
+    return dataclasses.replace(ds, notes=tuple(raw.attrs.get("notes", ())))
 
 
 def inspect(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_POSITION_UM) -> list[DataError]:
@@ -128,6 +134,9 @@ def inspect(path: str | os.PathLike, *, max_position_um: float = DEFAULT_MAX_POS
 
 
 def _read_raw(path) -> pd.DataFrame:
+    """The file's cells as text, the contract's CSV or what a spreadsheet exports instead: a semicolon- or
+    tab-separated file (a German or French Excel's "CSV") is read as such, its decimal commas as points; rows with
+    every cell empty are skipped.  What was taken in stride is listed in ``frame.attrs["notes"]``."""
     source = str(path)
     p = Path(path)
     if p.is_dir():
@@ -135,22 +144,50 @@ def _read_raw(path) -> pd.DataFrame:
     if not p.is_file():
         raise DataError("no such file", file=source)
     try:
-        header = _scan(p, source)
+        sep = _separator(p, source)
+        header = _scan(p, source, sep)
     except UnicodeDecodeError as exc:
         raise DataError(f"not a UTF-8 text file ({exc.reason})", file=source) from None
     dupes = sorted({c for c in header if header.count(c) > 1})
     if dupes:
         raise DataError(f"duplicate column name(s) {dupes} in the header", file=source, row=None)
-    if len(header) == 1:
-        sep = next((s for s in (";", "\t", "|") if s in header[0]), None)
-        if sep is not None:
-            raise DataError(f"the header is one column that contains {sep!r}: the file looks {_SEPARATORS[sep]}-"
-                            "separated; ambfit reads comma-separated files (re-export as CSV with ',')", file=source)
+    if len(header) == 1 and "|" in header[0]:
+        raise DataError("the header is one column that contains '|': the file looks pipe-separated; ambfit reads "
+                        "comma-separated files (or semicolon- or tab-separated ones)", file=source)
     try:
-        # index_col=False: data rows with a trailing comma must not shift every column by one
-        return pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True, index_col=False)
+        # index_col=False: data rows with a trailing separator must not shift every column by one
+        raw = pd.read_csv(p, sep=sep, dtype=str, keep_default_na=False, skipinitialspace=True, index_col=False)
     except (pd.errors.ParserError, ValueError) as exc:
         raise DataError(f"not a valid CSV table: {exc}", file=source) from None
+    notes = []
+    if sep != ",":
+        comma = raw.apply(lambda col: col.str.strip().str.fullmatch(_DECIMAL_COMMA)).to_numpy().any()
+        if comma:
+            raw = raw.apply(lambda col: col.where(~col.str.strip().str.fullmatch(_DECIMAL_COMMA),
+                                                  col.str.replace(",", ".", regex=False)))
+        notes.append(f"{source}: read as {_SEPARATORS[sep]}-separated" + (" with decimal commas" if comma else "")
+                     + " (a spreadsheet's export; the contract's CSV is comma-separated with decimal points)")
+    blank = raw.apply(lambda col: col.str.strip().eq("")).all(axis=1).to_numpy() if len(raw.columns) else None
+    if blank is not None and blank.any():
+        rows = np.nonzero(blank)[0] + 1
+        shown = ", ".join(map(str, rows[:8])) + (" ..." if len(rows) > 8 else "")
+        notes.append(f"{source}: {len(rows)} blank row(s) skipped (data rows {shown})")
+        raw = raw[~blank]                        # the labels keep the file's row positions for messages
+    raw.attrs["notes"] = notes
+    return raw
+
+
+_DECIMAL_COMMA = r"[-+]?\d+,\d*([eE][-+]?\d+)?"
+"""A number written with a decimal comma (``1,4``, ``-0,05``, ``3,2e-3``)."""
+
+
+def _separator(p: Path, source: str) -> str:
+    """The field separator: ``,`` unless the header holds none and holds semicolons or tabs."""
+    with open(p, newline="", encoding="utf-8") as f:
+        first = f.readline(MAX_LINE_CHARS + 1)
+    if "," in first:
+        return ","
+    return next((s for s in (";", "\t") if s in first), ",")
 
 
 _SEPARATORS = {";": "semicolon", "\t": "tab", "|": "pipe"}
@@ -160,7 +197,7 @@ MAX_LINE_CHARS = 1 << 16
 parsing, so a pathological file costs bounded time and memory."""
 
 
-def _scan(p: Path, source: str) -> list[str]:
+def _scan(p: Path, source: str, sep: str = ",") -> list[str]:
     """The header's column names, after checking every line's length and field count (bounded memory)."""
     with open(p, newline="", encoding="utf-8") as f:
         first = f.readline(MAX_LINE_CHARS + 1)
@@ -169,7 +206,7 @@ def _scan(p: Path, source: str) -> list[str]:
         if len(first) > MAX_LINE_CHARS:
             raise DataError(f"the header line is longer than {MAX_LINE_CHARS} characters; not a contract CSV file",
                             file=source)
-        header = next(csv.reader([first]))
+        header = next(csv.reader([first], delimiter=sep))
         width = len(header) + 1            # one trailing comma is tolerated
         row = 0
         while line := f.readline(MAX_LINE_CHARS + 1):
@@ -180,7 +217,7 @@ def _scan(p: Path, source: str) -> list[str]:
                                 row=row)
             if not line.strip() or '"' in line:     # blank lines are skipped; quoted fields are left to the parser
                 continue
-            fields = line.count(",") + 1
+            fields = line.count(sep) + 1
             if fields > width:
                 raise DataError(f"{fields} fields where the header has {len(header)}", file=source, row=row)
             if fields < len(header):

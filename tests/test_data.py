@@ -1,5 +1,7 @@
 """Contract CSV: every error case names file, row, column and value; round trips lose nothing."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -223,3 +225,36 @@ def test_play_states_follow_the_play_operator():
                                          (0.7 - 0.75) / 0.15, 0.1 / 0.15])
     # a vanishing width is the approach direction
     np.testing.assert_allclose(s[:, 1], R.approach_direction(df, "i_top_A", threshold=1e-9))
+
+
+def test_a_spreadsheet_export_is_read_and_said(tmp_path):
+    # a German Excel's "CSV": semicolons, decimal commas, a blank row of separators; the same numbers as the
+    # contract's file, and what was taken in stride said as notes
+    from ambfit.data import read_csv
+
+    default = Path(__file__).resolve().parents[1] / "data" / "paper_table2.csv"
+    d = pd.read_csv(default)
+    lines = d.to_csv(sep=";", index=False, decimal=",").splitlines()
+    lines.insert(5, ";" * (len(d.columns) - 1))
+    path = tmp_path / "excel.csv"
+    path.write_text("\n".join(lines) + "\n")
+    ds, want = read_csv(path), read_csv(default)
+    pd.testing.assert_frame_equal(ds.frame.reset_index(drop=True), want.frame.reset_index(drop=True))
+    assert [n.split(": ", 1)[1] for n in ds.notes] == [
+        "read as semicolon-separated with decimal commas (a spreadsheet's export; the contract's CSV is "
+        "comma-separated with decimal points)", "1 blank row(s) skipped (data rows 5)"]
+
+
+def test_rows_after_a_skipped_blank_row_keep_their_file_numbers(tmp_path):
+    from ambfit.data import DataError, read_csv
+
+    default = Path(__file__).resolve().parents[1] / "data" / "paper_table2.csv"
+    lines = default.read_text().splitlines()
+    lines.insert(3, "," * lines[0].count(","))              # blank data row 3
+    cells = lines[10].split(",")
+    cells[2] = "oops"                                        # data row 10 (line 11), its i_top_A
+    lines[10] = ",".join(cells)
+    path = tmp_path / "blank.csv"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"row 10\b.*i_top_A.*oops"):
+        read_csv(path)

@@ -231,6 +231,8 @@ def read_data(path: Path, bearing, accept: bool = False, max_position_um: float 
         ds = read_csv(path, max_position_um=max_position_um or bearing.nominal_gap * 1e6)
     except DataError as exc:
         fail(str(exc))
+    for line in ds.notes:
+        note(line)
     judge(plausibility.check_data(ds.frame, bearing, str(path)), accept, f"{Path(path).name}: the data are")
     return ds
 
