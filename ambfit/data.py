@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import difflib
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,9 @@ NUMERIC_OPTIONAL = (
 """Optional numeric columns; an empty cell means 'not known'."""
 
 LABELS = ("load_id", "experiment")
+
+CONTRACT_COLUMNS = (*REQUIRED, *NUMERIC_OPTIONAL, *LABELS, "iteration")
+"""Every column the contract names."""
 
 DEFAULT_MAX_POSITION_UM = PAPER_BEARING.nominal_gap * 1e6
 """Positions at least this large [µm] are rejected as 'as large as the gap' (the paper's nominal gap; the
@@ -232,11 +237,32 @@ def check(raw: pd.DataFrame, *, source: str = "<memory>", max_position_um: float
     return Dataset(frame=_check(raw, _Problems(source, lazy=False), max_position_um), source=source)
 
 
+def _bare(name: str) -> str:
+    """A column name without case, spaces, brackets and underscores (``"I_top [A]"`` -> ``"itopa"``)."""
+    return re.sub(r"[^0-9a-z]", "", str(name).lower())
+
+
+def _near_names(missing: list, others: list) -> str:
+    """``"; did you mean ..."``: the file's columns that look like the missing contract columns (``i_top [A]`` for
+    ``i_top_A``, ``bias_mA`` for ``bias_A``, with the unit it must be in), or ""."""
+    pairs = []
+    bare = {_bare(c): c for c in others}
+    for want in missing:
+        near = difflib.get_close_matches(_bare(want), list(bare), n=1, cutoff=0.7)
+        if near:
+            pairs.append(f"{bare[near[0]]!r} for {want!r}")
+    if not pairs:
+        return ""
+    return ("; did you mean " + ", ".join(pairs) + " (rename the column; the contract's names carry their unit, "
+            "so convert the values if the unit differs)")
+
+
 def _check(raw: pd.DataFrame, problems: _Problems, max_position_um: float) -> pd.DataFrame:
     """The contract's checks on ``raw``; returns the typed table (numeric columns as floats)."""
     missing = [c for c in REQUIRED if c not in raw.columns]
     if missing:
-        problems.add(f"missing required column(s) {missing}; the file has {list(raw.columns)}")
+        problems.add(f"missing required column(s) {missing}; the file has {list(raw.columns)}"
+                     + _near_names(missing, [c for c in raw.columns if c not in CONTRACT_COLUMNS]))
     if len(raw) == 0:
         problems.add("the file has a header but no data rows")
         return raw

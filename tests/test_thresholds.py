@@ -183,3 +183,36 @@ def test_the_outlier_bound_widens_when_the_noise_is_estimated_from_the_residuals
     assert robust.threshold(80, 0.01, estimated=True) == pytest.approx(4.4154, abs=1e-4)
     # many readings: the scale is sharp, and the bound tends to the normal one
     assert robust.threshold(100_000, 0.01, estimated=True) == pytest.approx(robust.threshold(100_000, 0.01), rel=2e-3)
+
+
+def test_positions_in_mm_are_named_before_any_fit(tmp_path):
+    from typer.testing import CliRunner
+
+    from ambfit.faces.cli import app
+
+    df = pd.read_csv(DEFAULT)
+    cols = ["v_um", "w_um", "v_set_um", "w_set_um", "v_std_um", "w_std_um"]
+    mm = df.assign(**{c: df[c] / 1000 for c in cols})                  # the rotor moved by 0.02-0.06 "µm"
+    path = tmp_path / "mm.csv"
+    mm.to_csv(path, index=False)
+    runner = CliRunner()
+    r = runner.invoke(app, ["check", str(path)])
+    assert r.exit_code == 2 and "positions given in mm instead of µm" in r.output, r.output
+    r = runner.invoke(app, ["identify", str(path)])
+    assert r.exit_code == 3 and "positions given in mm instead of µm" in r.output, r.output
+    # a rotor held still: positions within a few noise std of zero are not a unit mistake
+    still = df.assign(v_um=0.1 * np.random.default_rng(0).standard_normal(len(df)),
+                      w_um=0.1 * np.random.default_rng(1).standard_normal(len(df)), v_std_um=0.1, w_std_um=0.1)
+    still = still.drop(columns=["v_set_um", "w_set_um"])
+    from ambfit.estimation import plausibility
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    assert not [f for f in plausibility.check_data(still, PAPER_BEARING) if "mm instead" in f.cause]
+
+
+def test_near_miss_column_names_get_the_contract_name():
+    from ambfit.data import DataError, check
+
+    df = pd.read_csv(DEFAULT).rename(columns={"i_top_A": "I_top [A]", "bias_A": "bias_mA"})
+    with pytest.raises(DataError, match=r"did you mean 'bias_mA' for 'bias_A', 'I_top \[A\]' for 'i_top_A'"):
+        check(df.astype(str))

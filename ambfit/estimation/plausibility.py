@@ -154,6 +154,14 @@ TINY_POSITION_UM = 0.01
 """Largest |position| [µm] of a file whose positions are all this small: a perturbation protocol moves the rotor by
 micrometres (and sensor noise alone is ~0.1 µm), so positions in metres (or mm) typed into a µm column."""
 
+SMALL_POSITION_UM = 1.0
+"""Largest |position| [µm] of a file whose rotor clearly moved (its positions spread over many times their noise,
+or its set-points are not all zero) yet never by a micrometre: no perturbation protocol moves that little, so
+positions in mm typed into a µm column (a thousand times too small)."""
+
+MOVED_NOISE = 20.0
+"""A spread of the positions beyond this many of their standard deviations (``v_std_um``) is a rotor that moved."""
+
 SPAN_FACTOR = 1.5
 """Largest spread of one position column over the file, as a multiple of twice the back-up clearance (the rotor
 cannot move further, whatever the sensor's zero)."""
@@ -213,6 +221,10 @@ def check_data(df: pd.DataFrame, bearing: Bearing, source: str | None = None) ->
         if largest < TINY_POSITION_UM and (largest > 0 or (moved and col in ("v_um", "w_um"))):
             flag(col, np.isfinite(x), x, f"set-points of micrometres to tens of micrometres; every |{col}| is below "
                  f"{TINY_POSITION_UM:g} µm", "positions given in metres (or mm) instead of µm")
+        elif TINY_POSITION_UM <= largest < SMALL_POSITION_UM and _moved(df, col, x, moved):
+            flag(col, np.isfinite(x), x, f"positions of micrometres to tens of micrometres; the rotor moved, yet every "
+                 f"|{col}| is below {SMALL_POSITION_UM:g} µm", "positions given in mm instead of µm (1000 times "
+                 "too small)")
         span, room = np.nanmax(x, initial=0.0) - np.nanmin(x, initial=0.0), 2 * bearing.backup_clearance * 1e6
         if span > SPAN_FACTOR * room:
             flag(col, np.isfinite(x), x, f"a spread of at most twice the back-up clearance "
@@ -221,6 +233,18 @@ def check_data(df: pd.DataFrame, bearing: Bearing, source: str | None = None) ->
                  "0.1 µm counts), or a bearing description with another back-up clearance (backup_clearance_um)",
                  key=x - np.nanmedian(x))
     return flags
+
+
+def _moved(df: pd.DataFrame, col: str, x: np.ndarray, set_points: bool) -> bool:
+    """Whether position column ``col`` shows a rotor that moved: set-points not all zero, or a spread beyond
+    :data:`MOVED_NOISE` standard deviations of its std column (a rotor held still spreads over a few)."""
+    if set_points:
+        return True
+    std = f"{col[0]}_std_um"
+    if std not in df.columns:
+        return False
+    s = np.nanmedian(df[std].to_numpy(float))
+    return bool(np.isfinite(s) and s > 0 and np.nanmax(x) - np.nanmin(x) > MOVED_NOISE * s)
 
 
 def _load_cause(ratio: float, everywhere: bool) -> str:

@@ -82,11 +82,14 @@ def check(
     if rows:
         show_table(rows, f"{data}: {len(rows)} problem(s)", left=("column", "value", "problem"))
         raise typer.Exit(2)
+    for line in ds.notes:
+        note(line)
     df = ds.frame
     dupes = duplicate_rows(df)
     for row, first in dupes:
-        warn(f"{data}: row {row} repeats row {first} exactly; a repeated reading counts twice and makes the "
-             "error bars too small (up to sqrt(2) when every row is repeated)")
+        warn(f"{data}: row {row} repeats row {first} (the same labels, every number within 10 µA and 1 nm); a "
+             "repeated reading counts twice and makes the error bars too small (up to sqrt(2) when every row is "
+             "repeated)")
     known = int(df["load_N"].notna().sum()) if "load_N" in df else 0
     noise = "std columns" if all(c in df and df[c].notna().all() for c in ("i_top_std_A", "i_bottom_std_A")) \
         else "no current std columns (noise will be estimated from the residuals)"
