@@ -184,3 +184,18 @@ def test_a_fleet_on_two_worker_processes_gives_the_same_table(bearings, tmp_path
     pd.testing.assert_frame_equal(a[numbers], b[numbers], rtol=1e-8)
     # every message of every group, in the groups' order (only the written file's name differs)
     assert r1.output.replace("here.csv", "T") == r2.output.replace("there.csv", "T")
+
+
+def test_a_group_whose_law_does_not_fit_is_not_called_fine(tmp_path, table2):
+    # group "noisy": its std columns a third of the real noise (chi2/dof about 9): estimates stand, but the summary
+    # says the law does not fit it instead of "all fine"
+    good = table2.assign(run="good")
+    noisy = table2.assign(run="noisy", experiment="noisy", load_id="noisy" + table2["load_id"].astype(str),
+                          **{c: table2[c] / 3 for c in ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")})
+    path = tmp_path / "two.csv"
+    pd.concat([good, noisy]).to_csv(path, index=False)
+    r = run(path, "--by", "run")
+    assert r.exit_code == 0, r.output
+    assert "1 group(s) whose model does not fit its readings" in r.output and "noisy (χ²/dof" in r.output
+    assert "all 2 group(s) fitted, 1 of them not fitting their readings" in r.output
+    assert "fine" not in r.output

@@ -136,8 +136,14 @@ def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, 
     if table is not None:
         _write_table([_table_row(e) for e in shown], column, table)
     bad = [e for e in shown if e["status"] != "ok"]
+    misfit = [e for e in shown if e["status"] == "ok" and (e.get("goodness_of_fit") or {}).get("adequate") is False]
+    if misfit:            # estimates stand (as identify's of one file do), but the law does not fit these groups
+        warn(f"{len(misfit)} group(s) whose model does not fit its readings (their errors assume it does; run "
+             "ambfit diagnose): " + "; ".join(f"{e['group']} (χ²/dof {e['goodness_of_fit']['reduced_chi2']:.3g})"
+                                               for e in misfit[:10]) + (" ..." if len(misfit) > 10 else ""))
     if not bad:
-        note(f"all {len(shown)} group(s) fine")
+        note(f"all {len(shown)} group(s) fitted" + (f", {len(misfit)} of them not fitting their readings (see above)"
+                                                     if misfit else " and fitting their readings"))
         return
     listed = "; ".join(f"{e['group']} ({STATUS_TEXT[e['status']]})" for e in bad[:10]) + (" ..." if len(bad) > 10
                                                                                           else "")
