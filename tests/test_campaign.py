@@ -279,3 +279,19 @@ def test_origins_over_time_section_follows_the_paper_tables(monkeypatch):
     assert "36.00 → 32.00 → 20.00 µm" in text and "35.08" not in text
     assert [(f["quantity"], f["at"]) for f in s["flagged_changes"]] == [("v0", "3")]   # -12 µm: beyond any drift
     assert "still flagged: v0 at experiment 3" in text
+
+
+def test_the_example_campaign_runs_on_the_bearing_given(tmp_path):
+    # a 500 µm / 5 A / 40 µm-clearance bearing of a user's: its biases and pairs scaled to it, every window
+    # identified and the jump found at E7 (on the paper's rig settings the windows were all rejected)
+    toml = tmp_path / "mine.toml"
+    toml.write_text('name = "mine"\nnominal_gap_um = 500.0\nmax_current_A = 5.0\nturns_per_pole = 200\n'
+                    'backup_clearance_um = 40.0\n')
+    out, js = tmp_path / "c.csv", tmp_path / "c.json"
+    r = runner.invoke(app, ["campaign", "--example", str(out), "--bearing", str(toml), "--json", str(js),
+                            "--current-noise-ma", "0.3"])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(js.read_text())
+    assert len(rec["used"]) == 12 and "E7" in rec["jumps"]
+    data = pd.read_csv(out)
+    assert data["bias_A"].max() == pytest.approx(1.6 * 5 / 3) and data["i_top_std_A"].iloc[0] == pytest.approx(3e-4)

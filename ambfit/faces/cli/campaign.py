@@ -51,6 +51,10 @@ def campaign(
                                                  "this CSV (truth next to it as .truth.json) and analyse "
                                                  "it.")] = None,
     seed: Annotated[int, typer.Option(callback=number(0), help="Seed of --example's noise.")] = 0,
+    current_noise_ma: Annotated[float, typer.Option("--current-noise-ma", callback=number(0),
+                                                    help="--example: std of each recorded current [mA].")] = 0.6,
+    position_noise_um: Annotated[float, typer.Option(callback=number(0),
+                                                     help="--example: std of each recorded position [µm].")] = 0.1,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
@@ -83,9 +87,16 @@ def campaign(
     desc = bearing_of(bearing)
     enable_compilation_cache()
     if example is not None:
+        from ambfit import rig
         from ambfit.rig.campaign import simulate_campaign
 
-        sim = simulate_campaign(seed=seed)
+        # the campaign on the bearing given (the paper's by default): its biases and pairs scaled from the paper's
+        # 1.4/1.6 A of 3 A and ±20 µm of a 60 µm clearance to this bearing's current limit and clearance
+        base = rig.PAPER_RIG.bearing
+        current, room = desc.max_current / base.max_current, desc.backup_clearance / base.backup_clearance
+        sim = simulate_campaign(rig.RigSpec.for_bearing(desc), biases=(1.4 * current, 1.6 * current),
+                                offset=20e-6 * room, noise=rig.Noise(current_noise_ma * 1e-3, position_noise_um * 1e-6),
+                                seed=seed)
         write_csv(sim.data, example)
         write_json_file(truth_path, sim.truth)
         console.print(f"wrote {example} and {truth_path}: {len(sim.data)} readings, jump at "
