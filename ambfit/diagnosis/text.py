@@ -189,7 +189,8 @@ def blind_spot(dg) -> str | None:
             f"{np.nanmin(b):.2f}-{np.nanmax(b):.2f} T) are too few and too close for the force law's bend with "
             "flux density to show, so any such effect is absorbed into the identified gap, origin and k "
             "(values of this protocol, not of the bearing as drawn); to see it, run a bias sweep of three or more "
-            "biases up to the coil limit (ambfit simulate --preset rich is one)")
+            "biases spread towards the coil limit (ambfit simulate --preset rich sweeps four, from a third to "
+            "over half of the bearing's limit)")
 
 
 def summary(dg) -> str:

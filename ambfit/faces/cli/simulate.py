@@ -45,7 +45,8 @@ class Preset(str, Enum):
 def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="CSV file to write (contract format).")],
     preset: Annotated[Preset, typer.Option(help="Protocol: 'table2' (paper's Table 2: 1.4/1.6 A, ±20 µm, "
-                                           "10 iterations), 'rich' (biases 1.0-1.6 A up and down, "
+                                           "10 iterations), 'rich' (biases 1.0-1.6 A up and down on the paper's 3 A bearing, "
+                                           "scaled to the --bearing's current limit, "
                                            "± two thirds of the back-up clearance (40 µm on the paper's rig), "
                                            "four known loads), or 'perturbation' (built from "
                                            "--biases-a/--offsets-um/--iterations); each centred on "
@@ -114,7 +115,10 @@ def simulate(
             proto = proto_mod.paper_table2(iterations, center=center, loads=spec.loads)
         elif preset is Preset.rich:
             # ±40 µm on the paper's 60 µm clearance: two thirds of the bearing's, so the sweep stays within it
-            proto = proto_mod.rich(center=center, rotor_kg=desc.rotor_mass, span=desc.backup_clearance * 2 / 3)
+            # the biases scaled to the bearing's coil limit (1.0-1.6 A of the paper's 3 A: a third to over half)
+            scale = desc.max_current / rig.PAPER_RIG.bearing.max_current
+            proto = proto_mod.rich(biases=tuple(b * scale for b in (1.0, 1.2, 1.4, 1.6)), center=center,
+                                   rotor_kg=desc.rotor_mass, span=desc.backup_clearance * 2 / 3)
         else:
             biases, offsets = biases_a.split(","), offsets_um.split(",")
             for option, values in (("--biases-a", biases), ("--offsets-um", offsets)):
