@@ -14,8 +14,9 @@ share of its weak prior's: the data at least halve the prior's standard deviatio
 protocol saturation's parameters keep 0.52-0.62 (two close biases); on the rich preset 0.001."""
 
 SEPARATE_BY = {
-    "saturation": "a bias sweep up to the coil limit (ambfit simulate --preset rich: biases 1.0-1.6 A up and down)",
-    "iron_reluctance": "a bias sweep up to the coil limit (the rich preset) and a known-displacement calibration",
+    "saturation": "a bias sweep towards the coil limit (ambfit simulate --preset rich: four biases up and down, from a "
+                  "third to over half of the limit)",
+    "iron_reluctance": "a bias sweep towards the coil limit (the rich preset) and a known-displacement calibration",
     "leakage": "a bias sweep with known loads (the rich preset; a constant leakage is part of k)",
     "hysteresis": "approaching each set-point from both directions (biases up and down)",
     "cross_coupling": "moving the other axis while this one is perturbed",
