@@ -149,8 +149,7 @@ def _read_raw(path) -> pd.DataFrame:
     if not p.is_file():
         raise DataError("no such file", file=source)
     try:
-        sep = _separator(p, source)
-        header = _scan(p, source, sep)
+        header, sep = _scan(p, source)
     except UnicodeDecodeError as exc:
         raise DataError(f"not a UTF-8 text file ({exc.reason})", file=source) from None
     dupes = sorted({c for c in header if header.count(c) > 1})
@@ -166,10 +165,10 @@ def _read_raw(path) -> pd.DataFrame:
         raise DataError(f"not a valid CSV table: {exc}", file=source) from None
     notes = []
     if sep != ",":
-        comma = raw.apply(lambda col: col.str.strip().str.fullmatch(_DECIMAL_COMMA)).to_numpy().any()
+        decimal = raw.apply(lambda col: col.str.strip().str.fullmatch(_DECIMAL_COMMA))
+        comma = bool(decimal.to_numpy().any())
         if comma:
-            raw = raw.apply(lambda col: col.where(~col.str.strip().str.fullmatch(_DECIMAL_COMMA),
-                                                  col.str.replace(",", ".", regex=False)))
+            raw = raw.mask(decimal, raw.apply(lambda col: col.str.replace(",", ".", regex=False)))
         notes.append(f"{source}: read as {_SEPARATORS[sep]}-separated" + (" with decimal commas" if comma else "")
                      + " (a spreadsheet's export; the contract's CSV is comma-separated with decimal points)")
     blank = raw.apply(lambda col: col.str.strip().eq("")).all(axis=1).to_numpy() if len(raw.columns) else None
@@ -186,15 +185,6 @@ _DECIMAL_COMMA = r"[-+]?\d+,\d*([eE][-+]?\d+)?"
 """A number written with a decimal comma (``1,4``, ``-0,05``, ``3,2e-3``)."""
 
 
-def _separator(p: Path, source: str) -> str:
-    """The field separator: ``,`` unless the header holds none and holds semicolons or tabs."""
-    with open(p, newline="", encoding="utf-8") as f:
-        first = f.readline(MAX_LINE_CHARS + 1)
-    if "," in first:
-        return ","
-    return next((s for s in (";", "\t") if s in first), ",")
-
-
 _SEPARATORS = {";": "semicolon", "\t": "tab", "|": "pipe"}
 
 MAX_LINE_CHARS = 1 << 16
@@ -202,8 +192,9 @@ MAX_LINE_CHARS = 1 << 16
 parsing, so a pathological file costs bounded time and memory."""
 
 
-def _scan(p: Path, source: str, sep: str = ",") -> list[str]:
-    """The header's column names, after checking every line's length and field count (bounded memory)."""
+def _scan(p: Path, source: str) -> tuple[list[str], str]:
+    """The header's column names and the field separator (``,`` unless the header holds none and holds semicolons
+    or tabs), after checking every line's length and field count (bounded memory)."""
     with open(p, newline="", encoding="utf-8") as f:
         first = f.readline(MAX_LINE_CHARS + 1)
         if not first.strip():
@@ -211,6 +202,7 @@ def _scan(p: Path, source: str, sep: str = ",") -> list[str]:
         if len(first) > MAX_LINE_CHARS:
             raise DataError(f"the header line is longer than {MAX_LINE_CHARS} characters; not a contract CSV file",
                             file=source)
+        sep = "," if "," in first else next((s for s in (";", "\t") if s in first), ",")
         header = next(csv.reader([first], delimiter=sep))
         width = len(header) + 1            # one trailing comma is tolerated
         row = 0
@@ -229,7 +221,7 @@ def _scan(p: Path, source: str, sep: str = ",") -> list[str]:
                 cut = "" if line.endswith("\n") else " and no line end: the file was cut short"
                 raise DataError(f"{fields} fields where the header has {len(header)}{cut} (a missing value "
                                 "still needs its comma)", file=source, row=row)
-    return [h.strip() for h in header]
+    return [h.strip() for h in header], sep
 
 
 def check(raw: pd.DataFrame, *, source: str = "<memory>", max_position_um: float = DEFAULT_MAX_POSITION_UM) -> Dataset:
@@ -347,12 +339,10 @@ def duplicate_rows(df: pd.DataFrame) -> list[tuple[int, int]]:
                 if same.all():
                     first, later = sorted((positions[i], positions[j]))
                     out.append((int(later) + 1, int(first) + 1))
-    seen, unique = set(), []
-    for later, first in sorted(out):             # each repeat named once, against the earliest reading it repeats
-        if later not in seen:
-            seen.add(later)
-            unique.append((later, min(f for r, f in out if r == later)))
-    return unique
+    earliest = {}                                # each repeat named once, against the earliest reading it repeats
+    for later, first in out:
+        earliest[later] = min(first, earliest.get(later, first))
+    return sorted(earliest.items())
 
 
 def file_rows(df: pd.DataFrame) -> np.ndarray:

@@ -62,21 +62,14 @@ def standard_uncertainty(tolerance: float, distribution: str) -> float:
     return tolerance / math.sqrt(3.0) if distribution == "uniform" else tolerance
 
 
-def _gain(column: str, rows: str | None):
+def _recorder(column: str, rows: str | None, offset: bool = False):
+    """``record(frame, delta)``: ``column`` as a channel ``delta`` off records it, a gain ``1 + delta`` (or, with
+    ``offset``, a zero ``delta`` added), on the rows of axis ``rows`` (None: every row)."""
     def record(frame: pd.DataFrame, delta: float) -> pd.DataFrame:
         out = frame.copy()
         at = slice(None) if rows is None else (out["axis"] == rows).to_numpy()
-        out.loc[at, column] = out.loc[at, column].astype(float) * (1.0 + delta)
-        return out
-
-    return record
-
-
-def _offset(column: str, rows: str):
-    def record(frame: pd.DataFrame, delta: float) -> pd.DataFrame:
-        out = frame.copy()
-        at = (out["axis"] == rows).to_numpy()
-        out.loc[at, column] = out.loc[at, column].astype(float) + delta
+        x = out.loc[at, column].astype(float)
+        out.loc[at, column] = x + delta if offset else x * (1.0 + delta)
         return out
 
     return record
@@ -108,21 +101,21 @@ def terms(frame: pd.DataFrame, bearing: Bearing, fitted_effects: tuple = ()) -> 
             tol = bearing.current_gain_tolerance
             if tol > 0:
                 out.append(Term(f"current gain, axis {ax}, {coil}", tol, "relative", standard_uncertainty(tol, dist),
-                                _gain(f"i_{coil}_A", ax)))
+                                _recorder(f"i_{coil}_A", ax)))
     for ax in axes:
         for coil in ("top", "bottom"):
             tol = bearing.current_offset_tolerance
             if tol > 0 and "current_offset" not in fitted_effects:
                 out.append(Term(f"current zero, axis {ax}, {coil}", tol, "A", standard_uncertainty(tol, dist),
-                                _offset(f"i_{coil}_A", ax)))
+                                _recorder(f"i_{coil}_A", ax, offset=True)))
     for ax in AXES:
         tol = bearing.position_gain_tolerance
         if tol > 0 and f"{ax}_um" in frame:
             out.append(Term(f"position gain, axis {ax}", tol, "relative", standard_uncertainty(tol, dist),
-                            _gain(f"{ax}_um", None)))
+                            _recorder(f"{ax}_um", None)))
     tol = bearing.load_scale_tolerance
     if tol > 0 and "load_N" in frame and np.isfinite(pd.to_numeric(frame["load_N"], errors="coerce")).any():
-        out.append(Term("load scale", tol, "relative", standard_uncertainty(tol, dist), _gain("load_N", None)))
+        out.append(Term("load scale", tol, "relative", standard_uncertainty(tol, dist), _recorder("load_N", None)))
     return out
 
 
@@ -196,6 +189,12 @@ class Budget:
                                     "share": share} for n, u, share in self.shares(name, a, type_a_name)]}
         return out
 
+    def merge(self, params: dict, type_a: dict | None = None, type_a_name: str = NOISE_TERM) -> None:
+        """Add :meth:`to_contract`'s ``u_combined`` and ``budget`` to a contract ``params`` block's entries."""
+        for key, extra in self.to_contract(type_a, type_a_name).items():
+            if key in params:
+                params[key].update(extra)
+
     def propagate(self, draws: dict, rng: np.random.Generator) -> dict:
         """Posterior draws with the calibration marginalised (GUM Supplement 1's Monte Carlo on the linearised
         sensitivities): each draw shifted by ``Σ_k c_k δ_k`` with every term's error ``δ_k`` drawn anew from its
@@ -218,6 +217,13 @@ class Budget:
                 "distribution": self.distribution,
                 "terms": [{"term": t.name, "tolerance": t.tolerance, "unit": t.unit, "u": t.u} for t in self.terms],
                 "failed": list(self.failed), "fitted_instead": list(self.fitted_terms)}
+
+    def failed_text(self) -> str:
+        """The terms whose refits failed, in a sentence ("" when none did)."""
+        if not self.failed:
+            return ""
+        return (f"the calibration terms {', '.join(self.failed)} could not be propagated (their refits did not "
+                "converge); u_combined leaves them out")
 
     def summary_rows(self) -> list[dict]:
         """One row per head parameter: value, statistical error, combined uncertainty, the largest term."""
@@ -323,11 +329,3 @@ def fit_instead(data, res, b: Budget, **fit_kw) -> dict | None:
                     f"readings determine them: --effect current_offset fits them instead ({worst} u_combined "
                     f"{u_now * f:.3g} -> {u_alt * f:.3g} {unit})"}
 
-
-def narrowest_interval(x: np.ndarray, prob: float) -> tuple[float, float]:
-    """The narrowest interval holding ``floor(prob n)`` of the draws ``x`` (a highest-density interval of a
-    unimodal distribution)."""
-    x = np.sort(np.asarray(x, float))
-    k = int(np.floor(prob * len(x)))
-    i = int(np.argmin(x[k:] - x[:len(x) - k]))
-    return float(x[i]), float(x[i + k])

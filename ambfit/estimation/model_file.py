@@ -29,7 +29,7 @@ import re
 import numpy as np
 
 from ambfit.estimation.units import CONTRACT_PARAMS, HEAD
-from ambfit.physics.bearing import AXES, Bearing, BearingError
+from ambfit.physics.bearing import AXES, Bearing, BearingError, short_repr
 
 SCHEMA = "ambfit.model.v1"
 """The layout of the records :func:`stamp` marks; a reader refuses a newer one (``ambfit.model.v2``, ...)."""
@@ -80,9 +80,7 @@ class ModelFile:
 
 
 def _bad(source: str, key: str, value, reason: str) -> ModelFileError:
-    text = repr(value)
-    text = text if len(text) <= 60 else text[:57] + "..."
-    return ModelFileError(f"{source}: {key} = {text}: {reason}")
+    return ModelFileError(f"{source}: {key} = {short_repr(value)}: {reason}")
 
 
 def _number(x) -> bool:

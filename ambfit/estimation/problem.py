@@ -90,7 +90,7 @@ class Meta:
 
 
 def _empty_cells(df: pd.DataFrame, columns: tuple, ax: np.ndarray | None = None) -> str:
-    """Why std columns that are there are not used: `` (i_top_std_A has 1 empty cell of 80, row 6: ...)``, or ""
+    """Why std columns that are there are not used: ``(i_top_std_A has 1 empty cell of 80, row 6: ...)``, or ""
     when the columns are absent.  ``ax``: position columns count only on their own axis' rows."""
     there = [c for c in columns if c in df]
     if not there:
@@ -103,7 +103,7 @@ def _empty_cells(df: pd.DataFrame, columns: tuple, ax: np.ndarray | None = None)
             first = first if first is not None else int(np.argmax(empty))
     missing = [c for c in columns if c not in df]
     parts += [f"no {c} column" for c in missing]
-    return (f" ({'; '.join(parts)}{'' if first is None else f', first on data row {first + 1}'}: std columns are used "
+    return (f"({'; '.join(parts)}{'' if first is None else f', first on data row {first + 1}'}: std columns are used "
             "only when complete; fill them, or declare the noise)")
 
 
@@ -122,7 +122,7 @@ def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
     elif np.isnan(st).any() or np.isnan(sb).any():
         gaps = _empty_cells(df, ("i_top_std_A", "i_bottom_std_A"))
         st, sb = np.full(n, 1e-3), np.full(n, 1e-3)
-        sources.append("current estimated from the residuals" + gaps)
+        sources.append("current estimated from the residuals" + (f" {gaps}" if gaps else ""))
     else:
         sources.append("current from the std columns")
     if sigma_x is not None:
@@ -131,7 +131,7 @@ def _noise(df: pd.DataFrame, ax: np.ndarray, sigma_i, sigma_x):
     elif np.isnan(sx).any():
         gaps = _empty_cells(df, ("v_std_um", "w_std_um"), ax)
         sx = np.zeros(n)
-        sources.append("position noise taken as 0 " + (f"{gaps[1:]}" if gaps else "(no std column)"))
+        sources.append("position noise taken as 0 " + (gaps or "(no std column)"))
     else:
         sources.append("position from the std columns")
     return st, sb, sx, "; ".join(sources)

@@ -275,11 +275,11 @@ class Bearing:
             field, conv = scale[key]
             value = d.pop(key)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise BearingError(f"{source}: {key} must be a number, got {_short(value)}")
+                raise BearingError(f"{source}: {key} must be a number, got {short_repr(value)}")
             try:
                 kw[field] = float(conv(value))
             except OverflowError:            # an integer beyond any float (a 400-digit number)
-                raise BearingError(f"{source}: {key} = {_short(value)} is beyond any physical value") from None
+                raise BearingError(f"{source}: {key} = {short_repr(value)} is beyond any physical value") from None
         if "pole_area" in kw and "pole_width" not in kw:
             kw["pole_width"] = math.sqrt(kw["pole_area"])   # no width given: a square face
         if material is not None:
@@ -291,7 +291,7 @@ class Bearing:
             raise BearingError(f"{source}: {exc}") from None
 
 
-def _short(value) -> str:
+def short_repr(value) -> str:
     """``repr(value)`` cut to 60 characters (a 5000-digit number or a long list stays readable)."""
     try:
         text = repr(value)

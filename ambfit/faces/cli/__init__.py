@@ -80,6 +80,11 @@ def _unexpected(exc: BaseException):
     raise SystemExit(3) from None
 
 
+def _cache_folder() -> str:
+    """``~/.cache/ambfit``: the crash log and what the command line remembers between runs."""
+    return os.path.join(os.path.expanduser("~"), ".cache", "ambfit")
+
+
 def _jax_cannot_start() -> str | None:
     """Why JAX would abort in this environment, or None.  An ``XLA_FLAGS`` naming a flag XLA does not know ends
     the process from C++ beyond any handler, so it is tried in a child process first, once per value (the
@@ -91,8 +96,7 @@ def _jax_cannot_start() -> str | None:
     flags = os.environ.get("XLA_FLAGS", "").strip()
     if not flags or len(sys.argv) < 2 or {"--help", "--version"} & set(sys.argv[1:]):
         return None
-    marker = os.path.join(os.path.expanduser("~"), ".cache", "ambfit",
-                          f"xla-flags-{hashlib.sha256(flags.encode()).hexdigest()[:16]}.ok")
+    marker = os.path.join(_cache_folder(), f"xla-flags-{hashlib.sha256(flags.encode()).hexdigest()[:16]}.ok")
     if os.path.exists(marker):
         return None
     try:
@@ -132,12 +136,11 @@ def _plain_where_needed() -> None:
 def _log_traceback() -> str:
     """Write the traceback being handled to ``~/.cache/ambfit/last-error.txt`` (never through a link planted
     there), or to a new private file in the temporary folder when that folder cannot be made; its path."""
-    import os
     import tempfile
     import traceback
 
     text = traceback.format_exc()
-    folder = os.path.join(os.path.expanduser("~"), ".cache", "ambfit")
+    folder = _cache_folder()
     try:
         os.makedirs(folder, mode=0o700, exist_ok=True)
         path = os.path.join(folder, "last-error.txt")

@@ -115,7 +115,7 @@ def campaign(
         from ambfit._output import formula_safe
 
         write_csv(formula_safe(res.table()), table)       # a label is never run by a spreadsheet
-        console.print(f"wrote {table}", markup=False, highlight=False)
+        note(f"wrote {table}")
     if len(res.used) < 3:
         fail(f"{data.name}: only {len(res.used)} window(s) identified: no drift can be estimated; use wider "
              "windows or --by experiment", 3)

@@ -15,7 +15,6 @@ from ambfit.faces.cli.app import (
     app,
     bearing_of,
     check_output,
-    console,
     fail,
     note,
     pair,
@@ -258,4 +257,4 @@ def diagnose(
         report.mkdir(parents=True, exist_ok=True)
         plots.save(plots.plot_ranking(dg), report / "ranking.png")
         plots.save(plots.plot_diagnosis_residuals(dg), report / "residuals.png")
-        console.print(f"wrote {report / 'ranking.png'} and {report / 'residuals.png'}", markup=False, highlight=False)
+        note(f"wrote {report / 'ranking.png'} and {report / 'residuals.png'}")

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from ambfit.faces.cli.app import console, err, escape, note, warn
+from ambfit.faces.cli.app import err, escape, note, warn
 from ambfit.faces.cli.options import number
 
 CurrentNoiseOption = Annotated[float | None, typer.Option(
@@ -210,4 +210,4 @@ def _write_table(rows: list[dict], column: str | None, path: Path):
     for c in ("n_rows", "dof", "outliers", "duplicates_dropped"):
         frame[c] = frame[c].astype("Int64")
     write_text(path, formula_safe(frame).to_csv(index=False))   # a label is never run by a spreadsheet
-    console.print(f"wrote {path} ({len(frame)} row(s))", markup=False, highlight=False)
+    note(f"wrote {path} ({len(frame)} row(s))")

@@ -14,9 +14,9 @@ from ambfit.faces.cli.app import (
     app,
     bearing_of,
     check_output,
-    console,
     fail,
     judge,
+    note,
     show_table,
     warn,
     write_json,
@@ -117,7 +117,7 @@ def force(
         from ambfit.data import write_csv
 
         write_csv(result.assign(model_file=str(model), model_ambfit_version=made["model_ambfit_version"]), out)
-        console.print(f"wrote {out}", markup=False, highlight=False)
+        note(f"wrote {out}")
     if json_out is not None:
         from ambfit import __version__
 

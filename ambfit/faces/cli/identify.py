@@ -260,8 +260,7 @@ def _add_budget(record: dict, ds, res, kw: dict) -> None:
 
     noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
     b = budget(ds, res, **noise)
-    for key, extra in b.to_contract().items():
-        record["params"].setdefault(key, {}).update(extra)
+    b.merge(record["params"])
     record["uncertainty_budget"] = b.to_json()
     show_table(b.summary_rows(), f"uncertainty: the readings' noise and the calibration tolerances "
                f"({declared_text(res.bearing, b.fitted_terms)})", left=("parameter", "largest calibration term"))
@@ -272,8 +271,7 @@ def _add_budget(record: dict, ds, res, kw: dict) -> None:
         record["uncertainty_budget"]["fit_instead"] = advice
         note(advice["text"])
     if b.failed:
-        warn(f"the calibration terms {', '.join(b.failed)} could not be propagated (their refits did not converge); "
-             "u_combined leaves them out")
+        warn(b.failed_text())
 
 
 def _identify_ls(ds, name, opts: _Options) -> dict:

@@ -17,6 +17,7 @@ from ambfit.faces.cli.app import (
     check_output,
     console,
     fail,
+    note,
     read_data,
 )
 from ambfit.faces.cli.explore import MAX_DESIGN_STEPS
@@ -77,7 +78,7 @@ def report(
                 **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, OSError) as exc:
         fail(str(exc))
-    console.print(f"wrote {path}", markup=False, highlight=False)
+    note(f"wrote {path}")
     if "error" in rec["least_squares"]:   # the page says why; the exit code says it to scripts
         raise typer.Exit(3)
 
@@ -106,7 +107,7 @@ def paper(
     with progress_bar() as bar:
         path = report_mod.paper_report(out, replicates=replicates, seed=seed, demonstration=demonstration,
                                        command="ambfit paper " + " ".join(sys.argv[2:]), progress=bar)
-    console.print(f"wrote {path}", markup=False, highlight=False)
+    note(f"wrote {path}")
     # the summary and the spread table (paper vs prediction); every row of Tables 1-4 is in the report
     console.print((Path(out) / "README.md").read_text().split("## Table 1")[0], highlight=False)
 

@@ -15,7 +15,6 @@ from ambfit.faces.cli.app import (
     app,
     bearing_of,
     check_output,
-    console,
     fail,
     note,
     read_data,
@@ -39,32 +38,30 @@ MIN_STEPS = 100
 def _add_budget(record: dict, ds, res, noise: dict, seed: int) -> None:
     """The calibration's type-B terms (:mod:`ambfit.estimation.budget`, sensitivities of the least-squares fit
     the sampler started from) combined with each parameter's posterior sd: ``u_combined`` and ``budget``."""
+    import arviz as az
     import numpy as np
 
-    from ambfit.estimation.budget import budget, narrowest_interval
+    from ambfit.estimation.budget import budget
     from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY
 
     if not (res.ls.converged and res.ls.well_conditioned):
         return
     b = budget(ds, res.ls, **noise)
-    sd = {name: float(np.std(np.asarray(res.datatree.posterior[name]), ddof=1)) / DISPLAY[name][1]
-          for name, _, _ in CONTRACT_PARAMS if name in res.datatree.posterior}
-    for key, extra in b.to_contract(sd, "posterior sd (type A)").items():
-        if key in record["params"]:
-            record["params"][key].update(extra)
+    draws = {name: np.asarray(res.datatree.posterior[name], float).ravel() / DISPLAY[name][1]
+             for name, _, _ in CONTRACT_PARAMS if name in res.datatree.posterior}          # SI
+    sd = {name: float(np.std(x, ddof=1)) for name, x in draws.items()}
+    b.merge(record["params"], sd, "posterior sd (type A)")
     # the calibration marginalised: every posterior draw shifted by a calibration error drawn anew (GUM-S1)
-    draws = {name: np.asarray(res.datatree.posterior[name], float).ravel() / DISPLAY[name][1] for name in sd}
     wide = b.propagate(draws, np.random.default_rng(seed))
     for name, key, factor in CONTRACT_PARAMS:
         if name in wide and key in record["params"]:
-            lo, hi = narrowest_interval(wide[name] * factor, record["hdi_prob"])
+            lo, hi = (float(v) for v in az.hdi(wide[name] * factor, prob=record["hdi_prob"]))
             record["params"][key].update(hdi_low_combined=lo, hdi_high_combined=hi)
     record["uncertainty_budget"] = b.to_json("the posterior sd") | {
         "hdi_combined": "the posterior with the calibration marginalised: each draw shifted by a calibration "
                         "error drawn anew through the least-squares sensitivities (GUM Supplement 1)"}
     if b.failed:
-        warn(f"the calibration terms {', '.join(b.failed)} could not be propagated (their refits did not converge); "
-             "u_combined leaves them out")
+        warn(b.failed_text())
     note("u_combined (posterior sd with the calibration tolerances): " + ", ".join(
         f"{name} {b.u_combined(name, sd[name]) * DISPLAY[name][1]:.3g} {DISPLAY[name][0]}" for name in sd))
 
@@ -132,7 +129,7 @@ def sample(
     if out is not None:
         # serialised in memory first: HDF5 writing to a full disk fails uncleanly, Python's writes fail cleanly
         write_bytes(out, res.datatree.to_netcdf(engine="h5netcdf"))
-        console.print(f"wrote {out}", markup=False, highlight=False)
+        note(f"wrote {out}")
     if json_out is not None:
         from ambfit.estimation.model_file import stamp
 
@@ -141,6 +138,6 @@ def sample(
         from ambfit.faces import plots
 
         plots.save(plots.plot_pair(res, result=res.ls), pair_png, close=True)
-        console.print(f"wrote {pair_png}", markup=False, highlight=False)
+        note(f"wrote {pair_png}")
     if not record["converged"]:
         raise typer.Exit(3)

@@ -14,8 +14,8 @@ from ambfit.faces.cli.app import (
     app,
     bearing_of,
     check_output,
-    console,
     fail,
+    note,
     pair,
     parse_effect,
     show_table,
@@ -140,7 +140,7 @@ def simulate(
     data_mod.write_csv(sim.data, out)
     if truth is not None:
         rig.write_truth(sim.truth, truth)
-    console.print(f"wrote {len(sim.data)} rows to {out}", markup=False, highlight=False)
+    note(f"wrote {len(sim.data)} rows to {out}")
 
 
 def effects_of(texts: list[str] | None, bearing=None) -> list:
@@ -270,7 +270,7 @@ def origin_search(
     show_table(res.display_rows(), res.title)
     if out is not None:
         data_mod.write_csv(res.data, out)
-        console.print(f"wrote {len(res.data)} rows to {out}", markup=False, highlight=False)
+        note(f"wrote {len(res.data)} rows to {out}")
     if json_out is not None:
         write_json(res.to_json(), json_out)
     if truth is not None:

@@ -228,8 +228,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         from ambfit.estimation.budget import budget
 
         b = budget(ds, res, **noise)
-        for key, extra in b.to_contract().items():
-            record["least_squares"]["params"].setdefault(key, {}).update(extra)
+        b.merge(record["least_squares"]["params"])
     out = {"identification": identification(res, closed, b)}
 
     def sample():
