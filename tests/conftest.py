@@ -1,5 +1,8 @@
+import json
 import os
+from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 import ambfit  # noqa: F401  (switches JAX to float64 before any test makes an array)
@@ -12,6 +15,20 @@ settings.register_profile(
 )
 settings.register_profile("explore", parent=settings.get_profile("ambfit"), derandomize=False)
 settings.load_profile(os.environ.get("AMBFIT_HYPOTHESIS_PROFILE", "ambfit"))
+
+
+@pytest.fixture(scope="module")
+def clean_fit(tmp_path_factory):
+    """The contract JSON ``ambfit identify --json`` writes for the bundled default data."""
+    from typer.testing import CliRunner
+
+    from ambfit.faces.cli import app
+
+    out = tmp_path_factory.mktemp("clean") / "clean.json"
+    data = Path(__file__).resolve().parents[1] / "data" / "paper_table2.csv"
+    r = CliRunner().invoke(app, ["identify", str(data), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    return json.loads(out.read_text())
 
 
 

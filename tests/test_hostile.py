@@ -33,14 +33,6 @@ def _run(*args, env=None, **kw):
                           env={**os.environ, **(env or {})}, **kw)
 
 
-@pytest.fixture(scope="module")
-def model_json(tmp_path_factory):
-    out = tmp_path_factory.mktemp("model") / "model.json"
-    r = runner.invoke(app, ["identify", str(DEFAULT), "--json", str(out)])
-    assert r.exit_code == 0, r.output
-    return json.loads(out.read_text())
-
-
 def _one_line_error(r, *words, code=2):
     assert r.exit_code == code, r.output
     assert "Traceback" not in r.output and "unexpected" not in r.output, r.output
@@ -104,13 +96,13 @@ def test_a_nested_protocol_file_is_named(tmp_path):
                     "--protocol", "nest too deeply")
 
 
-def test_model_files_a_reader_cannot_parse_are_named(tmp_path, model_json):
+def test_model_files_a_reader_cannot_parse_are_named(tmp_path, clean_fit):
     digits = tmp_path / "digits.json"
-    digits.write_text(json.dumps(model_json).replace('"pole_angle_deg": 22.5', '"pole_angle_deg": ' + "9" * 5000))
+    digits.write_text(json.dumps(clean_fit).replace('"pole_angle_deg": 22.5', '"pole_angle_deg": ' + "9" * 5000))
     _one_line_error(runner.invoke(app, ["force", str(digits), "--axis", "v", "--i-top", "1.5", "--i-bottom", "0.5"]),
                     "digits.json", "digits")
     groups = tmp_path / "groups.json"
-    groups.write_text(json.dumps(model_json | {"groups": 3}))
+    groups.write_text(json.dumps(clean_fit | {"groups": 3}))
     _one_line_error(runner.invoke(app, ["force", str(groups), "--axis", "v", "--i-top", "1.5", "--i-bottom", "0.5"]),
                     "groups = 3", "one fit per group")
 
@@ -119,16 +111,16 @@ def test_model_files_a_reader_cannot_parse_are_named(tmp_path, model_json):
 
 @pytest.mark.parametrize("i_top,words", [(1500.0, ["i_top_A", "mA instead of A"]),
                                          (30.0, ["i_top_A", "coil limit"])], ids=["mA", "30A"])
-def test_force_refuses_currents_the_bearing_cannot_carry(model_json, tmp_path, i_top, words):
+def test_force_refuses_currents_the_bearing_cannot_carry(clean_fit, tmp_path, i_top, words):
     path = tmp_path / "m.json"
-    path.write_text(json.dumps(model_json))
+    path.write_text(json.dumps(clean_fit))
     args = ["force", str(path), "--axis", "v", "--i-top", str(i_top), "--i-bottom", "0.5"]
     _one_line_error(runner.invoke(app, args), *words, code=3)
     assert runner.invoke(app, [*args, "--accept-implausible"]).exit_code == 0
 
 
-def test_force_refuses_a_model_edited_to_five_times_the_force(model_json, tmp_path):
-    edited = json.loads(json.dumps(model_json))
+def test_force_refuses_a_model_edited_to_five_times_the_force(clean_fit, tmp_path):
+    edited = json.loads(json.dumps(clean_fit))
     state = edited["model_state"]
     at = [state["names"].index(n) for n in ("k_v", "k_w")]
     for i in at:

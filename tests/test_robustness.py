@@ -30,14 +30,6 @@ def clean():
     return pd.read_csv(DEFAULT)
 
 
-@pytest.fixture(scope="module")
-def clean_fit(tmp_path_factory):
-    out = tmp_path_factory.mktemp("clean") / "clean.json"
-    r = runner.invoke(app, ["identify", str(DEFAULT), "--json", str(out)])
-    assert r.exit_code == 0, r.output
-    return json.loads(out.read_text())
-
-
 def run(tmp_path, frame: pd.DataFrame, *args):
     path = tmp_path / "probe.csv"
     frame.to_csv(path, index=False)
