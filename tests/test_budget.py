@@ -130,9 +130,10 @@ def test_current_zeros_a_model_fits_are_not_budgeted_again():
     assert plain.fitted_terms == () and len(plain.terms) == 11
 
 
-def test_identify_advises_fitting_the_current_zeros_where_the_data_determine_them(tmp_path):
+def test_identify_fits_the_current_zeros_where_the_data_determine_them(tmp_path):
     # zeros declared to ±10 mA dominate the origins' uncertainty; the rich design's four biases determine them
-    # (their prior shares are small), Table 2's two do not: advice on the first only
+    # (their prior shares are small), Table 2's two do not: the first is fitted with current_offset (and says so),
+    # or only advised with --no-fit-current-zeros; the second keeps the ideal law
     toml = tmp_path / "b.toml"
     toml.write_text("current_offset_tolerance_mA = 10.0\n")
     spec = rig.PAPER_RIG
@@ -142,13 +143,29 @@ def test_identify_advises_fitting_the_current_zeros_where_the_data_determine_the
     out = tmp_path / "rich.json"
     r = runner.invoke(app, ["identify", str(rich), "--bearing", str(toml), "--json", str(out)])
     assert r.exit_code == 0, r.output
-    advice = json.loads(out.read_text())["uncertainty_budget"]["fit_instead"]
-    assert advice["effect"] == "current_offset" and advice["zero_share"] > 0.25
-    assert advice["u_combined_fitted"] < 0.5 * advice["u_combined"] and "--effect current_offset" in r.output
+    rec = json.loads(out.read_text())
+    done = rec["uncertainty_budget"]["current_zeros_fitted"]
+    assert done["effect"] == "current_offset" and done["zero_share"] > 0.25
+    assert done["u_combined_fitted"] < 0.5 * done["u_combined"] and "the fit below does" in r.output
+    assert [e["name"] for e in rec["model_state"]["effects"]] == ["current_offset"]
+    assert rec["uncertainty_budget"]["fitted_instead"] == ["current zero"]
+    worst = done["parameter"]
+    assert rec["params"][f"{worst}_um"]["u_combined"] == pytest.approx(done["u_combined_fitted"], rel=1e-9)
+
+    out = tmp_path / "advised.json"
+    r = runner.invoke(app, ["identify", str(rich), "--bearing", str(toml), "--json", str(out),
+                            "--no-fit-current-zeros"])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(out.read_text())
+    advice = rec["uncertainty_budget"]["fit_instead"]
+    assert advice == {**done, "text": advice["text"]} and "--effect current_offset" in r.output
+    assert rec["model_state"]["effects"] == [] and rec["params"][f"{worst}_um"]["u_combined"] == pytest.approx(
+        advice["u_combined"], rel=1e-9)
+
     out = tmp_path / "t2.json"
     r = runner.invoke(app, ["identify", str(DEFAULT), "--bearing", str(toml), "--json", str(out)])
     assert r.exit_code == 0, r.output
-    assert "fit_instead" not in json.loads(out.read_text())["uncertainty_budget"]
+    assert not {"fit_instead", "current_zeros_fitted"} & set(json.loads(out.read_text())["uncertainty_budget"])
 
 
 @pytest.mark.parametrize("distribution", ["uniform", "normal"])

@@ -295,12 +295,37 @@ ZERO_SHARE = 0.25
 the readings determine them (one Jacobian) and, if they do, fits them (one fit and its budget)."""
 
 
-def fit_instead(data, res, b: Budget, **fit_kw) -> dict | None:
+@dataclasses.dataclass(frozen=True)
+class Instead:
+    """The current zeros fitted instead of budgeted (:func:`fit_instead`): the ``parameter`` whose combined
+    variance they dominated (``zero_share``), its combined uncertainty before and after (display units), the fit
+    with ``current_offset`` and that fit's budget."""
+
+    effect: str
+    parameter: str
+    zero_share: float
+    u_combined: float
+    u_combined_fitted: float
+    unit: str
+    fit: object = dataclasses.field(repr=False, compare=False)
+    budget: Budget = dataclasses.field(repr=False, compare=False)
+
+    @property
+    def text(self) -> str:
+        return (f"the current zeros make {100 * self.zero_share:.0f} % of {self.parameter}'s combined variance and "
+                f"these readings determine them: fitting them ({self.effect}) takes {self.parameter}'s u_combined "
+                f"from {self.u_combined:.3g} to {self.u_combined_fitted:.3g} {self.unit}")
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect, "parameter": self.parameter, "zero_share": self.zero_share,
+                "u_combined": self.u_combined, "u_combined_fitted": self.u_combined_fitted, "text": self.text}
+
+
+def fit_instead(data, res, b: Budget, **fit_kw) -> Instead | None:
     """When the current zeros dominate an uncertainty of the ideal law's fit ``res`` (budget ``b``) and the
     readings determine them (every offset keeps less than :data:`~ambfit.estimation.identification.MAX_PRIOR_SHARE`
-    of its prior's variance: several biases do), what fitting them with ``current_offset`` gives, as advice:
-    ``{"effect", "parameter", "zero_share", "u_combined", "u_combined_fitted", "text"}``; None otherwise.
-    ``fit_kw``: how ``res`` was fitted (noise, ``require_k``, ``loss``)."""
+    of its prior's variance: several biases do), the fit with ``current_offset`` and what it gives
+    (:class:`Instead`); None otherwise.  ``fit_kw``: how ``res`` was fitted (noise, ``require_k``, ``loss``)."""
     from ambfit.estimation.conditioning import effect_identification
     from ambfit.estimation.fit import fit
     from ambfit.estimation.identification import MAX_PRIOR_SHARE
@@ -321,11 +346,7 @@ def fit_instead(data, res, b: Budget, **fit_kw) -> dict | None:
     alt = fit(data, [CurrentOffset()], bearing=res.bearing, throw=False, **fit_kw)
     if not (alt.converged and alt.well_conditioned):
         return None
-    u_now, u_alt = b.u_combined(worst), budget(data, alt, **fit_kw).u_combined(worst)
+    b_alt = budget(data, alt, **fit_kw)
     unit, f = DISPLAY[worst]
-    return {"effect": "current_offset", "parameter": worst, "zero_share": share[worst], "u_combined": u_now * f,
-            "u_combined_fitted": u_alt * f,
-            "text": f"the current zeros make {100 * share[worst]:.0f} % of {worst}'s combined variance and these "
-                    f"readings determine them: --effect current_offset fits them instead ({worst} u_combined "
-                    f"{u_now * f:.3g} -> {u_alt * f:.3g} {unit})"}
-
+    return Instead("current_offset", worst, share[worst], b.u_combined(worst) * f, b_alt.u_combined(worst) * f,
+                   unit, alt, b_alt)

@@ -116,6 +116,7 @@ class _Options:
     force_check: bool = True
     effects: tuple = ()
     discrepancy: bool = False
+    fit_current_zeros: bool = True
 
     def fit_kw(self) -> dict:
         return dict(**declared_noise(self.current_noise_ma, self.position_noise_um), require_k=self.require_k,

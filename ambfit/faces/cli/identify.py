@@ -142,6 +142,12 @@ def identify(
     discrepancy: Annotated[bool, typer.Option("--discrepancy", help="Also fit the model-discrepancy term (a smooth "
                                               "correction orthogonal to every fitted parameter) and add it to the "
                                               "model JSON for ambfit force.")] = False,
+    fit_current_zeros: Annotated[bool, typer.Option(help="When the current channels' zeros (the bearing's "
+                                                    "current_offset_tolerance_mA) dominate an error bar and the "
+                                                    "readings determine them (several biases), fit them "
+                                                    "(current_offset) and report that fit, saying so; "
+                                                    "--no-fit-current-zeros keeps the ideal law and only "
+                                                    "advises.")] = True,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
     workers: Annotated[int | None, typer.Option(callback=number(1, MAX_WORKERS), help="With several files or --by: fit the groups on this "
@@ -177,7 +183,7 @@ def identify(
     opts = _Options(method=method, current_noise_ma=current_noise_ma, position_noise_um=position_noise_um,
                     require_k=require_k, debias=debias, loss=loss.value, keep_duplicates=keep_duplicates,
                     accept=accept_implausible, bearing=desc, force_check=force_check, effects=effects,
-                    discrepancy=discrepancy)
+                    discrepancy=discrepancy, fit_current_zeros=fit_current_zeros)
     single = len(paths) == 1 and not unmatched and column is None and not pooled
     if (effects or discrepancy) and (not single or method == Method.closed_form):
         fail("--effect and --discrepancy extend the least-squares model of one data set (not the closed form, "
@@ -253,45 +259,61 @@ def _effects(names: list[str], bearing) -> tuple:
     return tuple(out)
 
 
-def _add_budget(record: dict, ds, res, kw: dict) -> None:
-    """The GUM budget (:mod:`ambfit.estimation.budget`) into the record's params (``u_combined``, ``budget``) and
-    ``uncertainty_budget``, and shown: ``std`` stays the readings' noise alone."""
-    from ambfit.estimation.budget import budget, declared_text, fit_instead
+def _show_budget(record: dict, b, bearing) -> None:
+    """The GUM budget ``b`` (:mod:`ambfit.estimation.budget`) into the record's params (``u_combined``,
+    ``budget``) and ``uncertainty_budget``, and shown: ``std`` stays the readings' noise alone."""
+    from ambfit.estimation.budget import declared_text
 
-    noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
-    b = budget(ds, res, **noise)
     b.merge(record["params"])
     record["uncertainty_budget"] = b.to_json()
     show_table(b.summary_rows(), f"uncertainty: the readings' noise and the calibration tolerances "
-               f"({declared_text(res.bearing, b.fitted_terms)})", left=("parameter", "largest calibration term"))
+               f"({declared_text(bearing, b.fitted_terms)})", left=("parameter", "largest calibration term"))
     for what in b.fitted_terms:
         note(f"{what}s: fitted by the model (their error is in std), not budgeted from the tolerance")
-    advice = fit_instead(ds, res, b, **noise)
-    if advice:
-        record["uncertainty_budget"]["fit_instead"] = advice
-        note(advice["text"])
     if b.failed:
         warn(b.failed_text())
 
 
-def _identify_ls(ds, name, opts: _Options) -> dict:
+def _fit_ls(ds, effects, opts: _Options):
     from ambfit.estimation import fit
 
     try:
-        res = fit.fit(ds, opts.effects, **opts.fit_kw())
+        return fit.fit(ds, effects, **opts.fit_kw())
     except fit.FitError as exc:
         fail(str(exc), 3)
     except ValueError as exc:                   # e.g. --debias with effects
         fail(str(exc))
-    show_table([{"experiment": "all", **res.display_row()}], f"least squares, {name}, {len(ds)} rows",
-               left=("experiment",))
+
+
+def _show_fit(res, name: str, n: int, what: str = "least squares") -> None:
+    show_table([{"experiment": "all", **res.display_row()}], f"{what}, {name}, {n} rows", left=("experiment",))
     for line in res.notes():
         note(line)
     _warn_health(res)
-    record = res.to_json()
+
+
+def _identify_ls(ds, name, opts: _Options) -> dict:
+    from ambfit.estimation import fit
+    from ambfit.estimation.budget import budget, fit_instead
+
+    res = _fit_ls(ds, opts.effects, opts)
+    _show_fit(res, name, len(ds))
     kw = opts.fit_kw()
-    if res.converged and res.well_conditioned:
-        _add_budget(record, ds, res, kw)
+    noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
+    b = budget(ds, res, **noise) if res.converged and res.well_conditioned else None
+    instead = fit_instead(ds, res, b, **noise) if b is not None and not opts.debias else None
+    if instead is not None and opts.fit_current_zeros:
+        note(f"{instead.text}; the fit below does (--no-fit-current-zeros keeps the ideal law and its budget)")
+        res, b = instead.fit, instead.budget
+        _show_fit(res, name, len(ds), "least squares with the current zeros fitted")
+    record = res.to_json()
+    if b is not None:
+        _show_budget(record, b, res.bearing)
+    if instead is not None:
+        key = "current_zeros_fitted" if opts.fit_current_zeros else "fit_instead"
+        record["uncertainty_budget"][key] = instead.to_json()
+        if not opts.fit_current_zeros:
+            note(f"{instead.text} (--fit-current-zeros or --effect {instead.effect})")
     if opts.discrepancy and res.converged:
         import numpy as np
 
