@@ -183,11 +183,11 @@ def test_progress_is_one_labelled_callback_and_the_sampler_draws_nothing(table2,
     bayes.sample(table2, n_ensembles=2, n_steps=60, max_steps=200, seed=2, ls=ls,
                  progress=lambda what, done, total: calls.append((what, done, total)))
     assert capfd.readouterr().err == ""                          # the library draws nothing itself
-    assert calls and all(w.startswith(bayes.PHASE + ": ensemble ") for w, _, _ in calls)
+    assert calls and all(w.startswith(bayes.PHASE + ": ") for w, _, _ in calls)
     done = [d for _, d, _ in calls]
     assert done == sorted(done) and all(d <= t for _, d, t in calls)
     assert calls[-1][1] == calls[-1][2] == 2 * 200               # 60 steps, extended to the cap, both ensembles
-    assert {w.split(": ")[1][:14] for w, _, _ in calls} == {"ensemble 1 of ", "ensemble 2 of "}
+    assert calls[0][0] == bayes.PHASE + ": 2 in lockstep" and "more to reach 50 x tau" in calls[-1][0]
     with pytest.raises(TypeError, match="callback"):
         bayes.sample(table2, n_ensembles=1, n_steps=10, ls=ls, progress=True)
 

@@ -43,7 +43,15 @@ from ambfit.estimation.core import (
     to_theta,
     unpack,
 )
-from ambfit.estimation.ensembles import PHASE, Tally, advance, check_settings, run_until_settled
+from ambfit.estimation.ensembles import (
+    PHASE,
+    BlockStretchMove,
+    Tally,
+    advance,
+    block_chain,
+    check_settings,
+    run_until_settled,
+)
 from ambfit.estimation.ensembles import SettingError as SettingError  # (what sample raises on bad settings)
 from ambfit.estimation.fit import FitResult, fit
 from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, display, like, pm, si_unit
@@ -121,9 +129,22 @@ class LogDensity(eqx.Module):
         return jnp.where(jnp.isfinite(lp), lp + jnp.sum(self.pointwise(z)), -jnp.inf)
 
 
-@eqx.filter_jit
-def _logp_batch(post: LogDensity, zs):
-    return jax.vmap(post)(zs)
+class CompiledLogDensity:
+    """``post`` vectorised over walkers (``zs [n, p] -> [n]``, NumPy in and out), compiled once per batch size
+    ahead of time and called without the jit wrapper's per-call dispatch: the sampler calls it tens of thousands
+    of times, where that dispatch costs more than the density."""
+
+    def __init__(self, post: LogDensity):
+        self.arrays, static = eqx.partition(post, eqx.is_array)
+        self._jit = jax.jit(lambda arrays, zs: jax.vmap(eqx.combine(arrays, static))(zs))
+        self._by_size = {}
+
+    def __call__(self, zs) -> np.ndarray:
+        zs = np.ascontiguousarray(zs, dtype=np.float64)
+        run = self._by_size.get(zs.shape)
+        if run is None:
+            run = self._by_size[zs.shape] = self._jit.lower(self.arrays, zs).compile()
+        return np.asarray(run(self.arrays, zs))
 
 
 @eqx.filter_jit
@@ -299,24 +320,20 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     post = LogDensity(prob=prob, theta_ref=jnp.asarray(theta_hat), free_idx=jnp.asarray(np.nonzero(free)[0]),
                       prior=prior, model=Model.of((), bearing))
     ndim = int(free.sum())
-    n_walkers = n_walkers or max(32, 4 * ndim)
+    n_walkers = n_walkers or max(64, 4 * ndim)
     check_settings(n_ensembles=n_ensembles, n_steps=n_steps, max_steps=max_steps, n_walkers=n_walkers, names=names)
     cov_z = ls.cov / np.outer(scale[free], scale[free])
     chol = np.linalg.cholesky(cov_z + 1e-300 * np.eye(ndim))
     rng = np.random.default_rng(seed)
 
-    def logp(zs):
-        return np.asarray(_logp_batch(post, jnp.asarray(zs)))
-
     tally = Tally(progress, n_ensembles * n_steps)
-    samplers = []
-    for e in range(n_ensembles):
-        p0 = theta_hat[free] + 0.1 * rng.standard_normal((n_walkers, ndim)) @ chol.T
-        sampler = emcee.EnsembleSampler(n_walkers, ndim, logp, vectorize=True)
-        sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
-        advance(sampler, p0, n_steps, tally, f"{PHASE}: ensemble {e + 1} of {n_ensembles}")
-        samplers.append(sampler)
-    steps, tau, settled = run_until_settled(samplers, n_steps, max_steps, min_tau_multiple, tally)
+    # the ensembles run in lockstep as one emcee sampler whose stretch move keeps them apart (BlockStretchMove)
+    p0 = theta_hat[free] + 0.1 * rng.standard_normal((n_ensembles * n_walkers, ndim)) @ chol.T
+    sampler = emcee.EnsembleSampler(n_ensembles * n_walkers, ndim, CompiledLogDensity(post), vectorize=True,
+                                    moves=BlockStretchMove(n_ensembles))
+    sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
+    advance(sampler, p0, n_steps, tally, f"{PHASE}: {n_ensembles} in lockstep", n_ensembles)
+    steps, tau, settled = run_until_settled(sampler, n_ensembles, n_steps, max_steps, min_tau_multiple, tally)
     tmax = float(np.max(tau))
     burn = int(np.ceil(2 * tmax))
     thin = max(1, int(tmax / 2))
@@ -326,8 +343,8 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
                + (f" is too short and the cap of {max_steps} steps was reached: run at least "
                   f"{int(np.ceil(min_tau_multiple * tmax))} steps (--max-steps) for a reliable tau and ESS"
                   if too_short else f" is {steps / tmax:.0f} tau (>= {min_tau_multiple:g})"))
-    accs = np.array([float(np.mean(s.acceptance_fraction)) for s in samplers])
-    draws_z = np.stack([s.get_chain()[burn::thin].reshape(-1, ndim) for s in samplers])  # [ens, draws, p]
+    accs = sampler.acceptance_fraction.reshape(n_ensembles, n_walkers).mean(axis=1)
+    draws_z = block_chain(sampler, n_ensembles)[:, burn::thin].reshape(n_ensembles, -1, ndim)  # [ens, draws, p]
     draws = draws_z * scale[free]
     dt = _datatree(names, draws, post, draws_z, df, tau, accs)
     return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=steps, n_walkers=n_walkers,

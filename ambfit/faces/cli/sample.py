@@ -81,7 +81,7 @@ def sample(
     ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
                                            help="Independent emcee ensembles (R-hat compares them).")] = 4,
     walkers: Annotated[int | None, typer.Option(callback=number(2, MAX_WALKERS), help="Walkers per ensemble (default "
-                                                "max(32, 4 x parameters); at least twice the parameters).")] = None,
+                                                "max(64, 4 x parameters); at least twice the parameters).")] = None,
     nominal_gap_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True), help="Centre the gap prior on this nominal gap [µm] "
                                                           "(log-sd --gap-prior-log-sd).")] = None,
     gap_prior_log_sd: Annotated[float, typer.Option(callback=number(0, low_open=True),
