@@ -178,6 +178,9 @@ class Posterior:
         (``datatree.posterior["g_v0"].attrs["units"] == "µm"``), which the NetCDF file keeps.
     ls : FitResult
         The least-squares fit the ensembles started from.
+    sampler : str
+        ``"emcee"`` (ensembles of walkers, :func:`sample`) or ``"nuts"`` (BlackJAX's No-U-Turn sampler, one chain per
+        "ensemble" and ``n_walkers`` 1, :func:`ambfit.estimation.nuts.sample_nuts`).
     """
 
     names: list
@@ -192,6 +195,7 @@ class Posterior:
     datatree: object
     ls: FitResult
     acceptance: np.ndarray
+    sampler: str = "emcee"
 
     def to_dataframe(self, ci_prob: float = 0.94):
         """ArviZ summary (mean, sd, HDI, ESS, R-hat across ensembles) in the reported units, unrounded."""
@@ -240,7 +244,10 @@ class Posterior:
 
     def summary(self, ci_prob: float = 0.94) -> str:
         """A short text summary: posterior mean ± sd, HDI, R-hat and ESS per parameter, and the run's verdict."""
-        head = f"posterior ({self.draws.shape[0]} ensembles x {self.n_walkers} walkers x {self.n_steps} steps)"
+        head = (f"posterior ({self.draws.shape[0]} ensembles x {self.n_walkers} walkers x {self.n_steps} steps)"
+                if self.sampler == "emcee" else
+                f"posterior ({self.draws.shape[0]} {self.sampler} chains x {self.n_steps} draws after {self.burn} "
+                "warm-up steps)")
         rows = [f"  {n:<22} {v:<22} {int(ci_prob * 100)} % HDI {h:<26} R-hat {r}, ESS {e}"
                 for n, v, h, r, e in self._lines(ci_prob)]
         return "\n".join([head, *rows, self.message])
@@ -274,11 +281,47 @@ class Posterior:
                 lo, hi = (float(a) for a in np.asarray(hdi[name]).ravel()[:2])
                 params[key] = {"value": float(v.mean()), "std": float(v.std(ddof=1)), "hdi_low": lo, "hdi_high": hi,
                                "r_hat": float(rhat[name]), "ess_bulk": float(ess[name])}
-        return {"method": "bayes", "params": params, "converged": not self.too_short and bool(
+        return {"method": "bayes", "sampler": self.sampler, "params": params, "converged": not self.too_short and bool(
             all(p["r_hat"] < rhat_max for p in params.values())), "n_rows": self.ls.n_rows,
             "n_ensembles": int(self.draws.shape[0]), "n_walkers": self.n_walkers, "n_steps": self.n_steps,
             "burn": self.burn, "thin": self.thin, "tau_max": float(np.max(self.tau)), "message": self.message,
             "hdi_prob": ci_prob, "rhat_max": rhat_max}
+
+
+@dataclasses.dataclass(frozen=True)
+class Target:
+    """What a sampler needs of one data set: the log-density ``post`` over the scaled free parameters ``z``
+    (``theta = z * scale``), the least-squares fit ``ls`` with its optimum ``z_hat`` and the Cholesky factor
+    ``chol`` of its covariance in ``z``, the parameter ``names`` and the readings ``df``."""
+
+    post: LogDensity
+    names: list
+    scale: np.ndarray
+    z_hat: np.ndarray
+    chol: np.ndarray
+    ls: FitResult
+    df: pd.DataFrame
+
+    @property
+    def ndim(self) -> int:
+        return len(self.names)
+
+    @classmethod
+    def of(cls, data, prior: Prior | None, bearing: Bearing, ls: FitResult | None, fit_kw: dict) -> Target:
+        prior = prior if prior is not None else Prior.from_bearing(bearing)
+        df = data.frame if isinstance(data, Dataset) else data
+        ls = ls or fit(df, bearing=bearing, **fit_kw)
+        prob, meta = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
+        free = free_mask(prob, meta)
+        scale = param_scale(prob.n_loads)
+        theta_hat = np.zeros(len(free))
+        theta_hat[free] = ls.values / scale[free]
+        theta_hat[~free] = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(prob.n_loads))[~free]
+        post = LogDensity(prob=prob, theta_ref=jnp.asarray(theta_hat), free_idx=jnp.asarray(np.nonzero(free)[0]),
+                          prior=prior, model=Model.of((), bearing))
+        cov_z = ls.cov / np.outer(scale[free], scale[free])
+        chol = np.linalg.cholesky(cov_z + 1e-300 * np.eye(int(free.sum())))
+        return cls(post, free_names(meta, free), scale[free], theta_hat[free], chol, ls, df)
 
 
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
@@ -307,28 +350,15 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
         raise TypeError(f"progress must be a callback progress(what, done, total) or None, not {progress!r}")
     check_settings(n_ensembles=n_ensembles, n_steps=n_steps, max_steps=max_steps)
 
-    prior = prior if prior is not None else Prior.from_bearing(bearing)
-    df = data.frame if isinstance(data, Dataset) else data
-    ls = ls or fit(df, bearing=bearing, **fit_kw)
-    prob, meta = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
-    free = free_mask(prob, meta)
-    names = free_names(meta, free)
-    scale = param_scale(prob.n_loads)
-    theta_hat = np.zeros(len(free))
-    theta_hat[free] = ls.values / scale[free]
-    theta_hat[~free] = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(prob.n_loads))[~free]
-    post = LogDensity(prob=prob, theta_ref=jnp.asarray(theta_hat), free_idx=jnp.asarray(np.nonzero(free)[0]),
-                      prior=prior, model=Model.of((), bearing))
-    ndim = int(free.sum())
+    target = Target.of(data, prior, bearing, ls, fit_kw)
+    post, names, ndim, chol, ls, df = target.post, target.names, target.ndim, target.chol, target.ls, target.df
     n_walkers = n_walkers or max(64, 4 * ndim)
     check_settings(n_ensembles=n_ensembles, n_steps=n_steps, max_steps=max_steps, n_walkers=n_walkers, names=names)
-    cov_z = ls.cov / np.outer(scale[free], scale[free])
-    chol = np.linalg.cholesky(cov_z + 1e-300 * np.eye(ndim))
     rng = np.random.default_rng(seed)
 
     tally = Tally(progress, n_ensembles * n_steps)
     # the ensembles run in lockstep as one emcee sampler whose stretch move keeps them apart (BlockStretchMove)
-    p0 = theta_hat[free] + 0.1 * rng.standard_normal((n_ensembles * n_walkers, ndim)) @ chol.T
+    p0 = target.z_hat + 0.1 * rng.standard_normal((n_ensembles * n_walkers, ndim)) @ chol.T
     sampler = emcee.EnsembleSampler(n_ensembles * n_walkers, ndim, CompiledLogDensity(post), vectorize=True,
                                     moves=BlockStretchMove(n_ensembles))
     sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
@@ -345,7 +375,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
                   if too_short else f" is {steps / tmax:.0f} tau (>= {min_tau_multiple:g})"))
     accs = sampler.acceptance_fraction.reshape(n_ensembles, n_walkers).mean(axis=1)
     draws_z = block_chain(sampler, n_ensembles)[:, burn::thin].reshape(n_ensembles, -1, ndim)  # [ens, draws, p]
-    draws = draws_z * scale[free]
+    draws = draws_z * target.scale
     dt = _datatree(names, draws, post, draws_z, df, tau, accs)
     return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=steps, n_walkers=n_walkers,
                      too_short=bool(too_short), message=message, datatree=dt, ls=ls, acceptance=accs)
@@ -360,7 +390,8 @@ def tree_name(name: str) -> str:
     return name.replace("[", "_").replace("]", "").replace("|", "_")
 
 
-def _datatree(names, draws, post, draws_z, df, tau, acc):
+def _datatree(names, draws, post, draws_z, df, tau, acc, stats: dict | None = None):
+    """The DataTree of draws ``[chains, draws, p]``; ``stats``: more ``sample_stats`` of that shape."""
     import arviz as az
 
     ens, nd, p = draws.shape
@@ -369,7 +400,7 @@ def _datatree(names, draws, post, draws_z, df, tau, acc):
     lp = ll.sum(axis=-1)
     observed = {c: df[c].to_numpy(float) for c in OBSERVED_UNITS}
     dt = az.from_dict(
-        {"posterior": posterior, "log_likelihood": {"reading": ll}, "sample_stats": {"lp": lp},
+        {"posterior": posterior, "log_likelihood": {"reading": ll}, "sample_stats": {"lp": lp, **(stats or {})},
          "observed_data": observed},
         dims={"reading": ["row"], **{c: ["row"] for c in observed}},
         attrs={"posterior": {"units": "gaps and origins in µm, k in N m²/A², loads in N",

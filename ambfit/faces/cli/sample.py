@@ -1,7 +1,8 @@
-"""``ambfit sample``: the posterior of gap, origin and k with emcee, summarised with ArviZ."""
+"""``ambfit sample``: the posterior of gap, origin and k with emcee (or BlackJAX's NUTS), summarised with ArviZ."""
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 from typing import Annotated
 
@@ -33,6 +34,13 @@ MAX_WALKERS = 1_024
 hundred times the parameters of the richest model, past any gain in sampling."""
 MIN_STEPS = 100
 """Fewest steps to start with: the burn-in alone is two autocorrelation times."""
+EMCEE_STEPS, NUTS_DRAWS, MAX_STEPS = 3000, 1000, 30000
+"""--steps by sampler (emcee's first run per ensemble, NUTS' draws per chain) and emcee's cap (--max-steps)."""
+
+
+class Sampler(enum.StrEnum):
+    emcee = "emcee"
+    nuts = "nuts"
 
 
 def _add_budget(record: dict, ds, res, noise: dict, seed: int) -> None:
@@ -74,12 +82,21 @@ def sample(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the contract JSON (method 'bayes', "
                                                   "94 % HDI, R-hat, ESS) here.")] = None,
     pair_png: Annotated[Path | None, typer.Option(help="Write a pair plot of gap, origin and k here.")] = None,
-    steps: Annotated[int, typer.Option(callback=number(MIN_STEPS), help="Steps per ensemble to start with; each ensemble is extended until "
-                                       "the run is 50 autocorrelation times long and tau has settled.")] = 3000,
-    max_steps: Annotated[int, typer.Option(callback=number(MIN_STEPS), help="Cap on the steps per ensemble (exit 3 with the length "
-                                           "needed when it is reached).")] = 30000,
+    sampler: Annotated[Sampler, typer.Option(help="'emcee' (independent ensembles of walkers, the field's "
+                                             "default) or 'nuts' (BlackJAX's No-U-Turn sampler, one chain per "
+                                             "ensemble; needs ambfit[nuts]): the same posterior, a second "
+                                             "opinion.")] = Sampler.emcee,
+    steps: Annotated[int | None, typer.Option(callback=number(MIN_STEPS), help="emcee: steps per ensemble to start "
+                                              f"with (default {EMCEE_STEPS}); each ensemble is extended until the "
+                                              "run is 50 autocorrelation times long and tau has settled.  nuts: "
+                                              f"draws per chain after as many warm-up steps (default "
+                                              f"{NUTS_DRAWS}).")] = None,
+    max_steps: Annotated[int | None, typer.Option(callback=number(MIN_STEPS), help="emcee: cap on the steps per "
+                                                  "ensemble (exit 3 with the length needed when it is reached; "
+                                                  f"default {MAX_STEPS}).")] = None,
     ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
-                                           help="Independent emcee ensembles (R-hat compares them).")] = 4,
+                                           help="Independent emcee ensembles or NUTS chains (R-hat compares "
+                                           "them).")] = 4,
     walkers: Annotated[int | None, typer.Option(callback=number(2, MAX_WALKERS), help="Walkers per ensemble (default "
                                                 "max(64, 4 x parameters); at least twice the parameters).")] = None,
     nominal_gap_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True), help="Centre the gap prior on this nominal gap [µm] "
@@ -94,19 +111,32 @@ def sample(
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
 ):
-    """Sample the posterior of gap, origin (and k with known loads) with emcee; summarise with ArviZ.
+    """Sample the posterior of gap, origin (and k with known loads) with emcee or NUTS; summarise with ArviZ.
 
-    Runs until the chains are 50 autocorrelation times long (up to --max-steps); exits 3 when
-    the cap is reached (and says how long the run should be) or R-hat across the ensembles
-    exceeds 1.01.
+    emcee runs until the chains are 50 autocorrelation times long (up to --max-steps); exits 3
+    when the cap is reached (and says how long the run should be), when NUTS' chains are shorter
+    than 50 autocorrelation times, or when R-hat across the ensembles or chains exceeds 1.01.
     """
     from ambfit.data import DataError
     from ambfit.estimation import bayes, fit
     from ambfit.faces.cli.progress import progress_bar
 
     check_output(out, json_out, pair_png, inputs=(data, bearing))
-    if max_steps < steps:
-        fail(f"--max-steps {max_steps}: the cap is below --steps {steps}")
+    if sampler is Sampler.nuts:
+        for option, value in (("--walkers", walkers), ("--max-steps", max_steps)):
+            if value is not None:
+                fail(f"{option} is emcee's; NUTS runs one chain per ensemble for exactly --steps draws")
+        from ambfit.estimation import nuts
+
+        try:
+            nuts._blackjax()
+        except nuts.MissingSampler as exc:
+            fail(str(exc))
+    else:
+        steps = steps or EMCEE_STEPS
+        max_steps = max_steps or max(MAX_STEPS, steps)
+        if max_steps < steps:
+            fail(f"--max-steps {max_steps}: the cap is below --steps {steps}")
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
@@ -114,9 +144,14 @@ def sample(
         prior = bayes.Prior.from_bearing(desc.with_(nominal_gap=nominal_gap_um * 1e-6) if nominal_gap_um else desc,
                                          gap_log_sd=gap_prior_log_sd)
         with progress_bar(enabled=None if progress else False) as bar:
-            res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
-                               max_steps=max_steps, seed=seed, progress=bar, bearing=desc,
-                               **declared_noise(current_noise_ma, position_noise_um))
+            if sampler is Sampler.nuts:
+                res = nuts.sample_nuts(ds, prior=prior, n_chains=ensembles, n_warmup=steps or NUTS_DRAWS,
+                                       n_draws=steps or NUTS_DRAWS, seed=seed, progress=bar, bearing=desc,
+                                       **declared_noise(current_noise_ma, position_noise_um))
+            else:
+                res = bayes.sample(ds, prior=prior, n_ensembles=ensembles, n_walkers=walkers, n_steps=steps,
+                                   max_steps=max_steps, seed=seed, progress=bar, bearing=desc,
+                                   **declared_noise(current_noise_ma, position_noise_um))
     except bayes.SettingError as exc:
         fail(f"{SAMPLER_OPTIONS.get(exc.setting, exc.setting)} {exc.value}: {exc.problem}")
     except DataError as exc:
