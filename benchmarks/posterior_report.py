@@ -82,7 +82,7 @@ def _nuts(ds, ls) -> dict:
     """NUTS (BlackJAX) on the same data, compiled first; its posterior against emcee's."""
     try:
         from ambfit.estimation.nuts import MissingSampler, sample_nuts
-        sample_nuts(ds, ls=ls, n_chains=1, n_warmup=50, n_draws=50)
+        sample_nuts(ds, ls=ls, n_chains=1)                  # compiles the chain of 1000 + 1000 steps
     except MissingSampler as exc:
         return {"skipped": str(exc)}
     t0 = time.perf_counter()
