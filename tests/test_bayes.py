@@ -204,3 +204,21 @@ def test_the_json_interval_is_the_contracts_94_percent_hdi(short_run):
         p = js["params"][key]
         assert p["hdi_low"] == pytest.approx(x[i], abs=0.02 * p["std"]), name
         assert p["hdi_high"] == pytest.approx(x[i + k], abs=0.02 * p["std"]), name
+
+
+def test_a_posterior_away_from_least_squares_is_flagged(short_run):
+    # the short run agrees with its least-squares start to a fraction of an sd; the same draws moved by 2.5 sd
+    # on g_v0 (and 1.5 sd on v0) disagree on g_v0 alone, in the JSON and in words
+    import dataclasses
+
+    a = short_run.agreement()
+    assert a["disagrees"] == [] and a["text"] == "" and max(abs(z) for z in a["z"].values()) < 0.3
+    draws = short_run.draws.copy()
+    for name, k in (("g_v0", 2.5), ("v0", 1.5)):
+        j = short_run.names.index(name)
+        draws[..., j] += k * short_run.error(name)
+    moved = dataclasses.replace(short_run, draws=draws)
+    a = moved.agreement()
+    assert a["disagrees"] == ["g_v0"] and a["z"]["g_v0"] == pytest.approx(2.5 + short_run.agreement()["z"]["g_v0"])
+    assert "g_v0 (+2.5 sd)" in a["text"] and "not the Gaussian" in a["text"]
+    assert short_run.to_json()["least_squares_agreement"]["threshold"] == 2.0

@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ambfit import rig
-from ambfit.estimation.budget import budget, standard_uncertainty, terms
+from ambfit.estimation.budget import budget, fit_instead, standard_uncertainty, terms
 from ambfit.estimation.fit import fit
 from ambfit.faces.cli import app
 from ambfit.physics.bearing import PAPER_BEARING, Bearing, BearingError
@@ -185,3 +185,20 @@ def test_marginalising_the_calibration_adds_its_variance_to_the_draws(fitted, di
     x = one.propagate({"v0": np.zeros(n)}, np.random.default_rng(2))["v0"]
     kurtosis = np.mean((x - x.mean()) ** 4) / np.var(x) ** 2
     assert kurtosis == pytest.approx(1.8 if distribution == "uniform" else 3.0, abs=0.05)
+
+
+def test_a_law_that_does_not_fit_keeps_its_zeros_unfitted():
+    # a saturating rig on the rich design: the ideal law misses by χ²/dof ~1500, and current offsets fitted to it
+    # would absorb that misfit rather than measure the channels' zeros: no fit instead, however wide the zeros
+    from ambfit.physics.effects import Saturation
+
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)],
+                        seed=2).data
+    wide = dataclasses.replace(PAPER_BEARING, current_offset_tolerance=10e-3)
+    res = fit(data, bearing=wide)
+    assert res.adequate is False
+    assert fit_instead(data, res, budget(data, res)) is None
+    clean = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=3).data
+    ok = fit(clean, bearing=wide)
+    assert ok.adequate and fit_instead(clean, ok, budget(clean, ok)) is not None

@@ -114,7 +114,7 @@ def test_residual_map_draws_before_and_after_against_the_variable():
 def test_diagnosis_residuals_use_the_most_structured_variable():
     d = small_diagnosis()
     ax = plots.plot_diagnosis_residuals(d)
-    assert ax.get_xlabel() == "b_top_T"
+    assert ax.get_xlabel() == "top-coil flux density [T] (ideal circuit)"
     np.testing.assert_array_equal(line(ax, "ideal model").get_xdata(), d.operating["b_top_T"])
     np.testing.assert_array_equal(line(ax, "with the verdict effect").get_ydata(), d.residuals_after)
 

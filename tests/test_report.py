@@ -121,12 +121,46 @@ def test_solution_space_caption_follows_its_contour_levels(data, ls):
     from ambfit.estimation import conditioning
 
     spaces = {"v": conditioning.solution_space(data, "v", weights_at=ls), "w": ValueError("no w map")}
-    html = str(section(DATA, "solution_space", dataset.solution_space(spaces, ls, sigmas=(1, 2))))
+    gap, origin, step = dataset.zoom_ranges(ls, "v")
+    zooms = {"v": conditioning.solution_space(data, "v", gap=gap, origin=origin, step=step, weights_at=ls),
+             "w": ValueError("no w map")}
+    html = str(section(DATA, "solution_space", dataset.solution_space(spaces, ls, sigmas=(1, 2), zooms=zooms)))
     text = plain(html)
     assert expanded(html) and "<img" in html
-    # 1 and 2 sigma in two dimensions: chi2(2).ppf(0.6827) = 2.30, ppf(0.9545) = 6.18
+    # 1 and 2 sigma in two dimensions: chi2(2).ppf(0.6827) = 2.30, ppf(0.9545) = 6.18, on the zoom; the wide
+    # map's own levels above it
     assert f"Δχ² = {chi2.ppf(0.6827, 2):.1f}, {chi2.ppf(0.9545, 2):.1f} (68.3, 95.4 % in 2-D)" in text
-    assert "11.8" not in text
+    assert "11.8" not in text and "white contours at Δχ² = 50, 200, 1000" in text
+    # without a zoom the caption names only what the wide map draws
+    text = plain(str(section(DATA, "solution_space", dataset.solution_space(spaces, ls, sigmas=(1, 2)))))
+    assert "2.3" not in text and "Δχ² = 50, 200, 1000" in text
+
+
+def test_the_zoom_draws_the_contours_its_caption_names(data, ls):
+    # each 1-3 sigma contour is a resolved closed curve on the zoom (the wide map's 1 µm cells draw them as a few
+    # points or not at all), and the 1-sigma one is the least-squares 68 % ellipse: its half-height in gap is
+    # sqrt(2.30) standard errors of g_v0
+    from matplotlib.contour import ContourSet
+    from matplotlib.figure import Figure
+
+    from ambfit.estimation import conditioning
+    from ambfit.faces import plots
+
+    gap, origin, step = dataset.zoom_ranges(ls, "v")
+    zoom = conditioning.solution_space(data, "v", gap=gap, origin=origin, step=step, weights_at=ls)
+    wide = conditioning.solution_space(data, "v", weights_at=ls)
+    levels = (2.30, 6.18, 11.8)
+    drawn = {}
+    for name, space in (("zoom", zoom), ("wide", wide)):
+        ax = plots.plot_solution_space(space, result=ls, levels=levels, ax=Figure().subplots())
+        cs = next(c for c in ax.collections if isinstance(c, ContourSet))
+        drawn[name] = [len(p.vertices) for p in cs.get_paths()]
+    assert len(drawn["zoom"]) == 3 and min(drawn["zoom"]) > 50, drawn
+    assert min(drawn["wide"]) < 20, drawn
+    ax = plots.plot_solution_space(zoom, result=ls, levels=levels[:1], ax=Figure().subplots())
+    path = next(c for c in ax.collections if isinstance(c, ContourSet)).get_paths()[0].vertices
+    half = (path[:, 1].max() - path[:, 1].min()) / 2
+    assert half == pytest.approx(np.sqrt(2.30) * ls.error("g_v0") * 1e6, rel=0.05)
 
 
 def test_design_section_describes_the_grid_it_chose_from(data, ls):
@@ -166,7 +200,9 @@ def test_diagnosis_section_reads_the_typed_diagnosis(small_diagnosis):
     html = str(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
     text = plain(html)
     assert expanded(html)
-    assert f"Verdict: {dg.verdict}" in text
+    from ambfit.diagnosis import text as words
+
+    assert words.headline(dg) in text and words.headline(dg).startswith(f"verdict: {dg.verdict}")
     nf = dg.noise_floor
     assert f"mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}" in text
     assert f"Held-out excess of the ideal model {dg.heldout_excess_before:.2f} noise units" in text
@@ -193,7 +229,7 @@ def test_diagnosis_section_is_structured_not_one_paragraph(small_diagnosis):
     html = str(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
     assert expanded(html)
     verdict = re.search(r'<p class="verdict">(.*?)</p>', html, re.S)
-    assert verdict and f"<b>{dg.verdict}</b>" in verdict.group(1)
+    assert verdict and plain(verdict.group(1)).startswith(f"verdict: {dg.verdict}")
     assert "mean z²" not in verdict.group(1) and len(plain(verdict.group(1))) < 120     # one line, the verdict
     heads = re.findall(r"<h3>(.*?)</h3>", html)
     assert heads[:3] == ["Candidate effects, held out (best first)", "Where the ideal law fails", "Force measurement"]
@@ -205,8 +241,8 @@ def test_diagnosis_section_is_structured_not_one_paragraph(small_diagnosis):
     assert items == [f"{r.describe()}: {r.rows} readings, z {r.z:+.1f}" for r in regions]
     force = html[html.index(heads[2]):]
     assert "<th>RMS per reading [%]</th>" in force and "<td>0.580</td>" in force
-    # no paragraph carries the whole story
-    assert max(len(plain(p)) for p in re.findall(r"<p[^>]*>(.*?)</p>", html, re.S)) < 300
+    # no paragraph carries the whole story (the blind-spot note is one sentence, the command line's own words)
+    assert max(len(plain(p)) for p in re.findall(r"<p(?! class=\"note\")[^>]*>(.*?)</p>", html, re.S)) < 300
 
 
 def test_diagnosis_section_on_the_noise_floor_says_so_with_no_empty_where(small_diagnosis):
@@ -215,7 +251,7 @@ def test_diagnosis_section_on_the_noise_floor_says_so_with_no_empty_where(small_
 
     dg = dataclasses.replace(small_diagnosis, decision=Verdict("none"), where=Where(small_diagnosis.where.tests, [], 4.0))
     text = plain(section(DATA, "diagnosis", dataset.diagnosis(dg, draw=False)))
-    assert "Verdict: none: the residuals are consistent with noise." in text
+    assert "verdict: none (the ideal law's held-out residuals sit on the noise floor)." in text
     assert "Nowhere: no region of the operating space has residuals beyond the noise" in text
 
 
@@ -238,8 +274,9 @@ def test_data_report_without_a_fit_says_why(tmp_path, monkeypatch):
     path, rec = dataset.data_report(TABLE2, tmp_path / "r")
     page = path.read_text()
     assert rec["least_squares"] == {"error": "singular Jacobian at the start"}
-    assert set(rec) == {"data", "n_rows", "least_squares"}
+    assert set(rec) == {"data", "n_rows", "least_squares", "warnings"} and rec["warnings"] == []
     assert "Least squares failed: singular Jacobian at the start" in plain(page)
+    assert page.index("Summary") < page.index("Least squares failed")
     assert "2. Posterior" not in page and expanded(page)
 
 
@@ -248,7 +285,7 @@ def test_data_report_skips_sections_on_request(tmp_path):
                                     do_diagnosis=False)
     page = path.read_text()
     assert expanded(page) and _self_contained(page)
-    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "solution_space", "design"}
+    assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "solution_space", "design", "warnings"}
     assert {ax: m["on_edge"] for ax, m in rec["solution_space"].items()} == {"v": False, "w": False}
     assert json.loads((tmp_path / "r" / "report.json").read_text())["n_rows"] == rec["n_rows"] == 80
     assert "Skipped (--no-posterior)." in page and "Skipped (--no-diagnosis)." in page
@@ -271,8 +308,8 @@ def test_data_report_cli_writes_all_sections(tmp_path):
     assert expanded(page)
     rec = json.loads((out / "report.json").read_text())
     assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "solution_space", "design",
-                        "diagnosis"}
-    assert f"Verdict: <b>{rec['diagnosis']['verdict']}</b>" in page
+                        "diagnosis", "warnings"}
+    assert f'<p class="verdict">verdict: {rec["diagnosis"]["verdict"]}' in page
     assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
     # the combined uncertainty (GUM) beside the noise-only error, the same number in the page and the JSON
     v0 = rec["least_squares"]["params"]["v0_um"]
@@ -415,3 +452,62 @@ def test_paper_report_is_one_self_contained_page(tmp_path):
                         "autocorrelation", "between_experiment_sd", "noise_calibration", "table2_trend", "fig2",
                         "published_gap", "gap_demonstration", "bias_pair_check"}
     assert f"repeated {rec['replicates']} times" in paper_html
+
+
+def test_the_summary_box_says_every_warning_the_command_line_prints(tmp_path):
+    # a saturating rig swept over four biases: the ideal law does not fit; identify warns, and the report's
+    # summary box (top of the page) carries the same sentences and says the fit does NOT fit its data
+    from ambfit import rig
+    from ambfit.physics.effects import Saturation
+    from ambfit.rig import protocol as P
+
+    spec = rig.PAPER_RIG
+    frame = rig.simulate(spec, P.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)], seed=2).data
+    csv = tmp_path / "sat.csv"
+    frame.to_csv(csv, index=False)
+    r = CliRunner().invoke(app, ["identify", str(csv), "--no-force-check"])
+    said = [line.removeprefix("warning: ") for line in r.output.splitlines() if line.startswith("warning: ")]
+    assert said, r.output
+    res = fit(frame)
+    box = dataset.summary_box(res, bearing=PAPER_BEARING)
+    text = plain(section(DATA, "summary", box))
+    assert all(w in text for w in said), (said, text)
+    assert "does NOT fit its data" in text and f"χ²/dof {res.reduced_chi2:.3g}" in text
+
+
+def test_the_summary_box_flags_a_posterior_away_from_least_squares(data, ls):
+    from ambfit.estimation import bayes
+
+    post = bayes.sample(data, n_ensembles=2, n_steps=300, max_steps=300, seed=1, ls=ls)
+    box = dataset.summary_box(ls, bearing=PAPER_BEARING, post=post)
+    assert not any("disagree" in w for w in box["warnings"])
+    draws = post.draws.copy()
+    draws[..., post.names.index("v0")] += 3 * post.error("v0")
+    box = dataset.summary_box(ls, bearing=PAPER_BEARING, post=dataclasses.replace(post, draws=draws))
+    text = plain(section(DATA, "summary", box))
+    assert "posterior and least squares disagree beyond 2 sd on v0 (+3.0 sd)" in text
+
+
+def test_the_summary_box_gives_the_verdicts_parameters_beside_the_ideal_laws():
+    # a named verdict: its model's gap and origin (what the bearing is once the effect is modelled) beside the
+    # ideal law's, and the verdict in one line with its grade
+    import types
+
+    from ambfit import rig
+    from ambfit.diagnosis.verdict import Grade
+    from ambfit.estimation.units import with_unit
+    from ambfit.physics.effects import Saturation
+    from ambfit.rig import protocol as P
+
+    spec = rig.PAPER_RIG
+    frame = rig.simulate(spec, P.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)], seed=2).data
+    ideal, sat = fit(frame), fit(frame, [Saturation()])
+    grade = Grade("saturation", ("saturation",), "law", 0.99, 0.3, 1.05, 1.0, True, True)
+    dg = types.SimpleNamespace(verdict="saturation", verdict_fit=sat, grade=grade)
+    text = plain(section(DATA, "summary", dataset.summary_box(ideal, bearing=PAPER_BEARING, diagnosed=dg)))
+    for name in ("g_v0", "v0"):
+        assert with_unit(name, sat.value(name), sat.error(name))[0] in text
+        assert with_unit(name, ideal.value(name), ideal.error(name))[0] in text
+    assert "with saturation (the verdict)" in text
+    assert "verdict: saturation (the library's law saturation: removes 0.990 of the held-out excess, at the noise " \
+           "floor)" in text

@@ -2,7 +2,8 @@
 :class:`~ambfit.diagnosis.results.Diagnosis`, written from its record in one place.
 
 :func:`summary` is ``str(diagnosis)``; the command line prints :func:`floor`, the rows of :func:`where_rows` and
-:func:`ranking_rows`, :func:`verdict` and :func:`flagged_parameters`; the report shows :func:`findings`.
+:func:`ranking_rows`, :func:`verdict` and :func:`flagged_parameters`; the report shows :func:`headline` in its
+summary box, :func:`findings` and :func:`blind_spot`.
 """
 
 from __future__ import annotations
@@ -35,21 +36,33 @@ def where_rows(dg, n: int = 8) -> list[dict]:
     return [{"region": w.describe(), "rows": str(w.rows), "z": f"{w.z:.1f}"} for w in dg.where.regions[:n]]
 
 
+def headline(dg) -> str:
+    """The verdict in one line with its grade: what it names, how it was found and what it leaves."""
+    g = dg.grade
+    if dg.verdict == "none":
+        return "verdict: none (the ideal law's held-out residuals sit on the noise floor)"
+    if dg.verdict == "undecided":
+        return (f"verdict: undecided between {', '.join(dg.decision.candidates)} (best first): these data cannot "
+                "tell them apart")
+    if dg.verdict == "unexplained":
+        return "verdict: unexplained: no model reaches the noise floor held out" + (
+            f" (the closest, {g.model}, leaves {g.remainder:.2f} noise units)" if g is not None else "")
+    text = f"verdict: {dg.verdict}"
+    if g is not None:
+        how = {"law": "the library's law", "pair": "a pair of laws", "signature": "its law widened by its signature"}
+        text += (f" ({how.get(g.by, g.by)} {g.model}: removes {g.removes:.3f} of the held-out excess, "
+                 + ("at the noise floor)" if g.at_floor else f"leaves {g.remainder:.2f} noise units)"))
+    return text
+
+
 def verdict(dg) -> str:
     """The verdict with what it rests on: confounded models, the circuit's pieces, the force check, the findings,
     the protocol's blind spot, the best pair."""
+    text = headline(dg)
     if dg.verdict == "none":
-        text = ("verdict: none (the ideal law's held-out residuals sit on the noise floor); these data cannot "
-                f"exclude: {', '.join(dg.confounded_with) or 'nothing'}")
-    elif dg.verdict == "undecided":
-        text = f"verdict: undecided between {', '.join(dg.decision.candidates)} (best first)"
-    elif dg.verdict == "unexplained":
-        text = "verdict: unexplained: no model reaches the noise floor held out"
-        if dg.grade is not None:
-            text += f" (the closest: {dg.grade.model})"
-    else:
-        text = (f"verdict: {dg.verdict}; confounded with: {', '.join(dg.confounded_with) or 'none'}; "
-                f"shrink {dg.shrink:.3f}")
+        text += f"; these data cannot exclude: {', '.join(dg.confounded_with) or 'nothing'}"
+    elif dg.verdict not in ("undecided", "unexplained"):
+        text += f"; confounded with: {', '.join(dg.confounded_with) or 'none'}; shrink {dg.shrink:.3f}"
     failed = [c.effect for c in dg.ranking if not c.fit.converged]
     if failed:
         text += (f"\nnot converged within the candidate fits' step budget (scored as they stand): "
@@ -145,6 +158,9 @@ def findings(dg) -> list[str]:
                 f"explains), {dc.ideal.shrink:.3f} held out")
         if dc.verdict is not None:
             text += f"; added to {dc.verdict.model}: {dc.verdict.shrink:.3f} held out"
+        if dc.ideal.shrink < 0 or (dc.verdict is not None and dc.verdict.shrink < 0):
+            text += (" (a negative share: with the correction the held-out readings are predicted worse than "
+                     "without it, so what it learns in sample is noise, not a missing effect)")
         out.append(text)
     return out
 

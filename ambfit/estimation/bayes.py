@@ -152,6 +152,11 @@ def _pointwise_batch(post: LogDensity, zs):
     return jax.vmap(post.pointwise)(zs)
 
 
+DISAGREEMENT_SD = 2.0
+"""Posterior sd between the posterior mean and the least-squares estimate beyond which they are said to disagree
+(:meth:`Posterior.agreement`)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Posterior:
     """Draws and diagnostics of several independent emcee ensembles.
@@ -265,6 +270,27 @@ class Posterior:
         body = "".join("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in r.values()) + "</tr>" for r in rows)
         return (f"<b>posterior</b><table><tr>{head}</tr>{body}</table><p>{html.escape(self.message)}</p>")
 
+    def agreement(self, threshold: float = DISAGREEMENT_SD) -> dict:
+        """How far the posterior mean of each head parameter sits from the least-squares estimate it started from,
+        in posterior sd: ``{"z": {name: z}, "threshold", "disagrees": [names beyond it], "text"}`` (``text`` is
+        empty when they agree).  On data the model fits, with a prior the data overwhelm, the two agree to a small
+        fraction of an sd; beyond ``threshold`` one of them is not to be read as it stands."""
+        z = {}
+        for name, _, _ in CONTRACT_PARAMS:
+            if name in self.names and name in self.ls.names:
+                z[name] = (self.value(name) - self.ls.value(name)) / self.error(name)
+        bad = [n for n, v in z.items() if abs(v) > threshold]
+        text = ""
+        if bad:
+            why = (f"the model does not fit these data (χ²/dof {self.ls.reduced_chi2:.3g}), so neither the "
+                   "least-squares errors nor the posterior can be taken as they stand"
+                   if self.ls.adequate is False else
+                   "the posterior is not the Gaussian the least-squares errors assume (a curved valley, a bound "
+                   "of the prior, or a prior the data do not overwhelm): read the pair plot")
+            text = (f"posterior and least squares disagree beyond {threshold:g} sd on "
+                    + ", ".join(f"{n} ({z[n]:+.1f} sd)" for n in bad) + f": {why}")
+        return {"z": z, "threshold": threshold, "disagrees": bad, "text": text}
+
     def to_json(self, ci_prob: float = 0.94, rhat_max: float = 1.01) -> dict:
         """Contract section 2 record with ``"method": "bayes"`` (µm, N m²/A²); converged when the run was long
         enough for its autocorrelation time and R-hat across the ensembles is below ``rhat_max`` everywhere."""
@@ -285,7 +311,7 @@ class Posterior:
             all(p["r_hat"] < rhat_max for p in params.values())), "n_rows": self.ls.n_rows,
             "n_ensembles": int(self.draws.shape[0]), "n_walkers": self.n_walkers, "n_steps": self.n_steps,
             "burn": self.burn, "thin": self.thin, "tau_max": float(np.max(self.tau)), "message": self.message,
-            "hdi_prob": ci_prob, "rhat_max": rhat_max}
+            "hdi_prob": ci_prob, "rhat_max": rhat_max, "least_squares_agreement": self.agreement()}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -322,8 +322,8 @@ class Instead:
 
 
 def fit_instead(data, res, b: Budget, **fit_kw) -> Instead | None:
-    """When the current zeros dominate an uncertainty of the ideal law's fit ``res`` (budget ``b``) and the
-    readings determine them (every offset keeps less than :data:`~ambfit.estimation.identification.MAX_PRIOR_SHARE`
+    """When the ideal law fits its data (``res``, budget ``b``), the current zeros dominate an uncertainty of it and
+    the readings determine them (every offset keeps less than :data:`~ambfit.estimation.identification.MAX_PRIOR_SHARE`
     of its prior's variance: several biases do), the fit with ``current_offset`` and what it gives
     (:class:`Instead`); None otherwise.  ``fit_kw``: how ``res`` was fitted (noise, ``require_k``, ``loss``)."""
     from ambfit.estimation.conditioning import effect_identification
@@ -332,7 +332,9 @@ def fit_instead(data, res, b: Budget, **fit_kw) -> Instead | None:
     from ambfit.estimation.units import DISPLAY
     from ambfit.physics.effects import CurrentOffset
 
-    if res.effects:                          # (the identification is judged from the ideal law's estimate)
+    if res.effects or res.adequate is False:
+        # (the identification is judged from the ideal law's estimate; a law that does not fit has misfit for the
+        # offsets to absorb, and a budget that assumes the law)
         return None
     heads = [n for n, _, _ in CONTRACT_PARAMS if n in b.names]
     share = {n: sum(sh for t, _, sh in b.shares(n) if t.startswith(FITTED["current_offset"])) for n in heads}

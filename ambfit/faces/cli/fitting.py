@@ -154,9 +154,10 @@ def _si_values(params: dict) -> dict:
 
 
 def _warn_health(res, prefix: str = "", say=say):
-    for check, ok, text in res.checks():
-        if ok is False and check not in ("k_identified", "plausible"):   # plausibility: judge() says it
-            say("warn", prefix + text)
+    from ambfit.faces.warnings import fit_warnings
+
+    for text in fit_warnings(res):          # plausibility: judge() says it
+        say("warn", prefix + text)
 
 
 STATUS_TEXT = {"ok": "ok", "failed": "fit failed", "implausible": "implausible", "untrusted": "not trusted",

@@ -160,6 +160,10 @@ def sample(
         fail(str(exc), 3)
     note(res.summary())
     record = res.to_json()
+    from ambfit.faces.warnings import posterior_warnings
+
+    for line in posterior_warnings(res):
+        warn(line)
     _add_budget(record, ds, res, declared_noise(current_noise_ma, position_noise_um), seed)
     if out is not None:
         # serialised in memory first: HDF5 writing to a full disk fails uncleanly, Python's writes fail cleanly

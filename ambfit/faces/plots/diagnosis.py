@@ -4,6 +4,7 @@ model-discrepancy correction."""
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.ticker import ScalarFormatter
 
 from ambfit.faces.plots.figures import _axes
 
@@ -21,11 +22,24 @@ def plot_residual_map(variable_values, z_before, z_after=None, *, label="", ax=N
     return ax
 
 
+VARIABLE_LABELS = {"position_own_um": "position on the axis [µm]", "position_other_um": "position on the other axis [µm]",
+                   "bias_A": "bias current [A]", "control_current_A": "control current [A]",
+                   "b_top_T": "top-coil flux density [T] (ideal circuit)",
+                   "b_bottom_T": "bottom-coil flux density [T] (ideal circuit)", "load_N": "known load [N]",
+                   "time_s": "time [s]", "temperature_C": "temperature [°C]",
+                   "sweep_direction": "bias sweep direction (-1 down, +1 up)"}
+"""Axis labels of the operating variables (:func:`ambfit.diagnosis.residuals.operating_variables`)."""
+
+
 def plot_diagnosis_residuals(diagnosis, ax=None):
     """Residuals against the most structured operating variable, before and after adding the verdict's effects."""
     var = diagnosis.most_structured_variable
-    return plot_residual_map(diagnosis.operating[var], diagnosis.residuals_before, diagnosis.residuals_after,
-                             label=var, ax=ax)
+    ax = plot_residual_map(diagnosis.operating[var], diagnosis.residuals_before, diagnosis.residuals_after,
+                           label=VARIABLE_LABELS.get(var, var), ax=ax)
+    grade = getattr(diagnosis, "grade", None)
+    after = f", and with {grade.model}" if diagnosis.residuals_after is not None and grade is not None else ""
+    ax.set_title(f"where the model fails: residuals of the ideal law{after}", fontsize=10)
+    return ax
 
 
 def plot_ranking(diagnosis, ax=None):
@@ -41,7 +55,8 @@ def plot_ranking(diagnosis, ax=None):
     record = diagnosis.to_json() if hasattr(diagnosis, "to_json") else diagnosis
     rk = record["ranking"]
     names = [r["effect"] for r in rk]
-    on_floor = not record["heldout_excess_before"] > 0
+    # (a none verdict may keep a small excess within its standard error: nothing to remove either)
+    on_floor = not record["heldout_excess_before"] > 0 or record["verdict"] == "none"
     colours = ["tab:green" if n == record["verdict"] else "tab:blue" for n in names]
     if not rk:
         ax.text(0.5, 0.5, "no candidate effect was scored", ha="center", va="center", transform=ax.transAxes)
@@ -61,6 +76,7 @@ def plot_ranking(diagnosis, ax=None):
         ax.barh(range(len(rk)), vals, color=colours)
         ax.axvline(record["heldout_excess_before"], color="k", ls="--", label="ideal model")
         ax.set_xscale("symlog", linthresh=1.0)
+        ax.xaxis.set_major_formatter(ScalarFormatter())         # 0, 1, 10, 100: not 5.73977×10⁻¹
         ax.set_xlabel("held-out excess residual [noise units]")
         ax.set_title(f"verdict: {record['verdict']}, shrink {record['shrink']:.2f}")
     ax.set_yticks(range(len(rk)), names)

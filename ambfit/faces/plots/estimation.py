@@ -9,9 +9,11 @@ from ambfit.estimation.units import FORCE_CONSTANTS, GEOMETRY
 from ambfit.faces.plots.figures import _axes
 
 
-def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.3, 6.2, 11.8, 50, 200, 1000)):
-    """The paper's Fig. 2 as a map: Δχ² over (origin, gap) in µm, with the least-squares point,
-    its 1- and 2-sigma ellipses, posterior draws and the weakest Fisher direction if given.
+def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.3, 6.2, 11.8, 50, 200, 1000),
+                        label_contours: bool = False):
+    """The paper's Fig. 2 as a map: Δχ² over (origin, gap) in µm with white contours at ``levels`` (each labelled
+    with its Δχ² when ``label_contours``), the least-squares point, its 68 and 95 % ellipses, posterior draws and
+    the weakest Fisher direction if given.
 
     ``space``: :class:`ambfit.estimation.conditioning.SolutionSpace`; ``result``: a
     :class:`ambfit.FitResult`; ``samples``: array[n, 2] of (gap, origin) draws [m].
@@ -24,7 +26,9 @@ def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.
     im = ax.pcolormesh(x, y, np.log10(1.0 + d), shading="auto", cmap="viridis",
                        norm=mcolors.Normalize(vmin=0, vmax=np.nanpercentile(np.log10(1.0 + d), 99)))
     ax.figure.colorbar(im, ax=ax, label="log10(1 + Δχ²)")
-    ax.contour(x, y, d, levels=list(levels), colors="w", linewidths=0.6)
+    contours = ax.contour(x, y, d, levels=list(levels), colors="w", linewidths=0.6)
+    if label_contours:
+        ax.clabel(contours, fmt=lambda v: f"{v:.3g}", fontsize=7)
     g_min, x_min = space.minimum
     ax.plot(x_min * 1e6, g_min * 1e6, "w+", ms=10, label="grid minimum")
     if samples is not None and len(samples):
@@ -44,6 +48,8 @@ def plot_solution_space(space, *, result=None, samples=None, ax=None, levels=(2.
         long = v[:, -1] * np.sqrt(w[-1]) * 6
         ax.plot([mu[0] - long[0], mu[0] + long[0]], [mu[1] - long[1], mu[1] + long[1]], "r:", lw=1.5,
                 label="weakest Fisher direction")
+    ax.set_xlim(x.min(), x.max())          # the map's extent: the Fisher line must not widen it
+    ax.set_ylim(y.min(), y.max())
     ax.set_xlabel(f"{space.axis}-axis origin [µm]")
     ax.set_ylabel(f"{space.axis}-axis effective gap [µm]")
     ax.set_title(f"Solution space, axis {space.axis} ({space.n_rows} readings)")

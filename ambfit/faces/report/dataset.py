@@ -19,6 +19,7 @@ import pandas as pd
 
 from ambfit._output import write_json, write_text
 from ambfit.faces.report.render import figure, footer, render, table
+from ambfit.faces.warnings import fit_warnings, plausibility_warnings, posterior_warnings
 from ambfit.physics.bearing import PAPER_BEARING
 
 
@@ -38,6 +39,61 @@ def overview(path, data) -> dict:
     return {"path": str(path), "n_rows": len(df),
             "n_experiments": int(df["experiment"].nunique()) if "experiment" in df else 1,
             "n_load_groups": int(df["load_id"].nunique()) if "load_id" in df else 1}
+
+
+def summary_box(result, *, bearing, budget=None, post=None, diagnosed=None, spaces=None, instead=None,
+                error=None) -> dict:
+    """The report's first box: the answer (least squares ± the readings' noise, u_combined with the calibration,
+    the posterior beside it), the fit's health, the verdict in one line with its grade, and every warning the
+    command line would print for the same data (:mod:`ambfit.faces.warnings`, the diagnosis' blind spot, a
+    solution-space map whose minimum is on its edge).
+
+    ``result``: the least-squares :class:`~ambfit.estimation.results.FitResult` (None with ``error``, why the fit
+    failed); ``budget``, ``post``, ``diagnosed``: its :class:`~ambfit.estimation.budget.Budget`, the
+    :class:`~ambfit.estimation.bayes.Posterior` and the :class:`~ambfit.diagnosis.Diagnosis`, each None when that
+    section did not run; ``spaces``: ``{axis: SolutionSpace or exception}``; ``instead``: the current zeros'
+    fit when identify would report it (:func:`ambfit.estimation.budget.fit_instead`).
+    """
+    from ambfit.diagnosis import text
+    from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, pm, with_unit
+
+    if result is None:
+        return {"error": str(error), "table": None, "health": None, "verdict": None, "warnings": []}
+    named = None          # the verdict's model, when the diagnosis names one: its parameters beside the ideal law's
+    if diagnosed is not None and diagnosed.verdict not in ("none", "undecided", "unexplained"):
+        named = diagnosed.verdict_fit
+    rows = []
+    for name, _, _ in CONTRACT_PARAMS:
+        if name not in result.names:
+            continue
+        value, unit = with_unit(name, result.value(name), result.error(name))
+        row = {"parameter": f"{name} [{unit}]", "least squares ± noise": value}
+        if budget is not None:
+            row["u_combined"] = f"{budget.u_combined(name) * DISPLAY[name][1]:.3g}"
+        if post is not None and name in post.names:
+            f = DISPLAY[name][1]
+            row["posterior mean ± sd"] = pm(post.value(name) * f, post.error(name) * f)
+        if named is not None and name in named.names:
+            row[f"with {named.model} (the verdict)"] = with_unit(name, named.value(name), named.error(name))[0]
+        rows.append(row)
+    warnings = fit_warnings(result) + plausibility_warnings(result, bearing)
+    if budget is not None and budget.failed:
+        warnings.append(budget.failed_text())
+    if instead is not None:
+        warnings.append(f"{instead.text}: ambfit identify reports that fit (--no-fit-current-zeros: this one)")
+    if post is not None:
+        warnings += posterior_warnings(post)
+    warnings += [f"{sp.edge_text()}" for sp in (spaces or {}).values() if not isinstance(sp, Exception) and sp.on_edge]
+    verdict = None
+    if diagnosed is not None:
+        verdict = {"text": text.headline(diagnosed), "kind": diagnosed.verdict if diagnosed.verdict in (
+            "none", "undecided", "unexplained") else "named"}
+        if blind := text.blind_spot(diagnosed):
+            warnings.append(blind)
+    health = {"converged": result.converged, "adequate": result.adequate, "reduced_chi2": result.reduced_chi2,
+              "dof": result.dof, "p_value": result.p_value}
+    return {"error": None, "table": table(pd.DataFrame(rows)), "health": health, "verdict": verdict,
+            "warnings": warnings}
 
 
 def identification(result, closed=None, budget=None) -> dict:
@@ -69,9 +125,10 @@ def identification(result, closed=None, budget=None) -> dict:
         rows.append(row)
     ident = pd.DataFrame(rows)
     return {"table": table(ident), "converged": result.converged, "reduced_chi2": result.reduced_chi2,
-            "dof": result.dof, "condition": result.condition, "weak_direction": result.weak_direction,
+            "dof": result.dof, "p_value": result.p_value, "adequate": result.adequate,
+            "condition": result.condition, "weak_direction": result.weak_direction,
             "noise_source": result.noise_source, "closed_form": closed is not None, "closed_error": closed_error,
-            "budget": budget is not None}
+            "budget": budget is not None, "warnings": fit_warnings(result)}
 
 
 def posterior(result, *, draw: bool = True) -> dict:
@@ -85,17 +142,23 @@ def posterior(result, *, draw: bool = True) -> dict:
         from ambfit.faces import plots
 
         pair = figure(plots.plot_pair(result, result=result.ls))
+    agree = rec["least_squares_agreement"]
     return {"table": table(post, 4), "n_ensembles": int(result.draws.shape[0]), "n_steps": result.n_steps,
             "n_walkers": result.n_walkers, "tau_max": float(np.max(result.tau)), "message": result.message,
-            "converged": rec["converged"], "figure": pair}
+            "converged": rec["converged"], "figure": pair, "sampler": result.sampler,
+            "agreement": {n: agree["z"][n] for n in agree["z"]}, "threshold": agree["threshold"],
+            "disagreement": agree["text"], "hdi_prob": rec["hdi_prob"]}
 
 
-def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 200, 1000)) -> dict:
-    """The Δχ² maps over (origin, gap), one panel per axis, with contours at ``sigmas`` (2-D coverage).
+def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 200, 1000), zooms=None) -> dict:
+    """The Δχ² maps over (origin, gap), one column per axis: the wide map (the valley's extent, contours at
+    ``outer_levels``) above a zoom on the least-squares point (contours at the Δχ² of ``sigmas`` in 2-D: 2.3, 6.2,
+    11.8), each contour labelled with its Δχ².
 
     ``spaces``: ``{axis: SolutionSpace}`` (:func:`ambfit.estimation.conditioning.solution_space`), an
-    exception in place of a map that could not be computed; ``result``: the least-squares
-    :class:`~ambfit.estimation.results.FitResult` drawn on top.
+    exception in place of a map that could not be computed; ``zooms``: the same of the fine grids about the
+    minimum (None: no zoom row); ``result``: the least-squares :class:`~ambfit.estimation.results.FitResult`
+    drawn on top.
     """
     from matplotlib.figure import Figure
     from scipy.stats import chi2, norm
@@ -104,14 +167,28 @@ def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 
 
     coverage = [1 - 2 * norm.sf(s) for s in sigmas]
     levels = [float(chi2.ppf(c, 2)) for c in coverage]
-    fig = Figure(figsize=(12, 4.8))
-    for ax, (axis, space) in zip(np.atleast_1d(fig.subplots(1, len(spaces))), spaces.items()):
-        if isinstance(space, Exception):
-            ax.text(0.5, 0.5, f"axis {axis}: {space}", ha="center", wrap=True)
-        else:
-            plots.plot_solution_space(space, result=result, ax=ax, levels=(*levels, *outer_levels))
+    rows = [(spaces, tuple(outer_levels), "wide")] + ([(zooms, tuple(levels), "zoom")] if zooms else [])
+    fig = Figure(figsize=(12, 4.8 * len(rows)))
+    grid = np.atleast_2d(fig.subplots(len(rows), len(spaces)))
+    for r, (maps, lv, kind) in enumerate(rows):
+        for ax, (axis, space) in zip(grid[r], maps.items()):
+            if isinstance(space, Exception):
+                ax.text(0.5, 0.5, f"axis {axis}: {space}", ha="center", wrap=True)
+                continue
+            plots.plot_solution_space(space, result=result, ax=ax, levels=lv, label_contours=True)
+            ax.set_title(f"axis {axis}: " + ("the whole valley" if kind == "wide" else
+                                             "zoom on the least-squares point"), fontsize=10)
     edges = [space.edge_text() for space in spaces.values() if not isinstance(space, Exception) and space.on_edge]
-    return {"figure": figure(fig), "levels": levels, "coverage_percent": [c * 100 for c in coverage], "edges": edges}
+    return {"figure": figure(fig), "levels": levels, "outer_levels": list(outer_levels),
+            "coverage_percent": [c * 100 for c in coverage], "edges": edges, "zoom": bool(zooms)}
+
+
+def zoom_ranges(result, axis: str, sds: float = 5.0):
+    """Gap and origin ranges [m] of ``sds`` standard errors about the least-squares point of ``axis`` and a step
+    of a 160th of the narrower span: fine enough to draw the 1-3 sigma contours."""
+    g, x = result.value(f"g_{axis}0"), result.value(f"{axis}0")
+    sg, sx = result.error(f"g_{axis}0"), result.error(f"{axis}0")
+    return (g - sds * sg, g + sds * sg), (x - sds * sx, x + sds * sx), 2 * sds * min(sg, sx) / 160
 
 
 def design(recommendation, *, max_radius_um: float | None = None, candidates: pd.DataFrame | None = None) -> dict:
@@ -145,6 +222,7 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
 
     ``result``: :class:`~ambfit.diagnosis.Diagnosis`."""
     from ambfit.diagnosis import text
+    from ambfit.faces.plots.diagnosis import VARIABLE_LABELS
 
     nf = result.noise_floor
     rows = []
@@ -155,11 +233,12 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
                      "fit": "converged" if c.fit.converged else "not converged"})
     ranking = pd.DataFrame(rows)
     regions = [{"region": r.describe(), "rows": r.rows, "z": r.z} for r in result.where.regions[:max_regions]]
-    bars = correction = None
+    bars = correction = resid = None
     if draw:
         from ambfit.faces import plots
 
         bars = figure(plots.plot_ranking(result))
+        resid = figure(plots.plot_diagnosis_residuals(result))
         if result.ceiling is not None:
             correction = figure(plots.plot_discrepancy(result))
     rms_before = float(np.sqrt(result.ideal.score))
@@ -170,7 +249,10 @@ def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
             "ranking": table(ranking, 3) if rows else None, "figure": bars, "where": regions,
             "n_regions": len(result.where.regions), "flagged": text.flagged_parameters(result),
             "force_check": _force_table(result.force_check), "notes": text.findings(result),
-            "discrepancy_figure": correction}
+            "discrepancy_figure": correction, "headline": text.headline(result), "blind_spot": text.blind_spot(result),
+            "residuals_figure": resid, "residual_variable": VARIABLE_LABELS.get(result.most_structured_variable,
+                                                                               result.most_structured_variable),
+            "verdict_model": result.grade.model if result.grade is not None else None}
 
 
 def _force_table(fc):
@@ -210,10 +292,12 @@ def _step(progress, name: str) -> None:
 
 
 def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
-              do_diagnosis, seed, progress=None, noise=None) -> dict:
-    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON.
+              do_diagnosis, seed, progress=None, noise=None, found: dict | None = None) -> dict:
+    """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON and
+    ``found`` with the results themselves (``budget``, ``post``, ``diagnosed``, ``spaces``: the summary box's).
     ``noise``: the declared ``sigma_i``/``sigma_x`` (:func:`data_report`)."""
     noise = noise or {}
+    found = {} if found is None else found
     from ambfit.estimation import bayes, closed_form, conditioning
     from ambfit.estimation import design as design_mod
 
@@ -225,16 +309,22 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         closed = exc
     b = None
     if res.converged and res.well_conditioned:
-        from ambfit.estimation.budget import budget
+        from ambfit.estimation.budget import budget, fit_instead
 
         b = budget(ds, res, **noise)
         b.merge(record["least_squares"]["params"])
+        instead = fit_instead(ds, res, b, **noise)
+        if instead is not None:
+            record["least_squares"]["uncertainty_budget"] = {"fit_instead": instead.to_json()}
+            found["instead"] = instead
+    found["budget"] = b
     out = {"identification": identification(res, closed, b)}
 
     def sample():
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
                           bearing=bearing, progress=progress, **noise)
         record["bayes"] = sr.to_json()
+        found["post"] = sr
         return posterior(sr)
 
     _step(progress, "posterior")
@@ -250,7 +340,16 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         axis: {"gap_um": [sp.gap[0] * 1e6, sp.gap[-1] * 1e6], "origin_um": [sp.origin[0] * 1e6, sp.origin[-1] * 1e6],
                "minimum_um": [m * 1e6 for m in sp.minimum], "on_edge": sp.on_edge}
         for axis, sp in spaces.items() if not isinstance(sp, Exception)}
-    out["solution_space"] = _attempt("Solution space", lambda: solution_space(spaces, res))
+    found["spaces"] = spaces
+    zooms = {}
+    for axis in ("v", "w"):
+        try:
+            gap, origin, step = zoom_ranges(res, axis)
+            zooms[axis] = conditioning.solution_space(ds, axis, gap=gap, origin=origin, step=step, weights_at=res,
+                                                      bearing=bearing, **noise)
+        except Exception as exc:  # noqa: BLE001 - the panel says why, the other axis still stands
+            zooms[axis] = exc
+    out["solution_space"] = _attempt("Solution space", lambda: solution_space(spaces, res, zooms=zooms))
 
     def recommend():
         rec = design_mod.recommend(ds, n_steps=design_steps, target="g_v0", result=res, max_radius_um=max_radius_um,
@@ -266,6 +365,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
 
         dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress, **noise)
         record["diagnosis"] = dg.to_json()
+        found["diagnosed"] = dg
         return diagnosis(dg)
 
     _step(progress, "diagnosis")
@@ -302,17 +402,21 @@ def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, en
     record = {"data": str(data_path), "n_rows": len(ds.frame)}
     sections = {"overview": overview(data_path, ds)}
     _step(progress, "least squares")
+    found = {}
     try:
         res = fit(ds, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x)
     except FitError as exc:
         record["least_squares"] = {"error": str(exc)}
         sections["identification"] = failed("Least squares", exc)
+        sections["summary"] = summary_box(None, bearing=bearing, error=exc)
     else:
         record["least_squares"] = res.to_json()
         sections |= _sections(ds, res, record, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                               bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
                               do_diagnosis=do_diagnosis, seed=seed, progress=progress,
-                              noise=dict(sigma_i=sigma_i, sigma_x=sigma_x))
+                              noise=dict(sigma_i=sigma_i, sigma_x=sigma_x), found=found)
+        sections["summary"] = summary_box(res, bearing=bearing, **found)
+    record["warnings"] = sections["summary"]["warnings"]
     _step(progress, "writing")
     write_json(out / "report.json", record, default=float)
     html_path = out / "index.html"
