@@ -13,9 +13,11 @@
 #
 # Starting from the bundled Table 2 data, `design.recommend` picks the perturbations
 # (set-point, bias) that most reduce the variance of the v-axis gap (greedy A-optimal on
-# the Fisher information), kept within 50 µm of the sensor origin so the rotor stays off the
-# 60 µm back-up bearing.  We then run those steps on the rig, refit, and compare the
-# achieved standard error with the predicted one and with simply repeating the paper's
+# the Fisher information), kept within 50 µm of the estimated bearing centre so the rotor stays off the
+# 60 µm back-up bearing.  Table 2 ran two biases: too few to show an effect that bends the force law with
+# flux density (saturation), which would move the estimated origin unseen, so the design also keeps the
+# steps among the positions already run and spends them on biases.  We then run those steps on the rig,
+# refit, and compare the achieved standard error with the predicted one and with simply repeating the paper's
 # protocol for the same number of readings.
 
 # %%
@@ -42,9 +44,14 @@ rec = design.recommend(ds, n_steps=8, target="g_v0", result=ls, max_radius_um=50
 steps = rec.steps.assign(predicted_std_after_um=rec.steps["predicted_std_after"] * 1e6)
 steps
 
+# %%
+print(rec.limits)
+
 # %% [markdown]
-# Where the steps lie: off the paper's ±20 µm pairs, towards the edge of the allowed disc (a longer lever arm
-# on the gap), at the bias that separates gap and origin best.  The dashed circle is the back-up clearance.
+# Where the steps lie: on the positions already run (the design may not leave them while the origin can carry
+# an unseen effect), at the biases that separate gap and origin best, a third bias among them.  The red cross
+# is the estimated bearing centre, the dashed circle the back-up clearance about it, the dotted one how far the
+# design may go once three biases have shown the force law's bend.
 
 # %%
 plots.plot_recommendation(rec, ds, clearance_um=ambfit.PAPER_BEARING.backup_clearance * 1e6)

@@ -436,7 +436,8 @@ def test_recommendation_shows_the_steps_inside_the_clearance_and_the_predicted_s
 
     steps = pd.DataFrame({"v_set_um": [50.0, -50.0], "w_set_um": [0.0, 10.0], "bias_A": [1.2, 1.8],
                           "predicted_std_after": [1.2e-6, 1.0e-6]})
-    rec = Recommendation(steps=steps, target="g_v0", std_now=1.4e-6, criterion="A")
+    rec = Recommendation(steps=steps, target="g_v0", std_now=1.4e-6, criterion="A", centre_um=(-33.0, 11.0),
+                         radius_um=57.0)
     fig0 = plt.figure()
     fig = plots.plot_recommendation(rec, pd.DataFrame({"v_um": [20.0], "w_um": [20.0]}), clearance_um=60.0)
     assert fig is not fig0 and not fig0.axes
@@ -444,7 +445,11 @@ def test_recommendation_shows_the_steps_inside_the_clearance_and_the_predicted_s
     pts = where.collections[1].get_offsets()
     np.testing.assert_array_equal(pts, [[50.0, 0.0], [-50.0, 10.0]])
     np.testing.assert_allclose(where.collections[1].get_array(), [1.2, 1.8])       # coloured by bias
-    circle = where.lines[0].get_xydata()
-    np.testing.assert_allclose(np.hypot(circle[:, 0], circle[:, 1]), 60.0)
+    # the clearance and the allowed radius about the estimated bearing centre, not the sensor origin
+    lines = {ln.get_label(): ln.get_xydata() for ln in where.lines}
+    np.testing.assert_allclose(lines["estimated bearing centre"], [[-33.0, 11.0]])
+    for label, radius in (("back-up clearance about it", 60.0), ("allowed (less the origin's uncertainty)", 57.0)):
+        xy = lines[label]
+        np.testing.assert_allclose(np.hypot(xy[:, 0] + 33.0, xy[:, 1] - 11.0), radius)
     np.testing.assert_allclose(std.lines[0].get_ydata(), [1.4, 1.2, 1.0])          # µm, now then after each step
     assert "µm" in std.get_ylabel()

@@ -179,7 +179,9 @@ def test_design_section_describes_the_grid_it_chose_from(data, ls):
     # without a grid: the one recommend() chose from, the bearing's default cut to its limits
     rec = design.recommend(data, n_steps=2, result=ls)
     text = plain(section(DATA, "design", dataset.design(rec, max_radius_um=45.0)))
-    assert "set-points ±50 µm" in text and "kept within 45 µm of it" in text
+    # Table 2's two biases: the grid is cut to the positions already run (the diagonal pairs, ±28 µm from the
+    # centre), and the page says why
+    assert "kept within 45 µm of it" in text and "positions already run" in text and "2 biases" in text
     assert "biases 0.8-1.8 A" in text
     text = plain(section(DATA, "design", dataset.design(rec)))
     assert f"kept within {rec.radius_um:.3g} µm of it" in text and 55 < rec.radius_um < 60

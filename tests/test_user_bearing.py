@@ -103,10 +103,17 @@ def _run_recommended(spec, steps: pd.DataFrame) -> P.Protocol:
                              iteration=i + 1) for i, s in enumerate(steps.itertuples())))
 
 
-def test_every_step_design_recommends_is_accepted_by_simulates_limit_check(spec, data, bearing):
+def test_every_step_design_recommends_is_accepted_by_simulates_limit_check(spec, bearing):
+    # on a bias sweep (four biases: the force law's bend with flux density shows) the design reaches out to the
+    # clearance about the estimated centre
     from ambfit.estimation import design
 
+    scale = bearing.max_current / rig.PAPER_RIG.bearing.max_current       # the rich preset on this bearing
+    proto = P.rich(biases=tuple(b * scale for b in (1.0, 1.2, 1.4, 1.6)), center=(-spec.x0[0], -spec.x0[1]),
+                   rotor_kg=bearing.rotor_mass, span=bearing.backup_clearance * 2 / 3)
+    data = rig.simulate(spec, proto, seed=4).data
     rec = design.recommend(data, n_steps=8, bearing=bearing)
+    assert rec.margin_reason is None
     proto = _run_recommended(spec, rec.steps)
     assert limits.limit_violations(spec, proto) == []
     sim = rig.simulate(spec, proto, seed=1)
@@ -234,3 +241,44 @@ def test_diagnose_without_std_columns_reports_the_declared_noise(tmp_path):
     floor = json.loads(js.read_text())["noise_floor"]
     assert floor["source"] == "current 0.6 mA declared; position 0.1 µm declared", floor
     assert "current 0.6 mA declared" in r.output and "estimated" not in r.output.split("\n")[0]
+
+
+@pytest.mark.parametrize("user", [False, True], ids=["paper rig, the README's sat.csv", "user's bearing"])
+def test_design_on_a_protocol_blind_to_saturation_stays_within_the_rigs_clearance(user, bearing):
+    # Table 2's two biases cannot show iron saturating at 1.2 T: the ideal law fits (χ²/dof < 1.2) with its
+    # bearing centre 17 µm (paper rig) or 37 µm (the user's, 40 µm clearance) off the rig's.  Steps kept within the
+    # estimated centre's clearance would hit the back-up bearing; the design keeps them among the positions
+    # already run (their hull lies inside the clearance, wherever the centre is), and simulate accepts them all.
+    from ambfit.estimation import design
+    from ambfit.estimation.fit import fit
+    from ambfit.physics.effects import Saturation
+
+    spec = rig.RigSpec.for_bearing(bearing) if user else rig.PAPER_RIG
+    proto = P.paper_table2(center=(-spec.x0[0], -spec.x0[1]), loads=spec.loads)
+    data = rig.simulate(spec, proto, [Saturation(b_sat=1.2)], seed=1).data
+    res = fit(data, bearing=spec.bearing)
+    assert res.adequate
+    rec = design.recommend(data, n_steps=8, result=res)
+    assert rec.margin_reason and "2 biases" in rec.margin_reason and "positions already run" in rec.limits
+    assert limits.limit_violations(spec, _run_recommended(spec, rec.steps)) == []
+    shift = np.hypot(*(np.array(rec.centre_um) * 1e-6 + np.asarray(spec.x0)))
+    assert shift > 0.25 * spec.bearing.backup_clearance             # the blind spot's bias is real here
+    # what the estimated centre's clearance alone would have allowed: the rig refuses some of it
+    grid = design.candidate_steps(tuple(round(c) for c in rec.centre_um), bearing=spec.bearing)
+    pts = grid[["v_set_um", "w_set_um"]].to_numpy() * 1e-6
+    by_estimate = limits.step_limits(pts, grid["bias_A"].to_numpy(), -np.array(rec.centre_um) * 1e-6, spec.bearing)
+    by_rig = limits.step_limits(pts, grid["bias_A"].to_numpy(), spec.x0, spec.bearing)
+    assert (by_estimate.ok & ~by_rig.ok).any()
+    assert design.inside_visited(rec.steps[["v_set_um", "w_set_um"]].to_numpy() * 1e-6,
+                                 data[["v_um", "w_um"]].to_numpy() * 1e-6).all()
+
+
+def test_inside_visited_is_the_hull_of_the_positions_run():
+    from ambfit.estimation import design
+
+    square = np.array([[0, 0], [10, 0], [10, 10], [0, 10]]) * 1e-6
+    pts = np.array([[5, 5], [10, 5], [10.3, 5], [11, 5], [-1, -1]]) * 1e-6
+    assert design.inside_visited(pts, square).tolist() == [True, True, True, False, False]
+    diagonal = np.array([[-20, -20], [20, 20], [-20.05, -19.98]]) * 1e-6     # Table 2's pairs, with noise
+    pts = np.array([[0, 0], [10, 10.2], [10, 11], [25, 25]]) * 1e-6
+    assert design.inside_visited(pts, diagonal).tolist() == [True, True, False, False]

@@ -43,7 +43,9 @@ class Recommendation:
     """Steps to run next, in order, with the predicted standard error of the target after each.
 
     ``candidates``: the steps chosen from (within the bearing's limits); ``centre_um``: the estimated bearing
-    centre in sensor coordinates [µm]; ``radius_um``: how far from it a set-point may lie [µm].
+    centre in sensor coordinates [µm]; ``radius_um``: how far from it a set-point may lie [µm];
+    ``margin_reason``: why the steps were also kept among the positions already run (None when they were not:
+    :func:`model_margin_reason`); ``limits``: where the steps were kept, in words.
     """
 
     steps: pd.DataFrame
@@ -53,6 +55,8 @@ class Recommendation:
     candidates: pd.DataFrame | None = None
     centre_um: tuple[float, float] | None = None
     radius_um: float | None = None
+    margin_reason: str | None = None
+    limits: str = ""
 
     def _unit(self) -> tuple[float, str]:
         return (1e6, "µm") if self.target[0] in "gvw" else (1.0, "N·m²/A²")
@@ -73,7 +77,8 @@ class Recommendation:
         out = {"target": self.target, "criterion": self.criterion, "std_now": self.std_now,
                "steps": self.steps.to_dict(orient="records")}
         if self.centre_um is not None:      # where the limits were measured from, and how far a set-point may go
-            out |= {"bearing_centre_um": list(self.centre_um), "max_distance_um": self.radius_um}
+            out |= {"bearing_centre_um": list(self.centre_um), "max_distance_um": self.radius_um,
+                    "kept_among_positions_run": self.margin_reason}
         return out
 
     def to_dataframe(self) -> pd.DataFrame:
@@ -98,6 +103,48 @@ ORIGIN_MARGIN_SIGMAS = 3.0
 """Candidates keep this many standard errors of the estimated origin (in its worst direction) inside the
 back-up clearance: the clearance is measured from the bearing centre, which the design knows only through the
 estimated origin, the rig through the true one."""
+
+VISITED_TOLERANCE = 0.5e-6
+"""How far [m] a set-point may lie outside the region the rotor has already visited (the readings' positions) and
+still count as inside it: the positions' noise, not a step."""
+
+
+def inside_visited(points: np.ndarray, visited: np.ndarray, tol: float = VISITED_TOLERANCE) -> np.ndarray:
+    """Whether each of ``points [n, 2]`` lies in the convex hull of ``visited [m, 2]`` (within ``tol``, all [m]).
+    The back-up clearance is a disc and every visited position lies in it, so their hull does too: a set-point in
+    it is safe whatever the origin.  A hull of collinear positions (Table 2's diagonal pairs) is their segment."""
+    from scipy.spatial import Delaunay
+
+    pts = np.asarray(points, float).reshape(-1, 2)
+    vis = np.unique(np.round(np.asarray(visited, float).reshape(-1, 2), 9), axis=0)
+    centre = vis.mean(axis=0)
+    _, sv, vt = np.linalg.svd(vis - centre, full_matrices=False)
+    if len(vis) >= 3 and sv[-1] > tol * np.sqrt(len(vis)):
+        # (points within tol of the hull: shrink them towards the centre by tol first)
+        d = pts - centre
+        r = np.hypot(*d.T)
+        pulled = centre + d * np.clip(1 - tol / np.maximum(r, 1e-30), 0, None)[:, None]
+        return Delaunay(vis).find_simplex(pulled) >= 0
+    along, across = (pts - centre) @ vt[0], (pts - centre) @ np.array([-vt[0, 1], vt[0, 0]])
+    span = (vis - centre) @ vt[0]
+    return (np.abs(across) <= tol) & (along >= span.min() - tol) & (along <= span.max() + tol)
+
+
+def model_margin_reason(df: pd.DataFrame, res: FitResult) -> str | None:
+    """Why the estimated origin may be biased beyond its standard error (None when nothing says so): the ideal law
+    does not fit its data, or an axis ran fewer than three biases, too few for the force law's bend with flux
+    density (saturation, iron reluctance, leakage) to show, so such an effect is absorbed into the origin."""
+    if res.adequate is False:
+        return f"the ideal law does not fit these data (χ²/dof {res.reduced_chi2:.3g})"
+    if "bias_A" in df:
+        few = {ax: int(np.unique(np.round(df.loc[df["axis"] == ax, "bias_A"].to_numpy(float), 9)).size)
+               for ax in AXES}
+        few = {ax: n for ax, n in few.items() if 0 < n < 3}
+        if few:
+            return (", ".join(f"axis {ax} ran {n} bias{'es' if n > 1 else ''}" for ax, n in few.items())
+                    + ": too few for a bend of the force law with flux density (saturation) to show, and such "
+                    "an effect moves the origin unseen")
+    return None
 
 
 def candidate_steps(center_um=(0.0, 0.0), offsets_um: Sequence[float] | None = None,
@@ -163,7 +210,10 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     (:func:`ambfit.rig.limits.step_limits`, the rule ``ambfit simulate`` applies): the rotor within the back-up
     clearance of the bearing centre (the estimated one, less :data:`ORIGIN_MARGIN_SIGMAS` standard errors of the
     origin; ``max_radius_um`` [µm] tightens the clearance), the bias and the coil currents the model predicts
-    at the estimate within the coil current limit.  The bearing is the fit's (``result``) when one is given.
+    at the estimate within the coil current limit.  When the origin may be biased by an effect the data cannot
+    show (:func:`model_margin_reason`: fewer than three biases on an axis, or a law that does not fit), the
+    set-points are also kept among the positions already run (:func:`inside_visited`), which are safe whatever
+    the origin, and the positions run are candidates themselves.  The bearing is the fit's (``result``) when one is given.
     ``sigma_i`` [A] and ``sigma_x`` [m] declare the readings' noise (as in :func:`ambfit.estimation.fit.fit`)
     for the fit and the candidates.
     """
@@ -178,18 +228,31 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     idx = [res.names.index(n) for n in ORIGINS if n in res.names]
     cov = np.asarray(res.cov)[np.ix_(idx, idx)]
     margin = ORIGIN_MARGIN_SIGMAS * float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if idx else 0.0
+    why = model_margin_reason(df, res)
     if max_radius_um is not None:
         bearing = bearing.with_(backup_clearance=min(bearing.backup_clearance, max_radius_um * 1e-6))
+    visited = df[["v_um", "w_um"]].to_numpy(float) * 1e-6
     if candidates is None:
         candidates = candidate_steps(tuple(round(-c * 1e6) for c in origin), bearing=bearing)
+        if why:           # the positions already run, and their centre, are candidates too
+            run = np.unique(np.round(visited * 1e7) / 10, axis=0)            # [µm], to 0.1 µm
+            run = np.vstack([run, run.mean(axis=0)])
+            biases = candidates["bias_A"].unique()
+            candidates = pd.concat([candidates, pd.DataFrame(
+                [{"v_set_um": v, "w_set_um": w, "bias_A": b} for v, w in run for b in biases])], ignore_index=True)
     # keep the rotor off the back-up bearing and the coils below their current limit
-    limits = step_limits(candidates[["v_set_um", "w_set_um"]].to_numpy(float) * 1e-6,
-                         candidates["bias_A"].to_numpy(float), origin, bearing, margin=margin)
-    candidates = candidates[limits.ok].reset_index(drop=True)
+    set_points = candidates[["v_set_um", "w_set_um"]].to_numpy(float) * 1e-6
+    limits = step_limits(set_points, candidates["bias_A"].to_numpy(float), origin, bearing, margin=margin)
+    ok = limits.ok & (inside_visited(set_points, visited) if why else True)
+    candidates = candidates[ok].reset_index(drop=True)
     within = (f"within {(bearing.backup_clearance - margin) * 1e6:.3g} µm of the estimated bearing centre "
               f"({-origin[0] * 1e6:.1f}, {-origin[1] * 1e6:.1f}) µm (the back-up clearance of "
-              f"{bearing.backup_clearance * 1e6:.3g} µm less {margin * 1e6:.2g} µm for the origin's uncertainty) "
-              f"with a bias within the {bearing.max_current:g} A coil current limit")
+              f"{bearing.backup_clearance * 1e6:.3g} µm less {margin * 1e6:.2g} µm for the origin's uncertainty)"
+              + (f" and among the positions already run (their convex hull, which the rotor has visited): the "
+                 f"origin may be biased by an effect these data cannot show ({why}); a bias sweep (simulate "
+                 "--preset rich sweeps four biases) shows it, and a design on those data reaches further"
+                 if why else "")
+              + f", with a bias within the {bearing.max_current:g} A coil current limit")
     if candidates.empty:
         raise ValueError(f"no candidate set-point lies {within}")
     groups = load_groups(df)
@@ -242,4 +305,5 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
         out.append({**candidates.iloc[c].to_dict(), "predicted_std_after": float(np.sqrt(np.linalg.pinv(info)[t, t]))})
     return Recommendation(steps=pd.DataFrame(out), target=target, std_now=std_now, criterion=criterion,
                           candidates=candidates, centre_um=(-origin[0] * 1e6, -origin[1] * 1e6),
-                          radius_um=(bearing.backup_clearance - margin) * 1e6)
+                          radius_um=(bearing.backup_clearance - margin) * 1e6, margin_reason=why,
+                          limits=f"every step {within}")

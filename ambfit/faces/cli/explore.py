@@ -170,6 +170,7 @@ def design(
     except (fit.FitError, ValueError) as exc:
         fail(str(exc), 3)
     show_table(rec.display_rows(), rec.title)
+    note(rec.limits)
     if json_out is not None:
         write_json(rec.to_json(), json_out)
 

@@ -173,7 +173,11 @@ def _ellipses(ax, ls, cov, pair, factors):
 
 def plot_design_comparison(table, ax=None):
     """Bar chart of the Cramér-Rao bound on the gap for each design (log scale), condition numbers annotated."""
-    ax = _axes(ax)
+    if ax is None:
+        import matplotlib.pyplot as plt
+
+        # (wide, and laid out, so the designs' names on the left and the notes on the right stay on the figure)
+        _, ax = plt.subplots(figsize=(10, 0.45 * len(table) + 1.5), layout="constrained")
     y = np.arange(len(table))
     vals = np.asarray(table["crlb_gap_um"], dtype=float)
     finite = np.where(np.isfinite(vals), vals, np.nanmax(vals[np.isfinite(vals)]) * 100 if np.isfinite(vals).any()
@@ -187,19 +191,21 @@ def plot_design_comparison(table, ax=None):
     for yi, (v, c) in enumerate(zip(vals, table["condition"])):
         ax.text(finite[yi], yi, f"  cond {c:.2g}" + ("" if np.isfinite(v) else ", not identifiable"), va="center",
                 fontsize=8)
+    ax.set_xlim(None, finite.max() * 60)                      # room for the notes right of the longest bar
     ax.invert_yaxis()
     return ax
 
 
 def plot_recommendation(rec, data=None, *, clearance_um: float | None = None, fig=None):
     """A design recommendation: where the next set-points lie (numbered, coloured by bias) next to the
-    readings so far and the back-up clearance, and the target's predicted standard error step by step.
+    readings so far, the estimated bearing centre with the back-up clearance (``clearance_um``) and the allowed
+    radius about it, and the target's predicted standard error step by step.
 
     ``rec`` is a :class:`ambfit.estimation.design.Recommendation`; ``data`` the data set it starts from.
     """
     import matplotlib.pyplot as plt
 
-    fig = fig or plt.figure(figsize=(10, 4.5))
+    fig = fig or plt.figure(figsize=(11, 5), layout="constrained")     # (the colour bar's label off the right panel)
     ax, ax2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.1, 1]})
     if data is not None:
         frame = data.frame if hasattr(data, "frame") else data
@@ -207,14 +213,24 @@ def plot_recommendation(rec, data=None, *, clearance_um: float | None = None, fi
     st = rec.steps
     sc = ax.scatter(st["v_set_um"], st["w_set_um"], c=st["bias_A"], cmap="viridis", s=60, edgecolor="k",
                     label="recommended", zorder=3)
+    at = {}                              # steps at one set-point share one label ("1, 2, 4"), not stacked numbers
     for i, r in enumerate(st.itertuples(), 1):
-        ax.annotate(str(i), (r.v_set_um, r.w_set_um), textcoords="offset points", xytext=(5, 5), fontsize=8)
+        at.setdefault((round(r.v_set_um, 6), round(r.w_set_um, 6)), []).append(str(i))
+    for (v, w), numbers in at.items():
+        ax.annotate(", ".join(numbers), (v, w), textcoords="offset points", xytext=(5, 5), fontsize=8)
     fig.colorbar(sc, ax=ax, label="bias [A]")
+    # the clearance is measured from the bearing centre, which the sensors read at minus the origin
+    cv, cw = rec.centre_um if rec.centre_um is not None else (0.0, 0.0)
+    t = np.linspace(0, 2 * np.pi, 200)
+    ax.plot(cv, cw, "rx", label="estimated bearing centre")
     if clearance_um:
-        t = np.linspace(0, 2 * np.pi, 200)
-        ax.plot(clearance_um * np.cos(t), clearance_um * np.sin(t), "r--", lw=1, label="back-up clearance")
+        ax.plot(cv + clearance_um * np.cos(t), cw + clearance_um * np.sin(t), "r--", lw=1,
+                label="back-up clearance about it")
+    if rec.radius_um is not None:
+        ax.plot(cv + rec.radius_um * np.cos(t), cw + rec.radius_um * np.sin(t), "r:", lw=1,
+                label="allowed (less the origin's uncertainty)")
     ax.set(xlabel="v set-point [µm]", ylabel="w set-point [µm]", aspect="equal", title="where to measure next")
-    ax.legend(fontsize=8, loc="lower left")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)
     f, unit = rec._unit()
     std = np.concatenate([[rec.std_now], st["predicted_std_after"].to_numpy()]) * f
     ax2.plot(np.arange(len(std)), std, "o-")

@@ -214,7 +214,8 @@ def design(recommendation, *, max_radius_um: float | None = None, candidates: pd
     radius = max_radius_um if max_radius_um is not None else rec.radius_um
     return {"table": table(steps, 2), "target": rec.target, "criterion": rec.criterion, "std_now": rec.std_now * factor,
             "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": radius,
-            "bias_A": (float(grid["bias_A"].min()), float(grid["bias_A"].max()))}
+            "bias_A": (float(grid["bias_A"].min()), float(grid["bias_A"].max())), "kept_among_run": rec.margin_reason,
+            "limits": rec.limits}
 
 
 def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
