@@ -4,7 +4,9 @@ Both arms start from one iteration of the paper's perturbation at the back-up be
 centre (1.4/1.6 A, ±20 µm, 4 steps).  Then, for R rounds of 4 steps each:
 (a) the paper: the next iteration centred on the current estimate of the effective
 origin; (b) ambfit: the 4 steps ``design.recommend`` picks (A-optimal for the v-axis gap)
-from a grid of set-points within ±50 µm of the estimated origin and biases 0.8-1.8 A.
+from a grid of set-points within ±50 µm of the estimated origin and biases 0.8-1.8 A, kept among the
+positions already run while an axis has fewer than three biases (the origin may then carry an effect the
+data cannot show): its first rounds spend steps on biases, not on lever arm.
 After each round both arms are refitted by least squares; the gap's 94 % interval
 half-width (1.88 standard errors; the posterior is near-Gaussian here, see ls_efficiency)
 is recorded.  Averaged over S seeds of the rig noise.
