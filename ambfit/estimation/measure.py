@@ -194,6 +194,14 @@ class FittedModel:
     model: str
     discrepancy: object = None          # a fitted ambfit.estimation.discrepancy.Discrepancy, added to the force
     file: object = None                 # the ambfit.estimation.model_file.ModelFile it was read from (provenance)
+    state: dict | None = dataclasses.field(default=None, repr=False, compare=False)   # the model_state it came from
+
+    def at(self, values) -> FittedModel:
+        """This model with its parameters (the effects' included) at ``values`` (in the order of :attr:`names`)."""
+        if self.state is None:
+            raise ValueError("this model was not built from a model_state (FittedModel.from_state)")
+        state = {**self.state, "values": [float(v) for v in values]}
+        return dataclasses.replace(type(self).from_state(state, self.bearing), file=self.file)
 
     @classmethod
     def from_result(cls, result: FitResult) -> FittedModel:
@@ -261,7 +269,7 @@ class FittedModel:
                                      f"has {names}")
             model += "+discrepancy"
         return cls(names=tuple(names), values=values, cov=cov, effects=tuple(effects), bearing=bearing, model=model,
-                   discrepancy=disc)
+                   discrepancy=disc, state=state)
 
     def _model(self) -> tuple[Model, np.ndarray, list[int]]:
         """The core's model of this one (the fields :attr:`names` estimates free, the others held at their values),

@@ -22,6 +22,7 @@ from ambfit.faces.cli.app import (
     write_json,
 )
 from ambfit.faces.cli.explore import Axis
+from ambfit.faces.cli.options import number
 
 
 @app.command()
@@ -223,3 +224,71 @@ def _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bott
         return check(pd.DataFrame(rows)).frame
     except DataError as exc:
         fail(str(exc))
+
+
+@app.command()
+def linearise(
+    model: Annotated[Path, typer.Argument(help="Fitted model: the JSON of ambfit identify --json or of ambfit "
+                                          "diagnose --json (the verdict's model), fitted with known loads.")],
+    bias_a: Annotated[float, typer.Option("--bias-a", callback=number(0, low_open=True),
+                                          help="The operating bias current [A].")],
+    axis: Annotated[Axis | None, typer.Option(help="One axis (default: both).")] = None,
+    position_um: Annotated[float | None, typer.Option(help="Where on the axis [µm, sensor coordinates] (default: "
+                                                      "the bearing centre, minus the identified origin).")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write k_i, k_s and their errors as JSON "
+                                                  "here.")] = None,
+    use: Annotated[str | None, typer.Option("--use", help="Which model of a diagnose JSON: verdict or ideal "
+                                            "(default: the verdict's, else the ideal law).")] = None,
+    seed: Annotated[int, typer.Option(callback=number(0), help="Seed of the parameter draws behind the "
+                                      "errors.")] = 0,
+    accept_implausible: AcceptOption = False,
+    bearing: BearingOption = None,
+):
+    """The identified bearing linearised for a rotor model: current gain k_i [N/A] and position stiffness k_s
+    [N/m] at a bias, from the model with its effects (saturation lowers both), with their standard errors.
+
+    k_i is the force per control current (top coil at bias + i, bottom at bias - i); k_s the force per
+    displacement at the bearing centre (positive: towards the nearer pole; ROSS's MagneticBearingElement ks is
+    -k_s).  A rotor model in ROSS: ambfit.rotordynamics.bearing_element (pip install 'ambfit[ross]').
+    """
+    import numpy as np
+
+    from ambfit.estimation import plausibility
+    from ambfit.estimation.measure import FittedModel, ModelFileError
+    from ambfit.rotordynamics import linearise as linearised
+
+    check_output(json_out, inputs=(model, bearing))
+    record = _read_record(model)
+    desc = _bearing(model, record, bearing, use)
+    if use == "discrepancy":
+        fail("--use discrepancy: the discrepancy term is a correction to readings, not a law to differentiate; "
+             "use verdict or ideal")
+    try:
+        fm = FittedModel.from_json(record, desc, str(model), use=use)
+    except ModelFileError as exc:
+        fail(str(exc))
+    for line in fm.file.warnings:
+        warn(line)
+    judge(plausibility.check_result(dict(zip(fm.names, np.asarray(fm.values, float))), desc), accept_implausible,
+          f"{model.name}: the model is")
+    if fm.discrepancy is not None:
+        note(f"{model}: its discrepancy term is left out (a correction fitted to readings, not a law with "
+             "derivatives): k_i and k_s are those of its law")
+    if bias_a > desc.max_current:
+        fail(f"--bias-a {bias_a:g}: beyond the coil current limit of {desc.max_current:g} A of the bearing "
+             f"({desc.name})")
+    out = []
+    for ax in [axis.value] if axis is not None else ["v", "w"]:
+        try:
+            out.append(linearised(fm, ax, bias_a, position_um=position_um, seed=seed))
+        except ValueError as exc:
+            fail(f"{model}: {exc}", 3)
+    show_table([{"axis": lin.axis, "bias [A]": f"{lin.bias_A:g}", "at [µm]": f"{lin.position_um:.2f}",
+                 "k_i [N/A]": _pm(lin.k_i, lin.k_i_std), "k_s [N/m]": _pm(lin.k_s, lin.k_s_std),
+                 "corr": f"{lin.to_json()['correlation']:+.2f}"} for lin in out],
+               f"the {fm.model} model of {model} linearised")
+    if json_out is not None:
+        from ambfit import __version__
+
+        write_json({"model": fm.model, "source": str(model), "bearing": desc.name, "ambfit_version": __version__,
+                    "axes": [lin.to_json() for lin in out]}, json_out)
