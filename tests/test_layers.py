@@ -25,6 +25,7 @@ LAYERS = (
     ("infrastructure", ("ambfit.checks", "ambfit.data", "ambfit.rows", "ambfit.engine", "ambfit.workers")),
     ("rig", ("ambfit.rig",)),
     ("estimation", ("ambfit.estimation",)),
+    ("rotordynamics", ("ambfit.rotordynamics",)),
     ("diagnosis", ("ambfit.diagnosis",)),
     ("studies", ("ambfit.studies",)),
     ("faces", ("ambfit.faces",)),

@@ -17,14 +17,19 @@ def table2():
     return rig.simulate(rig.PAPER_RIG, P.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=4).data
 
 
-def test_nuts_and_emcee_draw_the_same_posterior(table2):
+@pytest.fixture(scope="module")
+def runs(table2):
+    """The least-squares fit, emcee (2000 steps: ESS ~8000, enough for the comparison) and NUTS on one data set."""
     pytest.importorskip("blackjax")
     from ambfit.estimation.nuts import sample_nuts
 
     ls = fit.fit(table2)
-    e = bayes.sample(table2, seed=3, ls=ls)
-    n = sample_nuts(table2, seed=3, ls=ls)
-    assert n.sampler == "nuts" and n.to_json()["sampler"] == "nuts" and n.converged and e.converged
+    return ls, bayes.sample(table2, seed=3, ls=ls, n_steps=2000, max_steps=2000), sample_nuts(table2, seed=3, ls=ls)
+
+
+def test_nuts_and_emcee_draw_the_same_posterior(runs):
+    _, e, n = runs
+    assert n.sampler == "nuts" and n.to_json()["sampler"] == "nuts" and n.converged
     assert "0 divergent" in n.message
     ess = n.to_json()["params"]
     for name in e.names:
@@ -47,13 +52,9 @@ def test_sample_names_the_extra_when_blackjax_is_missing(tmp_path, monkeypatch):
     assert r.exit_code == 2 and "--walkers is emcee's" in r.output, r.output
 
 
-def test_nuts_draws_sit_in_the_parameters_own_coordinates(table2):
+def test_nuts_draws_sit_in_the_parameters_own_coordinates(runs):
     # the whitening z = z_hat + L u is undone for every draw: the draws' covariance is the least-squares one
-    pytest.importorskip("blackjax")
-    from ambfit.estimation.nuts import sample_nuts
-
-    ls = fit.fit(table2)
-    n = sample_nuts(table2, seed=5, ls=ls, n_chains=2, n_warmup=300, n_draws=1500)
+    ls, _, n = runs
     cov = np.cov(n.draws.reshape(-1, len(n.names)).T)
     rel = np.sqrt(np.diag(cov)) / np.sqrt(np.diag(ls.cov))
     assert np.all(np.abs(rel - 1) < 0.1), rel

@@ -397,7 +397,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     message = (f"autocorrelation time up to {tmax:.1f} steps; {steps} steps per ensemble"
                + (f" ({steps - n_steps} added to reach {min_tau_multiple:g} tau)" if steps > n_steps else "")
                + (f" is too short and the cap of {max_steps} steps was reached: run at least "
-                  f"{int(np.ceil(min_tau_multiple * tmax))} steps (--max-steps) for a reliable tau and ESS"
+                  f"{int(np.ceil(min_tau_multiple * tmax))} steps (--max-mcmc-steps) for a reliable tau and ESS"
                   if too_short else f" is {steps / tmax:.0f} tau (>= {min_tau_multiple:g})"))
     accs = sampler.acceptance_fraction.reshape(n_ensembles, n_walkers).mean(axis=1)
     draws_z = block_chain(sampler, n_ensembles)[:, burn::thin].reshape(n_ensembles, -1, ndim)  # [ens, draws, p]

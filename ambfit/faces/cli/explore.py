@@ -124,8 +124,8 @@ def solution_space_cmd(
 @app.command()
 def design(
     data: Annotated[Path, typer.Argument(help="Perturbation data so far, contract CSV.")],
-    steps: Annotated[int, typer.Option(callback=number(1, MAX_DESIGN_STEPS),
-                                       help="How many next steps to recommend.")] = 8,
+    steps: Annotated[int, typer.Option("--next-steps", "--steps", callback=number(1, MAX_DESIGN_STEPS),
+                                       help="How many next perturbations (set-point and bias) to recommend.")] = 8,
     target: Annotated[Target, typer.Option(help="Parameter whose variance to minimise (A-optimal).")] = Target.g_v0,
     criterion: Annotated[Criterion, typer.Option(help="'A' (variance of the target) or 'D' (log det of gap and "
                                                  "origin covariance).")] = Criterion.A,

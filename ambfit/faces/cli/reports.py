@@ -34,13 +34,14 @@ def report(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for index.html (self-contained, figures "
                                       "embedded) and report.json.")],
-    steps: Annotated[int, typer.Option(callback=number(MIN_STEPS), help="emcee steps per ensemble to start the posterior with (extended "
+    steps: Annotated[int, typer.Option("--mcmc-steps", "--steps", callback=number(MIN_STEPS),
+                                       help="emcee steps per ensemble to start the posterior with (extended "
                                        "until 50 autocorrelation times).")] = 3000,
-    max_steps: Annotated[int, typer.Option(callback=number(MIN_STEPS),
+    max_steps: Annotated[int, typer.Option("--max-mcmc-steps", "--max-steps", callback=number(MIN_STEPS),
                                            help="Cap on the posterior's steps per ensemble.")] = 30000,
     ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
                                            help="Independent emcee ensembles (R-hat across them).")] = 4,
-    design_steps: Annotated[int, typer.Option(callback=number(1, MAX_DESIGN_STEPS),
+    design_steps: Annotated[int, typer.Option("--next-steps", "--design-steps", callback=number(1, MAX_DESIGN_STEPS),
                                               help="How many next perturbations to recommend.")] = 8,
     max_radius_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
                                                         help="Recommend only set-points within this distance "
@@ -65,7 +66,7 @@ def report(
     check_output(out, folder=True)
     check_output(*(out / name for name in FILES), parents=True, inputs=(data, bearing))
     if max_steps < steps:
-        fail(f"--max-steps {max_steps}: the cap is below --steps {steps}")
+        fail(f"--max-mcmc-steps {max_steps}: the cap is below --mcmc-steps {steps}")
     enable_compilation_cache()
     desc = bearing_of(bearing)
     read_data(data, desc, accept_implausible)      # input and plausibility problems end here, before any work

@@ -25,7 +25,7 @@ from ambfit.faces.cli.app import (
 from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 from ambfit.faces.cli.options import number
 
-SAMPLER_OPTIONS = {"n_steps": "--steps", "max_steps": "--max-steps", "n_ensembles": "--ensembles",
+SAMPLER_OPTIONS = {"n_steps": "--mcmc-steps", "max_steps": "--max-mcmc-steps", "n_ensembles": "--ensembles",
                    "n_walkers": "--walkers"}
 """The command line's name of each setting :class:`ambfit.estimation.bayes.SettingError` names."""
 MAX_ENSEMBLES = 64
@@ -35,7 +35,7 @@ hundred times the parameters of the richest model, past any gain in sampling."""
 MIN_STEPS = 100
 """Fewest steps to start with: the burn-in alone is two autocorrelation times."""
 EMCEE_STEPS, NUTS_DRAWS, MAX_STEPS = 3000, 1000, 30000
-"""--steps by sampler (emcee's first run per ensemble, NUTS' draws per chain) and emcee's cap (--max-steps)."""
+"""--mcmc-steps by sampler (emcee's first run per ensemble, NUTS' draws per chain) and emcee's cap (--max-mcmc-steps)."""
 
 
 class Sampler(enum.StrEnum):
@@ -86,12 +86,14 @@ def sample(
                                              "default) or 'nuts' (BlackJAX's No-U-Turn sampler, one chain per "
                                              "ensemble; needs ambfit[nuts]): the same posterior, a second "
                                              "opinion.")] = Sampler.emcee,
-    steps: Annotated[int | None, typer.Option(callback=number(MIN_STEPS), help="emcee: steps per ensemble to start "
+    steps: Annotated[int | None, typer.Option("--mcmc-steps", "--steps", callback=number(MIN_STEPS),
+                                              help="emcee: steps per ensemble to start "
                                               f"with (default {EMCEE_STEPS}); each ensemble is extended until the "
                                               "run is 50 autocorrelation times long and tau has settled.  nuts: "
                                               f"draws per chain after as many warm-up steps (default "
                                               f"{NUTS_DRAWS}).")] = None,
-    max_steps: Annotated[int | None, typer.Option(callback=number(MIN_STEPS), help="emcee: cap on the steps per "
+    max_steps: Annotated[int | None, typer.Option("--max-mcmc-steps", "--max-steps", callback=number(MIN_STEPS),
+                                                  help="emcee: cap on the steps per "
                                                   "ensemble (exit 3 with the length needed when it is reached; "
                                                   f"default {MAX_STEPS}).")] = None,
     ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
@@ -113,7 +115,7 @@ def sample(
 ):
     """Sample the posterior of gap, origin (and k with known loads) with emcee or NUTS; summarise with ArviZ.
 
-    emcee runs until the chains are 50 autocorrelation times long (up to --max-steps); exits 3
+    emcee runs until the chains are 50 autocorrelation times long (up to --max-mcmc-steps); exits 3
     when the cap is reached (and says how long the run should be), when NUTS' chains are shorter
     than 50 autocorrelation times, or when R-hat across the ensembles or chains exceeds 1.01.
     """
@@ -123,9 +125,9 @@ def sample(
 
     check_output(out, json_out, pair_png, inputs=(data, bearing))
     if sampler is Sampler.nuts:
-        for option, value in (("--walkers", walkers), ("--max-steps", max_steps)):
+        for option, value in (("--walkers", walkers), ("--max-mcmc-steps", max_steps)):
             if value is not None:
-                fail(f"{option} is emcee's; NUTS runs one chain per ensemble for exactly --steps draws")
+                fail(f"{option} is emcee's; NUTS runs one chain per ensemble for exactly --mcmc-steps draws")
         from ambfit.estimation import nuts
 
         try:
@@ -136,7 +138,7 @@ def sample(
         steps = steps or EMCEE_STEPS
         max_steps = max_steps or max(MAX_STEPS, steps)
         if max_steps < steps:
-            fail(f"--max-steps {max_steps}: the cap is below --steps {steps}")
+            fail(f"--max-mcmc-steps {max_steps}: the cap is below --mcmc-steps {steps}")
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
