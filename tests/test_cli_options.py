@@ -18,7 +18,7 @@ BAD = [
     (["sample", DATA, "--gap-prior-log-sd", "nan"], "--gap-prior-log-sd"),
     (["sample", DATA, "--walkers", "1"], "--walkers"),
     (["sample", DATA, "--walkers", "3"], "--walkers"),
-    (["sample", DATA, "--steps", "0"], "--mcmc-steps"),                     # (the old name, an alias)
+    (["sample", DATA, "--mcmc-steps", "0"], "--mcmc-steps"),
     (["sample", DATA, "--mcmc-steps", "2000", "--max-mcmc-steps", "1000"], "--max-mcmc-steps"),
     (["sample", DATA, "--ensembles", "1"], "--ensembles"),
     (["sample", DATA, "--nominal-gap-um", "-1"], "--nominal-gap-um"),
@@ -73,6 +73,16 @@ def test_a_bad_option_is_one_line_naming_it(tmp_path, monkeypatch, args, names):
     if names.startswith("--"):
         assert args[args.index(names) + 1].strip() in errors[0] or args[-1] in errors[0], r.output
     assert not (tmp_path / "x.csv").exists() and not (tmp_path / "rep").exists()
+
+
+@pytest.mark.parametrize("command, old, new", [("sample", "--steps", "--mcmc-steps"),
+                                               ("design", "--steps", "--next-steps")])
+def test_the_old_step_options_are_aliases_of_the_new(command, old, new):
+    # --steps meant sampler steps in sample and report, recommended perturbations in design: each has its own
+    # name now, and the old one still works (and is named in the message as the new one)
+    r = runner.invoke(app, [command, DATA, old, "0"])
+    assert r.exit_code == 2 and f"error: {new} 0" in r.output, r.output
+    assert f"{new}, {old}" in runner.invoke(app, [command, "--help"]).output.replace("\n", " ")
 
 
 def test_piped_tables_keep_long_file_names_whole(tmp_path):
