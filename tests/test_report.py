@@ -431,10 +431,10 @@ def test_own_gap_uses_the_bearing_and_the_demonstration():
     assert "true effect (nominal 770 µm)" in str(s["demo_table"])
 
 
-def test_paper_report_is_one_self_contained_page(tmp_path):
+def test_paper_report_is_one_self_contained_page(tmp_path, rep):
     from ambfit.faces import report
 
-    path = report.paper_report(tmp_path / "paper", replicates=3, seed=1, demonstration=False)
+    path = report.paper_report(tmp_path / "paper", replicates=3, seed=1, demonstration=False, reproduction=rep)
     paper_html = path.read_text()
     assert _self_contained(paper_html)
     for head in ("Table 1", "Table 2", "Table 3", "Table 4", "Fig. 2", "Fig. 3", "Fig. 5", "sim-to-real gap"):

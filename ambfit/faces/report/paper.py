@@ -100,19 +100,22 @@ def readme(s: dict, *, replicates: int, seconds: float) -> str:
 
 
 def paper_report(out="reports/paper", *, replicates: int = 200, seed: int = 0, demonstration: bool = True,
-                 command: str = "", progress=None) -> Path:
+                 command: str = "", progress=None, reproduction=None) -> Path:
     """Reproduce the seed paper on the rig and write ``out/``: ``index.html`` (self-contained),
     ``README.md``, ``comparison.csv`` (every row of Tables 1-4), ``spread.csv``, ``origins_over_time.csv``
     (Table 1's moves between experiments against noise and against Table 2's drift), ``reproduction.json`` and
     the figures as PNG.  Returns the HTML path.  ``progress``, if given, is called as ``progress(phase, done,
-    total)`` (:func:`ambfit.studies.paper.reproduce`'s phases, then ``"paper: <step>"``)."""
+    total)`` (:func:`ambfit.studies.paper.reproduce`'s phases, then ``"paper: <step>"``).  ``reproduction``: a
+    :func:`~ambfit.studies.paper.reproduce` result of these ``replicates`` and ``seed`` already at hand (it is the
+    slow part)."""
     from ambfit.estimation import conditioning
     from ambfit.estimation.fit import FitError, fit
 
     t0 = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rep = study.reproduce(replicates=replicates, seed=seed, progress=progress)
+    rep = reproduction if reproduction is not None else study.reproduce(replicates=replicates, seed=seed,
+                                                                        progress=progress)
     spread = rep.spread()
     write_text(out / "comparison.csv", rep.comparison().to_csv(index=False))
     write_text(out / "spread.csv", spread.to_csv(index=False))
