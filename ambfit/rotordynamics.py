@@ -5,8 +5,11 @@ current gain ``k_i = ∂F/∂i`` [N/A] (the control current ``i`` drives the top
 coil at ``bias - i``) and the position stiffness ``k_s = ∂F/∂x`` [N/m] (positive: the force grows towards the
 nearer pole, the bearing's negative stiffness).  :func:`linearise` takes both from an identified model (a
 least-squares fit, a model file of ``ambfit identify``/``ambfit diagnose``, or a posterior), effects included:
-saturation lowers both, and the ideal law's Eq. 4 knows nothing of it.  Their uncertainty comes from the
-parameters' (draws from the fit's covariance, or the posterior's own draws).
+saturation lowers both, and the ideal law's Eq. 4 knows nothing of it.  Both are the bearing's, per physical ampere
+and metre: the effects of the sensors and current channels a model fits (a position gain, a current zero) are the
+measurement's, and belong in the controller's ``k_sense`` and ``k_amp``, not in the bearing.  Their uncertainty comes
+from the parameters' (draws from the fit's covariance, or the posterior's own draws).  (Schweitzer and Maslen,
+*Magnetic Bearings*, Springer 2009, pp. 69-80: the linearised actuator, which ROSS follows.)
 
 With a controller (``C(s) = kp + ki/s + kd s / (1 + s / n_f)``, amplifier and sensor gains) the bearing acts as
 ``k_eq(ω) = -k_s + k_i k_amp k_sense Re C(jω)`` and ``c_eq(ω) = k_i k_amp k_sense Im C(jω) / ω`` on each axis,
@@ -43,16 +46,20 @@ DRAWS = 400
 
 @dataclasses.dataclass(frozen=True)
 class Linearisation:
-    """The bearing on one axis linearised at a bias and position: ``k_i`` [N/A], ``k_s`` [N/m], their standard
-    errors and covariance ``cov`` (``[[var k_i, cov], [cov, var k_s]]``), the model they come from."""
+    """The bearing on one axis linearised at a bias [A] and ``position`` [m, sensor coordinates]: ``k_i`` [N/A],
+    ``k_s`` [N/m], their standard errors and covariance ``cov`` (``[[var k_i, cov], [cov, var k_s]]``), the model
+    they come from."""
 
     axis: str
     bias_A: float
-    position_um: float
+    position: float
     k_i: float
     k_s: float
     cov: np.ndarray
     model: str
+    draws: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    """``(k_i, k_s)`` at each parameter draw behind ``cov``, array[draws, 2]: one axis' draws and the other's, made
+    with the same ``seed``, come from the same parameter draws."""
 
     @property
     def k_i_std(self) -> float:
@@ -72,11 +79,31 @@ class Linearisation:
         gain = self.k_i * k_amp * k_sense
         return -self.k_s + gain * c.real, gain * c.imag / w
 
+    def draw(self, j: int) -> Linearisation:
+        """The linearisation at parameter draw ``j`` (no uncertainty of its own)."""
+        return dataclasses.replace(self, k_i=float(self.draws[j, 0]), k_s=float(self.draws[j, 1]),
+                                   cov=np.zeros((2, 2)), draws=None)
+
+    @property
+    def correlation(self) -> float | None:
+        """Correlation of ``k_i`` and ``k_s`` (None without uncertainty)."""
+        if not (self.cov[0, 0] > 0 and self.cov[1, 1] > 0):
+            return None
+        return float(self.cov[0, 1] / np.sqrt(self.cov[0, 0] * self.cov[1, 1]))
+
+    def display_row(self) -> dict:
+        """One ``{column: text}`` row: axis, bias, where, ``k_i`` and ``k_s`` with their errors, correlation."""
+        from ambfit.estimation.units import pm
+
+        corr = self.correlation
+        return {"axis": self.axis, "bias [A]": f"{self.bias_A:g}", "at [µm]": f"{self.position * 1e6:.2f}",
+                "k_i [N/A]": pm(self.k_i, self.k_i_std, 2), "k_s [N/m]": pm(self.k_s, self.k_s_std, 2),
+                "corr": "–" if corr is None else f"{corr:+.2f}"}
+
     def to_json(self) -> dict:
-        return {"axis": self.axis, "bias_A": self.bias_A, "position_um": self.position_um, "model": self.model,
+        return {"axis": self.axis, "bias_A": self.bias_A, "position_um": self.position * 1e6, "model": self.model,
                 "k_i_N_per_A": self.k_i, "k_i_std": self.k_i_std, "k_s_N_per_m": self.k_s, "k_s_std": self.k_s_std,
-                "correlation": float(self.cov[0, 1] / np.sqrt(self.cov[0, 0] * self.cov[1, 1]))
-                if self.cov[0, 0] > 0 and self.cov[1, 1] > 0 else None}
+                "correlation": self.correlation}
 
 
 @eqx.filter_jit
@@ -88,7 +115,7 @@ def _gains(params, effects, bearing, axis: int, bias, x, y):
         r = Readings.build(axis=jnp.array([axis]), i_top=jnp.array([bias + i_c]), i_bottom=jnp.array([bias - i_c]),
                            x=jnp.array([xx]), y=jnp.array([y]), bias=jnp.array([bias]),
                            i_top_other=jnp.array([bias]), i_bottom_other=jnp.array([bias]))
-        return evaluate(params, r, effects, bearing=bearing)[0][0]
+        return evaluate(params, r, effects, bearing=bearing, physical=True)[0][0]
 
     return jnp.stack(jax.grad(force, argnums=(0, 1))(0.0, x))
 
@@ -118,13 +145,13 @@ def _head(values: dict, bearing):
                          jnp.asarray([values.get(n, np.nan) for n in FORCE_CONSTANTS]))
 
 
-def linearise(model, axis: str, bias_A: float, *, position_um: float | None = None, draws: int = DRAWS,
+def linearise(model, axis: str, bias_A: float, *, position: float | None = None, draws: int = DRAWS,
               seed: int = 0) -> Linearisation:
     """``k_i`` and ``k_s`` of ``axis`` at bias ``bias_A`` [A], from an identified model with its effects.
 
     ``model``: a :class:`~ambfit.estimation.results.FitResult`, a :class:`~ambfit.estimation.measure.FittedModel`
     (``FittedModel.from_json`` of an identify or diagnose JSON) or a :class:`~ambfit.estimation.bayes.Posterior`.
-    ``position_um``: where on the axis [µm, sensor coordinates]; default the bearing centre, ``-origin`` (the
+    ``position``: where on the axis [m, sensor coordinates]; default the bearing centre, ``-origin`` (the
     other axis at its centre too).  The values are the model's at its estimate (a posterior's: at its mean); the
     covariance is that of ``draws`` evaluations at parameters drawn from the fit's covariance (or at the
     posterior's draws).  Needs ``k`` of the axis (known loads).
@@ -153,7 +180,7 @@ def linearise(model, axis: str, bias_A: float, *, position_um: float | None = No
                          "and so k_i and k_s, are known only up to that factor")
     other = AXES[1 - AXES.index(axis)]
     values = dict(zip(names, base.values))
-    x = -values.get(f"{axis}0", 0.0) if position_um is None else position_um * 1e-6
+    x = -values.get(f"{axis}0", 0.0) if position is None else float(position)
     y = -values.get(f"{other}0", 0.0)
     a = AXES.index(axis)
 
@@ -167,9 +194,9 @@ def linearise(model, axis: str, bias_A: float, *, position_um: float | None = No
                        for row in sample])
         cov = np.cov(ks.T)
     else:
-        cov = np.zeros((2, 2))
-    return Linearisation(axis=axis, bias_A=float(bias_A), position_um=float(x * 1e6), k_i=float(k[0]), k_s=float(k[1]),
-                         cov=cov, model=base.model.removesuffix("+discrepancy"))
+        ks, cov = None, np.zeros((2, 2))
+    return Linearisation(axis=axis, bias_A=float(bias_A), position=float(x), k_i=float(k[0]), k_s=float(k[1]),
+                         cov=cov, model=base.model.removesuffix("+discrepancy"), draws=ks)
 
 
 @contextlib.contextmanager
@@ -211,8 +238,9 @@ def bearing_element(v: Linearisation, w: Linearisation, n: int, *, kp: float, kd
 
     ``v`` and ``w``: :func:`linearise` of each axis; the controller gains as ROSS's ``MagneticBearingElement``
     takes them (one controller for both axes).  Each axis' coefficients (:meth:`Linearisation.coefficients`)
-    are rotated from the bearing's v-w axes into the rotor's x-y by ``sensors_axis_rotation`` as ROSS does
-    (45°: the poles at ±45° to the vertical).  ``frequency`` [rad/s]: where the coefficients are given (default
+    are rotated from the bearing's v-w axes into the rotor's x-y by ``sensors_axis_rotation`` ``θ`` as ROSS does
+    (``K_xy = R^T diag(k_v, k_w) R``, ``R = [[cos θ, sin θ], [-sin θ, cos θ]]``): the v axis points along
+    ``(cos θ, sin θ)`` in x-y, the w axis along ``(-sin θ, cos θ)`` (θ = 45°: the axes at ±45° to x).  ``frequency`` [rad/s]: where the coefficients are given (default
     ROSS's 1-10⁴ rad/s, 50 points).  ``kwargs`` go to ``BearingElement``.
     """
     rs = ross()

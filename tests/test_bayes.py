@@ -222,3 +222,16 @@ def test_a_posterior_away_from_least_squares_is_flagged(short_run):
     assert a["disagrees"] == ["g_v0"] and a["z"]["g_v0"] == pytest.approx(2.5 + short_run.agreement()["z"]["g_v0"])
     assert "g_v0 (+2.5 sd)" in a["text"] and "not the Gaussian" in a["text"]
     assert short_run.to_json()["least_squares_agreement"]["threshold"] == 2.0
+
+
+def test_divergent_transitions_unconverge_the_posterior_and_warn(short_run):
+    # a NUTS run's divergences (set here on a posterior record) make it not converged and reach the warnings
+    import dataclasses
+
+    from ambfit.faces.warnings import posterior_warnings
+
+    assert short_run.to_json()["divergent_transitions"] == 0
+    bad = dataclasses.replace(short_run, too_short=False, divergent=3, sampler="nuts")
+    rec = bad.to_json()
+    assert rec["divergent_transitions"] == 3 and rec["converged"] is False
+    assert any(w.startswith("3 divergent transition(s) of NUTS") for w in posterior_warnings(bad, rec))

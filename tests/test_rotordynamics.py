@@ -54,7 +54,7 @@ def test_k_i_and_k_s_are_the_derivatives_of_the_identified_model(sat_fit, axis):
     other = "w" if axis == "v" else "v"
     k_i, k_s = _finite_differences(sat_fit, axis, 1.3, -sat_fit.value(f"{axis}0"), -sat_fit.value(f"{other}0"))
     assert lin.k_i == pytest.approx(k_i, rel=1e-6) and lin.k_s == pytest.approx(k_s, rel=1e-5)
-    assert lin.position_um == pytest.approx(-sat_fit.value(f"{axis}0") * 1e6)
+    assert lin.position == pytest.approx(-sat_fit.value(f"{axis}0"))
 
 
 def test_the_ideal_law_linearises_to_its_closed_form():
@@ -151,3 +151,25 @@ def test_linearise_command_reads_an_identify_model(tmp_path, sat_data):
     res = fit(sat_data, [Saturation()])
     assert by_axis["v"]["k_i_N_per_A"] == pytest.approx(linearise(res, "v", 1.6, draws=0).k_i, rel=1e-6)
     assert by_axis["w"]["model"] == "saturation" and "k_s" in r.output
+
+
+def test_an_anisotropic_bearing_puts_v_and_w_where_the_docstring_says():
+    # k_v != k_w: the x-y stiffness matrix has the v axis (cos θ, sin θ) and the w axis (-sin θ, cos θ) as its
+    # eigenvectors, with each axis' own closed-loop stiffness and damping as eigenvalues
+    pytest.importorskip("ross")
+    from ambfit.rotordynamics import bearing_element
+
+    v = Linearisation("v", 1.5, 0.0, k_i=30.0, k_s=6e4, cov=np.zeros((2, 2)), model="ideal")
+    w = Linearisation("w", 1.5, 0.0, k_i=36.0, k_s=7e4, cov=np.zeros((2, 2)), model="ideal")
+    theta = math.radians(30.0)
+    omega = np.array([50.0, 500.0])
+    el = bearing_element(v, w, 0, kp=1e4, kd=5.0, frequency=omega, sensors_axis_rotation=theta)
+    ev, ew = np.array([math.cos(theta), math.sin(theta)]), np.array([-math.sin(theta), math.cos(theta)])
+    for i, _ in enumerate(omega):
+        k = np.array([[el.kxx[i], el.kxy[i]], [el.kyx[i], el.kyy[i]]])
+        c = np.array([[el.cxx[i], el.cxy[i]], [el.cyx[i], el.cyy[i]]])
+        (kv, cv), (kw, cw) = (lin.coefficients(omega[i:i + 1], kp=1e4, kd=5.0) for lin in (v, w))
+        np.testing.assert_allclose(k @ ev, kv[0] * ev, rtol=1e-9)
+        np.testing.assert_allclose(k @ ew, kw[0] * ew, rtol=1e-9)
+        np.testing.assert_allclose(c @ ev, cv[0] * ev, rtol=1e-9)
+        np.testing.assert_allclose(c @ ew, cw[0] * ew, rtol=1e-9)

@@ -12,6 +12,7 @@ import html as _html
 
 import numpy as np
 
+from ambfit.estimation.design import MIN_BIASES
 from ambfit.estimation.units import GEOMETRY
 from ambfit.physics.bearing import AXES
 
@@ -194,7 +195,7 @@ def blind_spot(dg) -> str | None:
         return None
     op = dg.operating
     biases = {ax: np.unique(np.round(op.loc[op["axis"] == ax, "bias_A"].to_numpy(float), 9)) for ax in AXES}
-    if all(len(b) >= 3 for b in biases.values() if len(b)):
+    if all(len(b) >= MIN_BIASES for b in biases.values() if len(b)):
         return None
     bending = [e for e in ("saturation", "iron_reluctance", "leakage") if e in dg.confounded_with]
     if not bending:

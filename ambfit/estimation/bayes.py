@@ -159,7 +159,8 @@ DISAGREEMENT_SD = 2.0
 
 @dataclasses.dataclass(frozen=True)
 class Posterior:
-    """Draws and diagnostics of several independent emcee ensembles.
+    """Draws and diagnostics of several independent chains: emcee ensembles (:func:`sample`) or NUTS chains
+    (:func:`ambfit.estimation.nuts.sample_nuts`).
 
     Attributes
     ----------
@@ -169,11 +170,11 @@ class Posterior:
         Thinned post-burn-in draws in SI units (:attr:`units`: m, N·m²/A², N), walkers pooled per ensemble;
         :meth:`value` and :meth:`error` are their mean and sd, comparable with ``FitResult.value``.
     tau : array[n_ensembles, p]
-        Integrated autocorrelation time of each ensemble [steps].
+        Integrated autocorrelation time of each ensemble or chain [steps of emcee, draws of NUTS].
     burn, thin : int
     n_steps, n_walkers : int
     too_short : bool
-        Whether any ensemble ran for fewer than ``min_tau_multiple * tau`` steps.
+        Whether any ensemble or chain ran for fewer than ``min_tau_multiple * tau`` steps (draws).
     message : str
         What the diagnostics say, and how long to run if too short.
     datatree :
@@ -186,6 +187,9 @@ class Posterior:
     sampler : str
         ``"emcee"`` (ensembles of walkers, :func:`sample`) or ``"nuts"`` (BlackJAX's No-U-Turn sampler, one chain per
         "ensemble" and ``n_walkers`` 1, :func:`ambfit.estimation.nuts.sample_nuts`).
+    divergent : int
+        NUTS' divergent transitions after the warm-up (0 for emcee): where the sampler could not follow the
+        posterior; a posterior with any is not converged.
     """
 
     names: list
@@ -201,6 +205,7 @@ class Posterior:
     ls: FitResult
     acceptance: np.ndarray
     sampler: str = "emcee"
+    divergent: int = 0
 
     def to_dataframe(self, ci_prob: float = 0.94):
         """ArviZ summary (mean, sd, HDI, ESS, R-hat across ensembles) in the reported units, unrounded."""
@@ -307,8 +312,9 @@ class Posterior:
                 lo, hi = (float(a) for a in np.asarray(hdi[name]).ravel()[:2])
                 params[key] = {"value": float(v.mean()), "std": float(v.std(ddof=1)), "hdi_low": lo, "hdi_high": hi,
                                "r_hat": float(rhat[name]), "ess_bulk": float(ess[name])}
-        return {"method": "bayes", "sampler": self.sampler, "params": params, "converged": not self.too_short and bool(
-            all(p["r_hat"] < rhat_max for p in params.values())), "n_rows": self.ls.n_rows,
+        return {"method": "bayes", "sampler": self.sampler, "params": params, "converged": not self.too_short
+                and self.divergent == 0 and bool(all(p["r_hat"] < rhat_max for p in params.values())),
+                "divergent_transitions": self.divergent, "n_rows": self.ls.n_rows,
             "n_ensembles": int(self.draws.shape[0]), "n_walkers": self.n_walkers, "n_steps": self.n_steps,
             "burn": self.burn, "thin": self.thin, "tau_max": float(np.max(self.tau)), "message": self.message,
             "hdi_prob": ci_prob, "rhat_max": rhat_max, "least_squares_agreement": self.agreement()}
@@ -402,7 +408,7 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     accs = sampler.acceptance_fraction.reshape(n_ensembles, n_walkers).mean(axis=1)
     draws_z = block_chain(sampler, n_ensembles)[:, burn::thin].reshape(n_ensembles, -1, ndim)  # [ens, draws, p]
     draws = draws_z * target.scale
-    dt = _datatree(names, draws, post, draws_z, df, tau, accs)
+    dt = datatree(names, draws, post, draws_z, df, tau, accs)
     return Posterior(names=names, draws=draws, tau=tau, burn=burn, thin=thin, n_steps=steps, n_walkers=n_walkers,
                      too_short=bool(too_short), message=message, datatree=dt, ls=ls, acceptance=accs)
 
@@ -416,7 +422,7 @@ def tree_name(name: str) -> str:
     return name.replace("[", "_").replace("]", "").replace("|", "_")
 
 
-def _datatree(names, draws, post, draws_z, df, tau, acc, stats: dict | None = None):
+def datatree(names, draws, post, draws_z, df, tau, acc, stats: dict | None = None):
     """The DataTree of draws ``[chains, draws, p]``; ``stats``: more ``sample_stats`` of that shape."""
     import arviz as az
 

@@ -318,7 +318,8 @@ class Instead:
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "parameter": self.parameter, "zero_share": self.zero_share,
-                "u_combined": self.u_combined, "u_combined_fitted": self.u_combined_fitted, "text": self.text}
+                "u_combined": self.u_combined, "u_combined_fitted": self.u_combined_fitted, "unit": self.unit,
+                "text": self.text}
 
 
 def fit_instead(data, res, b: Budget, **fit_kw) -> Instead | None:

@@ -45,7 +45,8 @@ class Recommendation:
     ``candidates``: the steps chosen from (within the bearing's limits); ``centre_um``: the estimated bearing
     centre in sensor coordinates [µm]; ``radius_um``: how far from it a set-point may lie [µm];
     ``margin_reason``: why the steps were also kept among the positions already run (None when they were not:
-    :func:`model_margin_reason`); ``limits``: where the steps were kept, in words.
+    :func:`model_margin_reason`) and ``remedy``, what would show the effect; ``limits``: where the steps were
+    kept, in words.
     """
 
     steps: pd.DataFrame
@@ -56,6 +57,7 @@ class Recommendation:
     centre_um: tuple[float, float] | None = None
     radius_um: float | None = None
     margin_reason: str | None = None
+    remedy: str | None = None
     limits: str = ""
 
     def _unit(self) -> tuple[float, str]:
@@ -130,20 +132,29 @@ def inside_visited(points: np.ndarray, visited: np.ndarray, tol: float = VISITED
     return (np.abs(across) <= tol) & (along >= span.min() - tol) & (along <= span.max() + tol)
 
 
-def model_margin_reason(df: pd.DataFrame, res: FitResult) -> str | None:
-    """Why the estimated origin may be biased beyond its standard error (None when nothing says so): the ideal law
-    does not fit its data, or an axis ran fewer than three biases, too few for the force law's bend with flux
-    density (saturation, iron reluctance, leakage) to show, so such an effect is absorbed into the origin."""
+MIN_BIASES = 3
+"""Bias settings an axis needs for the force law's bend with flux density (saturation, iron reluctance, leakage) to
+show: with fewer such an effect is absorbed into gap, origin and k (the diagnosis' blind spot says the same)."""
+
+
+def model_margin_reason(df: pd.DataFrame, res: FitResult) -> tuple[str, str] | None:
+    """Why the estimated origin may be biased beyond its standard error, and what would show it (None when nothing
+    says so): the ideal law does not fit its data, or an axis ran fewer than :data:`MIN_BIASES` biases, too few for
+    the force law's bend with flux density to show, so such an effect is absorbed into the origin."""
     if res.adequate is False:
-        return f"the ideal law does not fit these data (χ²/dof {res.reduced_chi2:.3g})"
+        return (f"the ideal law does not fit these data (χ²/dof {res.reduced_chi2:.3g})",
+                "a model that fits them (ambfit diagnose names the effect; identify --effect fits it) gives an "
+                "origin to trust, and a design on it reaches further")
     if "bias_A" in df:
-        few = {ax: int(np.unique(np.round(df.loc[df["axis"] == ax, "bias_A"].to_numpy(float), 9)).size)
-               for ax in AXES}
-        few = {ax: n for ax, n in few.items() if 0 < n < 3}
+        counts = {ax: int(np.unique(np.round(df.loc[df["axis"] == ax, "bias_A"].to_numpy(float), 9)).size)
+                  for ax in AXES}
+        few = {ax: n for ax, n in counts.items() if 0 < n < MIN_BIASES}
         if few:
             return (", ".join(f"axis {ax} ran {n} bias{'es' if n > 1 else ''}" for ax, n in few.items())
                     + ": too few for a bend of the force law with flux density (saturation) to show, and such "
-                    "an effect moves the origin unseen")
+                    "an effect moves the origin unseen",
+                    f"a sweep of {MIN_BIASES} or more biases towards the coil limit shows it (these steps add "
+                    "biases), and a design on those data reaches further")
     return None
 
 
@@ -228,14 +239,16 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     idx = [res.names.index(n) for n in ORIGINS if n in res.names]
     cov = np.asarray(res.cov)[np.ix_(idx, idx)]
     margin = ORIGIN_MARGIN_SIGMAS * float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if idx else 0.0
-    why = model_margin_reason(df, res)
+    reason = model_margin_reason(df, res)
+    why, remedy = reason if reason else (None, None)
     if max_radius_um is not None:
         bearing = bearing.with_(backup_clearance=min(bearing.backup_clearance, max_radius_um * 1e-6))
     visited = df[["v_um", "w_um"]].to_numpy(float) * 1e-6
     if candidates is None:
         candidates = candidate_steps(tuple(round(-c * 1e6) for c in origin), bearing=bearing)
-        if why:           # the positions already run, and their centre, are candidates too
-            run = np.unique(np.round(visited * 1e7) / 10, axis=0)            # [µm], to 0.1 µm
+        if why:           # the positions already run (one per VISITED_TOLERANCE), and their centre, are candidates
+            step = VISITED_TOLERANCE * 1e6
+            run = np.unique(np.round(visited * 1e6 / step) * step, axis=0)                       # [µm]
             run = np.vstack([run, run.mean(axis=0)])
             biases = candidates["bias_A"].unique()
             candidates = pd.concat([candidates, pd.DataFrame(
@@ -249,9 +262,7 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
               f"({-origin[0] * 1e6:.1f}, {-origin[1] * 1e6:.1f}) µm (the back-up clearance of "
               f"{bearing.backup_clearance * 1e6:.3g} µm less {margin * 1e6:.2g} µm for the origin's uncertainty)"
               + (f" and among the positions already run (their convex hull, which the rotor has visited): the "
-                 f"origin may be biased by an effect these data cannot show ({why}); a bias sweep (simulate "
-                 "--preset rich sweeps four biases) shows it, and a design on those data reaches further"
-                 if why else "")
+                 f"origin may be biased by an effect these data cannot show ({why}); {remedy}" if why else "")
               + f", with a bias within the {bearing.max_current:g} A coil current limit")
     if candidates.empty:
         raise ValueError(f"no candidate set-point lies {within}")
@@ -305,5 +316,5 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
         out.append({**candidates.iloc[c].to_dict(), "predicted_std_after": float(np.sqrt(np.linalg.pinv(info)[t, t]))})
     return Recommendation(steps=pd.DataFrame(out), target=target, std_now=std_now, criterion=criterion,
                           candidates=candidates, centre_um=(-origin[0] * 1e6, -origin[1] * 1e6),
-                          radius_um=(bearing.backup_clearance - margin) * 1e6, margin_reason=why,
+                          radius_um=(bearing.backup_clearance - margin) * 1e6, margin_reason=why, remedy=remedy,
                           limits=f"every step {within}")

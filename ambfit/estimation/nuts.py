@@ -20,8 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.estimation.bayes import Posterior, Prior, Target, _datatree
-from ambfit.estimation.ensembles import integrated_time
+from ambfit.estimation.bayes import Posterior, Prior, Target, datatree
+from ambfit.estimation.ensembles import SettingError, integrated_time
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 
 EXTRA = "pip install 'ambfit[nuts]'"
@@ -83,12 +83,13 @@ def sample_nuts(data, *, prior: Prior | None = None, n_chains: int = 4, n_warmup
     ``too_short`` when a chain is shorter than ``min_tau_multiple`` integrated autocorrelation times (as emcee's
     rule); divergent transitions after the warm-up are counted in the message and in the DataTree's
     ``sample_stats.diverging``.  ``progress(what, done, total)`` is called after each chain (chains done of
-    ``n_chains``).  Raises :class:`MissingSampler` without BlackJAX and ``ValueError`` for settings below one.
+    ``n_chains``).  Raises :class:`MissingSampler` without BlackJAX and
+    :class:`~ambfit.estimation.ensembles.SettingError` for settings below one.
     """
     _blackjax()
     for name, value in (("n_chains", n_chains), ("n_warmup", n_warmup), ("n_draws", n_draws)):
         if value < 1:
-            raise ValueError(f"{name}={value}: must be at least 1")
+            raise SettingError(name, value, "must be at least 1")
     target = Target.of(data, prior, bearing, ls, fit_kw)
     post, ndim = target.post, target.ndim
     logdensity = Whitened(post, jnp.asarray(target.z_hat), jnp.asarray(target.chol))
@@ -125,9 +126,9 @@ def sample_nuts(data, *, prior: Prior | None = None, n_chains: int = 4, n_warmup
                f"per draw; {n_div} divergent transition(s)"
                + (" (the sampler could not follow the posterior there: compare with emcee)" if n_div else ""))
     acceptance = np.array([a.mean() for a in accept])
-    dt = _datatree(target.names, draws_z * target.scale, post, draws_z, target.df, tau, acceptance,
+    dt = datatree(target.names, draws_z * target.scale, post, draws_z, target.df, tau, acceptance,
                    {"diverging": np.stack(diverging), "acceptance_rate": np.stack(accept),
                     "n_steps": np.stack(leapfrogs)})
     return Posterior(names=target.names, draws=draws_z * target.scale, tau=tau, burn=n_warmup, thin=1,
                      n_steps=n_draws, n_walkers=1, too_short=bool(too_short), message=message, datatree=dt,
-                     ls=target.ls, acceptance=acceptance, sampler="nuts")
+                     ls=target.ls, acceptance=acceptance, sampler="nuts", divergent=n_div)

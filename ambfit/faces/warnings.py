@@ -18,17 +18,23 @@ def plausibility_warnings(res, bearing) -> list[str]:
     return [f"implausible: {f}" for f in plausibility.check_result(dict(zip(res.names, res.values)), bearing)]
 
 
-def posterior_warnings(post) -> list[str]:
-    """A posterior that has not converged (too short for its autocorrelation time, R-hat beyond its bound) or that
-    disagrees with the least-squares fit it started from."""
-    rec = post.to_json()
+def posterior_warnings(post, record: dict | None = None) -> list[str]:
+    """A posterior that has not converged (too short for its autocorrelation time, R-hat beyond its bound, NUTS'
+    divergent transitions) or that disagrees with the least-squares fit it started from.  ``record``: its
+    ``to_json()`` when the caller has it."""
+    rec = record if record is not None else post.to_json()
+    chains = "ensembles" if post.sampler == "emcee" else "chains"
     out = []
     if post.too_short:
         out.append(f"the posterior is not converged: {post.message}")
     high = [k for k, p in rec["params"].items() if not p["r_hat"] < rec["rhat_max"]]
     if high:
-        out.append(f"R-hat across the ensembles above {rec['rhat_max']:g} for {', '.join(high)}: the ensembles have "
+        out.append(f"R-hat across the {chains} above {rec['rhat_max']:g} for {', '.join(high)}: the {chains} have "
                    "not found the same posterior (run longer, or look for several modes in the pair plot)")
+    if post.divergent:
+        out.append(f"{post.divergent} divergent transition(s) of NUTS after its warm-up: where they are the sampler "
+                   "could not follow the posterior, and the draws there are not to be trusted (compare with "
+                   "--sampler emcee)")
     if rec["least_squares_agreement"]["disagrees"]:
         out.append(rec["least_squares_agreement"]["text"])
     return out

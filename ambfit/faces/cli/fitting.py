@@ -86,12 +86,14 @@ def drop_duplicates(ds, name: str, keep: bool, say=say):
     return Dataset(frame=frame, source=ds.source), [row(r) for r, _ in dupes]
 
 
-def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "", say=say) -> float | None:
-    """How much smaller the gap's error bar would be with the duplicates counted (a fit of the full file)."""
+def _duplicate_effect(original, record: dict, bearing, loss: str, prefix: str = "", say=say,
+                      effects: tuple = ()) -> float | None:
+    """How much smaller the gap's error bar would be with the duplicates counted (a fit of the full file with the
+    record's model, ``effects``)."""
     from ambfit.estimation import fit
 
     try:
-        with_dupes = fit.fit(original, bearing=bearing, loss=loss, throw=False)
+        with_dupes = fit.fit(original, effects, bearing=bearing, loss=loss, throw=False)
     except fit.FitError:
         return None
     std, dup = record["params"]["g_v0_um"]["std"], with_dupes.error("g_v0") * 1e6

@@ -280,15 +280,13 @@ def linearise(
     out = []
     for ax in [axis.value] if axis is not None else ["v", "w"]:
         try:
-            out.append(linearised(fm, ax, bias_a, position_um=position_um, seed=seed))
+            out.append(linearised(fm, ax, bias_a, position=None if position_um is None else position_um * 1e-6,
+                                  seed=seed))
         except ValueError as exc:
             fail(f"{model}: {exc}", 3)
-    show_table([{"axis": lin.axis, "bias [A]": f"{lin.bias_A:g}", "at [µm]": f"{lin.position_um:.2f}",
-                 "k_i [N/A]": _pm(lin.k_i, lin.k_i_std), "k_s [N/m]": _pm(lin.k_s, lin.k_s_std),
-                 "corr": f"{lin.to_json()['correlation']:+.2f}"} for lin in out],
-               f"the {fm.model} model of {model} linearised")
+    show_table([lin.display_row() for lin in out], f"the {out[0].model} model of {model} linearised")
     if json_out is not None:
         from ambfit import __version__
 
-        write_json({"model": fm.model, "source": str(model), "bearing": desc.name, "ambfit_version": __version__,
+        write_json({"model": out[0].model, "source": str(model), "bearing": desc.name, "ambfit_version": __version__,
                     "axes": [lin.to_json() for lin in out]}, json_out)

@@ -147,7 +147,9 @@ def identify(
                                                     "readings determine them (several biases), fit them "
                                                     "(current_offset) and report that fit, saying so; "
                                                     "--no-fit-current-zeros keeps the ideal law and only "
-                                                    "advises.")] = True,
+                                                    "advises.  One data set, least squares without --debias "
+                                                    "or --effect (several files and --by groups get no "
+                                                    "budget).")] = True,
     accept_implausible: AcceptOption = False,
     bearing: BearingOption = None,
     workers: Annotated[int | None, typer.Option(callback=number(1, MAX_WORKERS), help="With several files or --by: fit the groups on this "
@@ -201,6 +203,7 @@ def identify(
 def _identify_file(data: Path, opts: _Options, max_position_um, json_out, table):
     """One file, one estimate: the contract's section-2 JSON."""
     from ambfit.estimation import plausibility
+    from ambfit.physics.effects import CurrentOffset
 
     ds = read_data(data, opts.bearing, opts.accept, max_position_um)
     original = ds
@@ -210,7 +213,11 @@ def _identify_file(data: Path, opts: _Options, max_position_um, json_out, table)
     else:
         record = _identify_ls(ds, data.name, opts)
         if dropped and "g_v0_um" in record["params"]:
-            record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, opts.bearing, opts.loss)
+            # (the model reported: the user's effects, and the current zeros when identify fitted them)
+            effects = opts.effects + ((CurrentOffset(),) if "current_zeros_fitted" in record.get(
+                "uncertainty_budget", {}) else ())
+            record["duplicates_error_bar_factor"] = _duplicate_effect(original, record, opts.bearing, opts.loss,
+                                                                      effects=effects)
     record["duplicates_dropped"] = dropped
     flags = [plausibility.Flag(**f) for f in record.get("implausible", [])]
     if json_out is not None:

@@ -164,7 +164,7 @@ def sample(
     record = res.to_json()
     from ambfit.faces.warnings import posterior_warnings
 
-    for line in posterior_warnings(res):
+    for line in posterior_warnings(res, record):
         warn(line)
     _add_budget(record, ds, res, declared_noise(current_noise_ma, position_noise_um), seed)
     if out is not None:

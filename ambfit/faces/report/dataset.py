@@ -180,15 +180,21 @@ def solution_space(spaces: dict, result, *, sigmas=(1, 2, 3), outer_levels=(50, 
                                              "zoom on the least-squares point"), fontsize=10)
     edges = [space.edge_text() for space in spaces.values() if not isinstance(space, Exception) and space.on_edge]
     return {"figure": figure(fig), "levels": levels, "outer_levels": list(outer_levels),
-            "coverage_percent": [c * 100 for c in coverage], "edges": edges, "zoom": bool(zooms)}
+            "coverage_percent": [c * 100 for c in coverage], "edges": edges, "zoom": bool(zooms), "zoom_sds": ZOOM_SDS}
 
 
-def zoom_ranges(result, axis: str, sds: float = 5.0):
+ZOOM_SDS = 5.0
+"""Half-width of the solution-space zoom in standard errors of the least-squares gap and origin."""
+
+
+def zoom_ranges(result, axis: str, sds: float = ZOOM_SDS):
     """Gap and origin ranges [m] of ``sds`` standard errors about the least-squares point of ``axis`` and a step
-    of a 160th of the narrower span: fine enough to draw the 1-3 sigma contours."""
+    of a 160th of the narrower span (fine enough to draw the 1-3 sigma contours), coarser where the wider span
+    would pass 600 points."""
     g, x = result.value(f"g_{axis}0"), result.value(f"{axis}0")
     sg, sx = result.error(f"g_{axis}0"), result.error(f"{axis}0")
-    return (g - sds * sg, g + sds * sg), (x - sds * sx, x + sds * sx), 2 * sds * min(sg, sx) / 160
+    step = max(2 * sds * min(sg, sx) / 160, 2 * sds * max(sg, sx) / 600)
+    return (g - sds * sg, g + sds * sg), (x - sds * sx, x + sds * sx), step
 
 
 def design(recommendation, *, max_radius_um: float | None = None, candidates: pd.DataFrame | None = None) -> dict:
@@ -215,7 +221,7 @@ def design(recommendation, *, max_radius_um: float | None = None, candidates: pd
     return {"table": table(steps, 2), "target": rec.target, "criterion": rec.criterion, "std_now": rec.std_now * factor,
             "unit": unit, "offset_um": float(np.ptp(grid["v_set_um"]) / 2), "max_radius_um": radius,
             "bias_A": (float(grid["bias_A"].min()), float(grid["bias_A"].max())), "kept_among_run": rec.margin_reason,
-            "limits": rec.limits}
+            "remedy": rec.remedy, "limits": rec.limits}
 
 
 def diagnosis(result, *, draw: bool = True, max_regions: int = 8) -> dict:
