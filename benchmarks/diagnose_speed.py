@@ -188,53 +188,8 @@ def hard_cases(tmp: Path) -> dict:
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
-    args = ap.parse_args()
-    design = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15)
-    sim = rig.simulate(rig.PAPER_RIG, design, [E.Saturation(b_sat=np.asarray(1.15))], seed=5).data
-    out = {"rows": len(sim), "load_average_at_start": os.getloadavg()}
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "big.csv"
-        sim.to_csv(path, index=False)
-        out["cli_no_cache_s"] = cli_seconds(path, "off")
-        cache = str(Path(tmp) / "jax-cache")
-        cli_seconds(path, cache)                                   # fills the cache
-        out["cli_filled_cache_s"] = cli_seconds(path, cache)
-        data = read_csv(path)
-
-    import jax
-
-    counter = _Compiles()
-    jax.config.update("jax_log_compiles", True)
-    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
-        lg = logging.getLogger(name)
-        lg.addHandler(counter)
-        lg.propagate = False
-    t0 = time.perf_counter()
-    dg = attribution.diagnose(data)
-    out["in_process_first_s"] = time.perf_counter() - t0
-    jax.config.update("jax_log_compiles", False)
-    out["verdict"] = dg.verdict
-    out["compiled"] = {"solves": counter.count.get("jit(_solve_in)", 0),
-                       "seconds compiling solves": counter.seconds.get("jit(_solve_in)", 0.0),
-                       "seconds tracing solves": counter.tracing.get("_solve_in", 0.0),
-                       "all compilations": sum(counter.count.values()),
-                       "seconds compiling": sum(counter.seconds.values()),
-                       "seconds tracing": sum(counter.tracing.values())}
-    runs = sorted((phases(data) for _ in range(3)), key=lambda r: r["total_s"])
-    out["warm_runs_s"] = [r["total_s"] for r in runs]
-    out["warm"] = runs[1]                     # the median of three (the machine is shared)
-    out["in_process_warm_s"] = out["warm"]["total_s"]
-    out["in_process_warm_one_thread_s"] = one_thread(data)
-    out["fold_routes"] = fold_routes(data)
-    with tempfile.TemporaryDirectory() as tmp:           # (after the case above: its first call is a first call)
-        out["hard_cases"] = hard_cases(Path(tmp))
-    out["targets"] = {"cold_s": TARGET_COLD_S, "warm_s": TARGET_WARM_S}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "diagnose_speed.json").write_text(json.dumps(out, indent=2, default=float))
-
+def render(out: dict) -> list[str]:
+    """The Markdown report of a run's record."""
     c, w = out["compiled"], out["warm"]
     met = lambda v, t: "meets" if v <= t else "misses"  # noqa: E731
     md = ["# `ambfit diagnose` on 840 readings: time and where it goes", "",
@@ -248,13 +203,10 @@ def main():
           f"| `ambfit.diagnose`, first call in a process | {out['in_process_first_s']:.1f} | |",
           f"| `ambfit.diagnose`, again (warm, median of 3) | {out['in_process_warm_s']:.2f} | ≤ {TARGET_WARM_S:.0f} "
           f"({met(out['in_process_warm_s'], TARGET_WARM_S)}) |", "",
-          f"A cold diagnosis compiles {c['solves']} least-squares solve(s) for the ideal law and every candidate "
-          "together (`core.compiled_together`: one Levenberg-Marquardt program that evaluates the model in one "
-          "place, force, noise and Jacobian from a switch over the models; the step budget a traced number) in "
-          f"{c['seconds compiling solves']:.1f} s of "
-          f"XLA compilation and {c['seconds tracing solves']:.1f} s of tracing; {c['all compilations']} compilations "
-          f"in all ({c['seconds compiling']:.1f} s compiling, {c['seconds tracing']:.1f} s tracing). Before, each "
-          "model and step budget compiled its own solve: 11 of them, 14.0 s compiling and 6.0 s tracing.", "",
+          f"A cold diagnosis in this process ran {c['all compilations']} XLA compilations ({c['seconds compiling']:.1f} s "
+          f"compiling, {c['seconds tracing']:.1f} s tracing); the least-squares solve is one program for the ideal "
+          "law and every candidate (`core.compiled_together`: the model evaluated in one place, a switch over the "
+          "models, the step budget a traced number).", "",
           "Warm, by phase (wall-clock spans; the fits run two at a time): "
           + ", ".join(f"{k} {v:.2f} s" for k, v in w.items() if k != "total_s")
           + f" (total {w['total_s']:.2f} s). With one fit at a time (`threads=1`): "
@@ -280,6 +232,60 @@ def main():
                   f"{hw['fits of the ideal law and the candidates']:.2f} / {hw.get('discrepancy', 0.0):.2f} / "
                   f"{hw.get('force checks', 0.0):.2f} |")
     md += ["", "Rerun: `.venv/bin/python benchmarks/diagnose_speed.py`."]
+    return md
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
+    ap.add_argument("--render", action="store_true", help="only rewrite the Markdown from the JSON of a run")
+    args = ap.parse_args()
+    if args.render:
+        md = render(json.loads((args.out / "diagnose_speed.json").read_text()))
+        (args.out / "diagnose_speed.md").write_text("\n".join(md) + "\n")
+        return
+    design = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15)
+    sim = rig.simulate(rig.PAPER_RIG, design, [E.Saturation(b_sat=np.asarray(1.15))], seed=5).data
+    out = {"rows": len(sim), "load_average_at_start": os.getloadavg()}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "big.csv"
+        sim.to_csv(path, index=False)
+        out["cli_no_cache_s"] = cli_seconds(path, "off")
+        cache = str(Path(tmp) / "jax-cache")
+        cli_seconds(path, cache)                                   # fills the cache
+        out["cli_filled_cache_s"] = cli_seconds(path, cache)
+        data = read_csv(path)
+
+    import jax
+
+    counter = _Compiles()
+    jax.config.update("jax_log_compiles", True)
+    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
+        lg = logging.getLogger(name)
+        lg.addHandler(counter)
+        lg.propagate = False
+    t0 = time.perf_counter()
+    dg = attribution.diagnose(data)
+    out["in_process_first_s"] = time.perf_counter() - t0
+    jax.config.update("jax_log_compiles", False)
+    out["verdict"] = dg.verdict
+    out["compiled"] = {
+                       "all compilations": sum(counter.count.values()),
+                       "seconds compiling": sum(counter.seconds.values()),
+                       "seconds tracing": sum(counter.tracing.values())}
+    runs = sorted((phases(data) for _ in range(3)), key=lambda r: r["total_s"])
+    out["warm_runs_s"] = [r["total_s"] for r in runs]
+    out["warm"] = runs[1]                     # the median of three (the machine is shared)
+    out["in_process_warm_s"] = out["warm"]["total_s"]
+    out["in_process_warm_one_thread_s"] = one_thread(data)
+    out["fold_routes"] = fold_routes(data)
+    with tempfile.TemporaryDirectory() as tmp:           # (after the case above: its first call is a first call)
+        out["hard_cases"] = hard_cases(Path(tmp))
+    out["targets"] = {"cold_s": TARGET_COLD_S, "warm_s": TARGET_WARM_S}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "diagnose_speed.json").write_text(json.dumps(out, indent=2, default=float))
+
+    md = render(out)
     (args.out / "diagnose_speed.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
