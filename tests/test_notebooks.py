@@ -17,6 +17,8 @@ NOTEBOOKS = sorted((ROOT / "notebooks").glob("[0-9][0-9]_*.py"))
 
 
 NEEDS = {"06_rotor_model": "ross"}
+NOTEBOOK_CACHE = Path(__import__("tempfile").gettempdir()) / f"ambfit-notebook-jax-cache-{__import__('os').getuid()}"
+"""The compilation cache the notebooks' kernels share (one per user, in the temp folder)."""
 """Notebooks that need an optional extra: skipped cleanly without it."""
 
 
@@ -35,6 +37,10 @@ def test_notebook_runs(path, monkeypatch):
     from nbclient import NotebookClient
 
     monkeypatch.setenv("AMBFIT_FAST", "1")
+    # one persistent compilation cache for every notebook's kernel (what a user's second session has): the
+    # kernels compile the same fits
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(NOTEBOOK_CACHE))
+    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     nb = jupytext.read(path)
     # no model code in notebooks: they call the package (no function computing forces defined here)

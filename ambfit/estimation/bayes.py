@@ -130,21 +130,25 @@ class LogDensity(eqx.Module):
 
 
 class CompiledLogDensity:
-    """``post`` vectorised over walkers (``zs [n, p] -> [n]``, NumPy in and out), compiled once per batch size
-    ahead of time and called without the jit wrapper's per-call dispatch: the sampler calls it tens of thousands
-    of times, where that dispatch costs more than the density."""
+    """``post`` vectorised over walkers (``zs [n, p] -> [n]``, NumPy in and out), compiled once ahead of time for
+    batches of ``batch`` walkers (a larger call goes in chunks, a smaller one padded) and called without the jit
+    wrapper's per-call dispatch: the sampler calls it tens of thousands of times, where that dispatch costs more
+    than the density, and one compiled shape serves the start and both halves of every step."""
 
-    def __init__(self, post: LogDensity):
+    def __init__(self, post: LogDensity, batch: int):
         self.arrays, static = eqx.partition(post, eqx.is_array)
         self._jit = jax.jit(lambda arrays, zs: jax.vmap(eqx.combine(arrays, static))(zs))
-        self._by_size = {}
+        self.batch = int(batch)
+        self._run = None
 
     def __call__(self, zs) -> np.ndarray:
         zs = np.ascontiguousarray(zs, dtype=np.float64)
-        run = self._by_size.get(zs.shape)
-        if run is None:
-            run = self._by_size[zs.shape] = self._jit.lower(self.arrays, zs).compile()
-        return np.asarray(run(self.arrays, zs))
+        n, b = len(zs), self.batch
+        padded = np.concatenate([zs, np.repeat(zs[-1:], -n % b, axis=0)]) if n % b else zs
+        if self._run is None:
+            self._run = self._jit.lower(self.arrays, padded[:b]).compile()
+        out = [np.asarray(self._run(self.arrays, padded[i:i + b])) for i in range(0, len(padded), b)]
+        return np.concatenate(out)[:n]
 
 
 @eqx.filter_jit
@@ -391,7 +395,9 @@ def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensemb
     tally = Tally(progress, n_ensembles * n_steps)
     # the ensembles run in lockstep as one emcee sampler whose stretch move keeps them apart (BlockStretchMove)
     p0 = target.z_hat + 0.1 * rng.standard_normal((n_ensembles * n_walkers, ndim)) @ chol.T
-    sampler = emcee.EnsembleSampler(n_ensembles * n_walkers, ndim, CompiledLogDensity(post), vectorize=True,
+    # (a half-step moves half of each ensemble's walkers: at most ceil(n_walkers / 2) per ensemble)
+    half = n_ensembles * -(-n_walkers // 2)
+    sampler = emcee.EnsembleSampler(n_ensembles * n_walkers, ndim, CompiledLogDensity(post, half), vectorize=True,
                                     moves=BlockStretchMove(n_ensembles))
     sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
     advance(sampler, p0, n_steps, tally, f"{PHASE}: {n_ensembles} in lockstep", n_ensembles)
