@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	@# --no-compile: Python writes the bytecode of what it imports on first use; compiling every installed
-	@# file up front took two thirds of the install (42 s of 64 on two cores)
+	@# file up front took two thirds of the install (28 of 42 s on two cores)
 	$(BIN)/python -m pip install --quiet --no-compile -e '.[dev]'
 	@touch $(STAMP)
 
