@@ -61,3 +61,10 @@ def test_nuts_draws_sit_in_the_parameters_own_coordinates(runs):
     corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
     corr_ls = ls.cov / np.sqrt(np.outer(np.diag(ls.cov), np.diag(ls.cov)))
     assert np.allclose(corr, corr_ls, atol=0.05)
+
+
+def test_the_command_lines_sampler_defaults_are_the_librarys():
+    from ambfit.estimation import nuts
+    from ambfit.faces.cli import sample
+
+    assert (sample.EMCEE_STEPS, sample.MAX_STEPS, sample.NUTS_DRAWS) == (bayes.N_STEPS, bayes.MAX_STEPS, nuts.N_DRAWS)

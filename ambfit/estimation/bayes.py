@@ -156,6 +156,11 @@ def _pointwise_batch(post: LogDensity, zs):
     return jax.vmap(post.pointwise)(zs)
 
 
+N_STEPS = 3000
+"""Steps per ensemble a posterior starts with (:func:`sample`; extended until 50 autocorrelation times)."""
+MAX_STEPS = 30_000
+"""Cap on the steps per ensemble (:func:`sample`)."""
+
 DISAGREEMENT_SD = 2.0
 """Posterior sd between the posterior mean and the least-squares estimate beyond which they are said to disagree
 (:meth:`Posterior.agreement`)."""
@@ -361,7 +366,7 @@ class Target:
 
 
 def sample(data: Dataset | pd.DataFrame, *, prior: Prior | None = None, n_ensembles: int = 4, n_walkers: int | None = None,
-           n_steps: int = 3000, max_steps: int = 30000, min_tau_multiple: float = 50.0, seed: int = 0,
+           n_steps: int = N_STEPS, max_steps: int = MAX_STEPS, min_tau_multiple: float = 50.0, seed: int = 0,
            progress: Callable[[str, int, int | None], None] | None = None, bearing: Bearing = PAPER_BEARING,
            ls: FitResult | None = None, **fit_kw) -> Posterior:
     """Sample the posterior with ``n_ensembles`` independent emcee ensembles, long enough for their autocorrelation.

@@ -73,7 +73,11 @@ def _chain(logdensity: Whitened, key, u0, n_warmup: int, n_draws: int, target_ac
     return out, params["step_size"]
 
 
-def sample_nuts(data, *, prior: Prior | None = None, n_chains: int = 4, n_warmup: int = 1000, n_draws: int = 1000,
+N_DRAWS = 1000
+"""Draws per chain, and warm-up steps before them, of :func:`sample_nuts` by default."""
+
+
+def sample_nuts(data, *, prior: Prior | None = None, n_chains: int = 4, n_warmup: int = N_DRAWS, n_draws: int = N_DRAWS,
                 target_accept: float = 0.8, min_tau_multiple: float = 50.0, seed: int = 0,
                 progress: Callable[[str, int, int | None], None] | None = None, bearing: Bearing = PAPER_BEARING,
                 ls=None, **fit_kw) -> Posterior:

@@ -23,7 +23,7 @@ from ambfit.faces.cli.app import (
 from ambfit.faces.cli.explore import MAX_DESIGN_STEPS
 from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
 from ambfit.faces.cli.options import number
-from ambfit.faces.cli.sample import MAX_ENSEMBLES, MIN_STEPS
+from ambfit.faces.cli.sample import EMCEE_STEPS, MAX_ENSEMBLES, MAX_STEPS, MIN_STEPS
 
 MAX_REPLICATES = 100_000
 """Most replicates of the paper's experiments (each simulates and fits every experiment of Tables 1-4)."""
@@ -36,9 +36,9 @@ def report(
                                       "embedded) and report.json.")],
     steps: Annotated[int, typer.Option("--mcmc-steps", "--steps", callback=number(MIN_STEPS),
                                        help="emcee steps per ensemble to start the posterior with (extended "
-                                       "until 50 autocorrelation times).")] = 3000,
+                                       "until 50 autocorrelation times).")] = EMCEE_STEPS,
     max_steps: Annotated[int, typer.Option("--max-mcmc-steps", "--max-steps", callback=number(MIN_STEPS),
-                                           help="Cap on the posterior's steps per ensemble.")] = 30000,
+                                           help="Cap on the posterior's steps per ensemble.")] = MAX_STEPS,
     ensembles: Annotated[int, typer.Option(callback=number(2, MAX_ENSEMBLES),
                                            help="Independent emcee ensembles (R-hat across them).")] = 4,
     design_steps: Annotated[int, typer.Option("--next-steps", "--design-steps", callback=number(1, MAX_DESIGN_STEPS),

@@ -34,8 +34,10 @@ MAX_WALKERS = 1_024
 hundred times the parameters of the richest model, past any gain in sampling."""
 MIN_STEPS = 100
 """Fewest steps to start with: the burn-in alone is two autocorrelation times."""
-EMCEE_STEPS, NUTS_DRAWS, MAX_STEPS = 3000, 1000, 30000
-"""--mcmc-steps by sampler (emcee's first run per ensemble, NUTS' draws per chain) and emcee's cap (--max-mcmc-steps)."""
+EMCEE_STEPS, NUTS_DRAWS, MAX_STEPS = 3000, 1000, 30_000
+"""--mcmc-steps by sampler (emcee's first run per ensemble, NUTS' draws per chain) and emcee's cap
+(--max-mcmc-steps): the library's defaults (``bayes.N_STEPS``, ``nuts.N_DRAWS``, ``bayes.MAX_STEPS``), written
+here so that ``--help`` does not import them (a test holds them equal)."""
 
 
 class Sampler(enum.StrEnum):

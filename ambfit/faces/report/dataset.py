@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit._output import write_json, write_text
+from ambfit.estimation.bayes import MAX_STEPS, N_STEPS
 from ambfit.faces.report.render import figure, footer, render, table
 from ambfit.faces.warnings import fit_warnings, plausibility_warnings, posterior_warnings
 from ambfit.physics.bearing import PAPER_BEARING
@@ -384,7 +385,7 @@ FILES = ("index.html", "report.json")
 """The files :func:`data_report` writes into its folder (the command line checks them before the work)."""
 
 
-def data_report(data_path, out, *, steps: int = 3000, max_steps: int = 30000, ensembles: int = 4, design_steps: int = 8,
+def data_report(data_path, out, *, steps: int = N_STEPS, max_steps: int = MAX_STEPS, ensembles: int = 4, design_steps: int = 8,
                 bearing=PAPER_BEARING, max_radius_um: float | None = None, do_posterior: bool = True,
                 do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None, sigma_i: float | None = None,
                 sigma_x: float | None = None) -> tuple[Path, dict]:
