@@ -12,9 +12,8 @@ import html as _html
 
 import numpy as np
 
-from ambfit.estimation.design import MIN_BIASES
+from ambfit.estimation.design import MIN_BIASES, bias_settings
 from ambfit.estimation.units import GEOMETRY
-from ambfit.physics.bearing import AXES
 
 
 def floor(dg) -> str:
@@ -194,7 +193,7 @@ def blind_spot(dg) -> str | None:
     if dg.verdict != "none" or dg.operating is None or "bias_A" not in dg.operating:
         return None
     op = dg.operating
-    biases = {ax: np.unique(np.round(op.loc[op["axis"] == ax, "bias_A"].to_numpy(float), 9)) for ax in AXES}
+    biases = bias_settings(op)
     if all(len(b) >= MIN_BIASES for b in biases.values() if len(b)):
         return None
     bending = [e for e in ("saturation", "iron_reluctance", "leakage") if e in dg.confounded_with]

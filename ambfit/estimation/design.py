@@ -137,6 +137,11 @@ MIN_BIASES = 3
 show: with fewer such an effect is absorbed into gap, origin and k (the diagnosis' blind spot says the same)."""
 
 
+def bias_settings(frame: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The distinct bias settings [A] each axis of ``frame`` ran (columns ``axis`` and ``bias_A``)."""
+    return {ax: np.unique(np.round(frame.loc[frame["axis"] == ax, "bias_A"].to_numpy(float), 9)) for ax in AXES}
+
+
 def model_margin_reason(df: pd.DataFrame, res: FitResult) -> tuple[str, str] | None:
     """Why the estimated origin may be biased beyond its standard error, and what would show it (None when nothing
     says so): the ideal law does not fit its data, or an axis ran fewer than :data:`MIN_BIASES` biases, too few for
@@ -146,9 +151,7 @@ def model_margin_reason(df: pd.DataFrame, res: FitResult) -> tuple[str, str] | N
                 "a model that fits them (ambfit diagnose names the effect; identify --effect fits it) gives an "
                 "origin to trust, and a design on it reaches further")
     if "bias_A" in df:
-        counts = {ax: int(np.unique(np.round(df.loc[df["axis"] == ax, "bias_A"].to_numpy(float), 9)).size)
-                  for ax in AXES}
-        few = {ax: n for ax, n in counts.items() if 0 < n < MIN_BIASES}
+        few = {ax: len(b) for ax, b in bias_settings(df).items() if 0 < len(b) < MIN_BIASES}
         if few:
             return (", ".join(f"axis {ax} ran {n} bias{'es' if n > 1 else ''}" for ax, n in few.items())
                     + ": too few for a bend of the force law with flux density (saturation) to show, and such "

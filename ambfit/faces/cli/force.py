@@ -64,21 +64,10 @@ def force(
     """
     import numpy as np
 
-    from ambfit.estimation.measure import FittedModel, ModelFileError
-
     check_output(out, json_out, inputs=(model, data, bearing))
-    record = _read_record(model)
-    desc = _bearing(model, record, bearing, use)
-    try:
-        fm = FittedModel.from_json(record, desc, str(model), use=use)
-    except ModelFileError as exc:
-        fail(str(exc))
-    for line in fm.file.warnings:
-        warn(line)
+    record, desc, fm = _judged_model(model, bearing, use, accept_implausible)
     from ambfit.estimation import model_file, plausibility
 
-    judge(plausibility.check_result(dict(zip(fm.names, np.asarray(fm.values, float))), desc), accept_implausible,
-          f"{model.name}: the model is")
     frame = _readings_frame(data, axis, i_top, i_bottom, x_um, y_um, i_top_other, i_bottom_other)
     flags = plausibility.check_data(frame, desc, str(data) if data is not None else "the reading given")
     if data is None:       # one reading: its position is any number of µm; its currents and load are judged
@@ -87,7 +76,7 @@ def force(
 
     try:
         missing_k = model_file.unfitted_k(fm.file, frame["axis"], record)
-    except ModelFileError as exc:
+    except model_file.ModelFileError as exc:
         fail(str(exc))
     if missing_k:
         fail(f"{model}: k_{' and k_'.join(missing_k)} not identified in this model (it was fitted without known "
@@ -125,6 +114,27 @@ def force(
         write_json({"model": fm.model, "source": str(model), **made, "bearing": desc.name,
                     "ambfit_version": __version__, "n": len(result),
                     "force_N": [float(v) for v in f], "force_std_N": [float(v) for v in s]}, json_out)
+
+
+def _judged_model(model: Path, bearing: Path | None, use: str | None, accept: bool):
+    """The model file read, checked value by value (exit 2 naming file, key and value), its warnings said and its
+    parameters judged against the bearing (exit 3 unless ``accept``): ``(record, bearing, FittedModel)``."""
+    import numpy as np
+
+    from ambfit.estimation import plausibility
+    from ambfit.estimation.measure import FittedModel, ModelFileError
+
+    record = _read_record(model)
+    desc = _bearing(model, record, bearing, use)
+    try:
+        fm = FittedModel.from_json(record, desc, str(model), use=use)
+    except ModelFileError as exc:
+        fail(str(exc))
+    for line in fm.file.warnings:
+        warn(line)
+    judge(plausibility.check_result(dict(zip(fm.names, np.asarray(fm.values, float))), desc), accept,
+          f"{model.name}: the model is")
+    return record, desc, fm
 
 
 def _read_record(model: Path):
@@ -251,26 +261,13 @@ def linearise(
     displacement at the bearing centre (positive: towards the nearer pole; ROSS's MagneticBearingElement ks is
     -k_s).  A rotor model in ROSS: ambfit.rotordynamics.bearing_element (pip install 'ambfit[ross]').
     """
-    import numpy as np
-
-    from ambfit.estimation import plausibility
-    from ambfit.estimation.measure import FittedModel, ModelFileError
     from ambfit.rotordynamics import linearise as linearised
 
     check_output(json_out, inputs=(model, bearing))
-    record = _read_record(model)
-    desc = _bearing(model, record, bearing, use)
     if use == "discrepancy":
         fail("--use discrepancy: the discrepancy term is a correction to readings, not a law to differentiate; "
              "use verdict or ideal")
-    try:
-        fm = FittedModel.from_json(record, desc, str(model), use=use)
-    except ModelFileError as exc:
-        fail(str(exc))
-    for line in fm.file.warnings:
-        warn(line)
-    judge(plausibility.check_result(dict(zip(fm.names, np.asarray(fm.values, float))), desc), accept_implausible,
-          f"{model.name}: the model is")
+    _, desc, fm = _judged_model(model, bearing, use, accept_implausible)
     if fm.discrepancy is not None:
         note(f"{model}: its discrepancy term is left out (a correction fitted to readings, not a law with "
              "derivatives): k_i and k_s are those of its law")

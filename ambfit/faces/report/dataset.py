@@ -43,7 +43,7 @@ def overview(path, data) -> dict:
 
 
 def summary_box(result, *, bearing, budget=None, post=None, diagnosed=None, spaces=None, instead=None,
-                error=None) -> dict:
+                error=None, post_record: dict | None = None) -> dict:
     """The report's first box: the answer (least squares ± the readings' noise, u_combined with the calibration,
     the posterior beside it), the fit's health, the verdict in one line with its grade, and every warning the
     command line would print for the same data (:mod:`ambfit.faces.warnings`, the diagnosis' blind spot, a
@@ -53,7 +53,8 @@ def summary_box(result, *, bearing, budget=None, post=None, diagnosed=None, spac
     failed); ``budget``, ``post``, ``diagnosed``: its :class:`~ambfit.estimation.budget.Budget`, the
     :class:`~ambfit.estimation.bayes.Posterior` and the :class:`~ambfit.diagnosis.Diagnosis`, each None when that
     section did not run; ``spaces``: ``{axis: SolutionSpace or exception}``; ``instead``: the current zeros'
-    fit when identify would report it (:func:`ambfit.estimation.budget.fit_instead`).
+    fit when identify would report it (:func:`ambfit.estimation.budget.fit_instead`); ``post_record``: the
+    posterior's ``to_json()`` when at hand.
     """
     from ambfit.diagnosis import text
     from ambfit.estimation.units import CONTRACT_PARAMS, DISPLAY, pm, with_unit
@@ -83,7 +84,7 @@ def summary_box(result, *, bearing, budget=None, post=None, diagnosed=None, spac
     if instead is not None:
         warnings.append(f"{instead.text}: ambfit identify reports that fit (--no-fit-current-zeros: this one)")
     if post is not None:
-        warnings += posterior_warnings(post)
+        warnings += posterior_warnings(post, post_record)
     warnings += [f"{sp.edge_text()}" for sp in (spaces or {}).values() if not isinstance(sp, Exception) and sp.on_edge]
     verdict = None
     if diagnosed is not None:
@@ -132,11 +133,11 @@ def identification(result, closed=None, budget=None) -> dict:
             "budget": budget is not None, "warnings": fit_warnings(result)}
 
 
-def posterior(result, *, draw: bool = True) -> dict:
+def posterior(result, *, draw: bool = True, record: dict | None = None) -> dict:
     """Posterior summary, sampler settings and diagnostics, and the pair plot (``draw``).
 
-    ``result``: :class:`~ambfit.estimation.bayes.Posterior`."""
-    rec = result.to_json()
+    ``result``: :class:`~ambfit.estimation.bayes.Posterior`; ``record``: its ``to_json()`` when at hand."""
+    rec = record if record is not None else result.to_json()
     post = pd.DataFrame(result.display_rows(rec["hdi_prob"]))
     pair = None
     if draw:
@@ -332,8 +333,8 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
         sr = bayes.sample(ds, n_ensembles=ensembles, n_steps=steps, max_steps=max_steps, seed=seed, ls=res,
                           bearing=bearing, progress=progress, **noise)
         record["bayes"] = sr.to_json()
-        found["post"] = sr
-        return posterior(sr)
+        found["post"], found["post_record"] = sr, record["bayes"]
+        return posterior(sr, record=record["bayes"])
 
     _step(progress, "posterior")
     out["posterior"] = _attempt("Posterior sampling", sample) if do_posterior else skipped("--no-posterior")
