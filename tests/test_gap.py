@@ -86,6 +86,12 @@ def test_unexplained_when_nothing_reaches_the_floor(saturated):
     assert all(s["shrink"] < 0.5 for s in rec["signatures"])
 
 
+def test_one_candidate_that_does_not_explain_leaves_no_pair_to_try(saturated):
+    # no single explains, so pairs are called for, but one candidate has no partner
+    rec = gap.diagnose(saturated, candidates=[E.PositionGain()], check_force=False, discrepancy=False).to_json()
+    assert rec["verdict"] == "unexplained" and not any(r["effect"].count("+") for r in rec["ranking"])
+
+
 def test_parameter_gap_flags_an_effective_gap_above_nominal(tmp_path):
     toml = tmp_path / "rig.toml"
     toml.write_text("nominal_gap_um = 762\nturns_per_pole = 240\npole_area_mm2 = 54.23\n")

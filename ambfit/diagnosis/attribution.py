@@ -145,7 +145,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         first = min(singles, key=lambda c: c.score).effect
         best_single = next(e for e in cands if type(e).name == first)
         partners = [e for e in cands if type(e).name != first and not getattr(e, "needs_other_axis", False)]
-        if not getattr(best_single, "needs_other_axis", False):
+        if partners and not getattr(best_single, "needs_other_axis", False):
             scorer.expect(len(partners))
             # the pairs as one compiled set of their own, for the rest of the diagnosis (``later`` closes it)
             later.enter_context(compiled_together([Model.of((best_single, e), bearing) for e in partners]))
