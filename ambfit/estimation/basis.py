@@ -12,7 +12,7 @@ physics changes the force through variables of its own, its *signature* (:data:`
 =================  ====================================================================================
 group              columns
 =================  ====================================================================================
-shape              ``b^p xi^q`` (``p <= 6``, ``q <= 3``): the law's shape in flux density and gap
+shape              ``b^p xi^q`` (``1 <= p <= 6``, ``q <= 3``): the law's shape in flux density and gap
 coupling           the same times the other axis' mean squared current; powers of the other axis' position
                    times this axis' flux, current and their products
 control            the other axis' signed control current times this axis' current stiffness
@@ -40,6 +40,10 @@ from ambfit.physics.bearing import AXES, Bearing
 
 P_MAX = 6
 Q_MAX = 3
+SHAPE_P_MIN = 1
+"""The shape group's lowest power of flux density: a flux family changes the force only where there is flux, so no
+column of the gap alone (``b^0 xi^q``: a spring of the rotor's position, which no law of flux density and gap
+writes, would otherwise be named a flux family)."""
 GROUPS = ("shape", "coupling", "hysteresis")
 """The basis' default groups, the ceiling of a diagnosis: the horseshoe law's shape in flux density and gap
 (saturation, iron, fringing, leakage); what depends on the other axis (its currents and position: coupling through
@@ -123,7 +127,7 @@ class Basis:
 
         cols = []
         if "shape" in self.groups:
-            cols += [("shape", f"b^{p} xi^{q}", horseshoes(p, q)) for p, q in mono]
+            cols += [("shape", f"b^{p} xi^{q}", horseshoes(p, q)) for p, q in mono if p >= SHAPE_P_MIN]
         if "coupling" in self.groups:
             cols += [("coupling", f"other-axis i^2 b^{p} xi^{q}", f["o"] * horseshoes(p, q))
                      for p, q in mono if p in (0, 2)]
@@ -208,8 +212,10 @@ class Basis:
     @classmethod
     def from_json(cls, record: dict) -> Basis:
         """The basis of a saved discrepancy; one saved with other constants (:data:`P_MAX`, :data:`Q_MAX`,
-        :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`) would compute other columns under the same
+        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`) would compute other columns under the same
         coefficients, and is refused."""
+        if "p_max" in record:
+            record = {"shape_p_min": 0} | record       # saved before the shape group left out b^0
         for key, value in _constants().items():
             if key in record and not np.allclose(np.asarray(record[key], dtype=float), value, rtol=1e-12, atol=0.0):
                 raise ValueError(f"the discrepancy's basis was saved with {key} = {record[key]}, this ambfit's is "
@@ -242,7 +248,8 @@ class Basis:
 
 def _constants() -> dict:
     """The module's constants that shape the columns, as a saved basis records them."""
-    return {"p_max": P_MAX, "q_max": Q_MAX, "x_scale": X_SCALE, "settle": list(SETTLE), "play_widths": list(PLAY_WIDTHS)}
+    return {"p_max": P_MAX, "q_max": Q_MAX, "shape_p_min": SHAPE_P_MIN, "x_scale": X_SCALE, "settle": list(SETTLE),
+            "play_widths": list(PLAY_WIDTHS)}
 
 
 def _lagged(tau: np.ndarray, theta: np.ndarray, lag: float) -> np.ndarray:
