@@ -12,7 +12,7 @@ Numbers must agree to 1e-9 relative (1e-12 absolute): the references were made o
 processor's vector instructions may round the last bits differently.  On the machine that made them the records
 were byte-identical before and after the refactor of issue 30; issue 31 (undecided verdicts, predictive
 variance, paired comparisons) changed them on purpose and regenerated them, and again when the discrepancy's shape
-group lost its columns of the gap alone (every verdict stayed; its numbers moved).
+group lost its columns of the gap alone (every verdict stayed; its numbers moved) and the record gained its rules.
 
 When a change is *meant* to change the diagnosis, regenerate the references and say so in the commit:
 

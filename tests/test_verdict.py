@@ -150,8 +150,11 @@ def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_res
     assert decide(Rules(), start, [single, pair, dataclasses.replace(rival, heldout_z=behind.heldout_z)]
                   ).name == "saturation+current_offset"
     # ... but without that preference the data cannot tell the pair from it
-    v = decide(Rules(occam=False), start, [single, pair, rival])
+    v = decide(Rules(occam="none"), start, [single, pair, rival])
     assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "position_gain"}
+    # ... unless it is clearly worse
+    worse = dataclasses.replace(rival, heldout_z=law("position_gain", 0.12, start=start).heldout_z)
+    assert decide(Rules(occam="none"), start, [single, pair, worse]).name == "saturation+current_offset"
     # ... and one that predicts clearly better is a rival whatever its flexibility
     better = widened("position_gain", 0.0, 0.4, groups=("position_sensor",), start=start)
     better = dataclasses.replace(better, heldout_z=NOISE.copy())
@@ -233,6 +236,11 @@ def test_short_of_the_floor_a_model_that_removes_nearly_all_and_beats_the_rest_i
     assert most.shrink >= Rules().graded_shrink and most.after > Rules().graded_remainder
     assert decide(Rules(), big, [most, law("saturation", 60.0, start=big)]).kind == "unexplained"
     assert decide(Rules(graded_remainder=3.0), big, [most]).name == "hysteresis"
+    # ... nor one that leaves 1.4 (more than a noise unit: on the law zoo's pairs such a model was the wrong half)
+    some = law("hysteresis", 2.0, start=big)
+    assert 1.0 < some.after < 2.0 and some.shrink >= Rules().graded_shrink
+    assert decide(Rules(), big, [some, law("saturation", 60.0, start=big)]).kind == "unexplained"
+    assert decide(Rules(graded_remainder=2.0), big, [some, law("saturation", 60.0, start=big)]).name == "hysteresis"
     # ... and with a rival that it does not beat: undecided
     v = decide(Rules(), start, [near, law("cross_coupling", 0.32, start=start)])
     assert v.kind == "undecided"
@@ -317,3 +325,30 @@ def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_
     assert "fewer than two" in said(one.assign(load_N=[7.0, 7.0, 0.0, 7.0]))
     assert "fewer than two" in said(one.drop(columns="load_N"))
     assert "fewer than two" in said(one.iloc[:0])
+
+
+def test_siblings_spare_a_law_a_widened_law_of_its_own_signature_unless_ahead_not_one_of_another():
+    start = ideal(30.0)
+    sat = law("saturation", 0.0, start=start)
+    # leakage widened by the flux families' shape signature (saturation's own): it can carry saturation's shape
+    sibling = widened("leakage", 0.0, 2.0, groups=("shape",), start=start)
+    # position_gain widened by its sensor signature: other physics
+    other = widened("position_gain", 0.0, 2.0, groups=("position_sensor",), start=start)
+    judge = Judge(N, start.score)
+    for rival in (sibling, other):
+        assert judge.explains(rival) and not judge.ahead(rival, sat) and not judge.clearly_better(sat, rival)
+    siblings = Rules(occam="siblings")
+    assert decide(siblings, start, [sat, sibling.law, sibling]).name == "saturation"
+    v = decide(siblings, start, [sat, other.law, other])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation", "position_gain"}
+    # "all" (the default) spares both, "none" neither; True and False are "all" and "none"
+    assert Rules().occam == "all" and decide(Rules(), start, [sat, other.law, other]).name == "saturation"
+    assert decide(Rules(occam="none"), start, [sat, sibling.law, sibling]).kind == "undecided"
+    assert Rules(occam=True).occam == "all" and Rules(occam=False).occam == "none"
+    with pytest.raises(ValueError, match="occam"):
+        Rules(occam="some")
+    # a sibling ahead of the law (if not clearly better) rivals it
+    behind = law("saturation", 0.02, start=start)
+    assert judge.explains(sibling) and judge.ahead(sibling, behind) and not judge.clearly_better(sibling, behind)
+    v = decide(siblings, start, [behind, sibling.law, sibling])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation", "leakage"}

@@ -140,6 +140,7 @@ class Diagnosis:
             "parameters_baseline": {n: self.baseline.value(n) for n in self.baseline.names if not n.startswith("load[")},
             "goodness_of_fit": self.baseline.goodness_of_fit(),
             "parameter_gap": self.parameter_gap,
+            "rules": dataclasses.asdict(self.rules),
         }
         if self.decision.kind == "undecided":
             rec["candidates"] = list(self.decision.candidates)

@@ -51,6 +51,13 @@ class Criterion(str, Enum):
     D = "D"
 
 
+class Occam(str, Enum):
+    # ambfit.diagnosis.verdict.OCCAM, spelt here as Target is (test_cli_options holds the two equal)
+    all = "all"
+    siblings = "siblings"
+    none = "none"
+
+
 @app.command("solution-space")
 def solution_space_cmd(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
@@ -220,12 +227,19 @@ def diagnose(
     report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
                                                 "(residuals against the most structured variable, before and "
                                                 "after adding the verdict effect).")] = None,
+    occam: Annotated[Occam, typer.Option(
+        help="Which more flexible models (pairs, laws widened by their family's signature) must predict the "
+             "held-out readings better than a library law that explains them before they count as its rivals: "
+             "all of them; siblings (only widened laws of the law's own signature: another family's physics "
+             "that predicts as well leaves the verdict undecided); none (a family is named only when its best "
+             "model beats every other family's clearly). Stricter names fewer wrong families on laws unlike "
+             "the library's, and fewer right ones on the library's own.")] = Occam.all,
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
     data, how far the gap shrinks, and how the identified parameters differ from the bearing as drawn."""
     from ambfit.data import DataError
+    from ambfit.diagnosis import Rules, text
     from ambfit.diagnosis import diagnose as run_diagnosis
-    from ambfit.diagnosis import text
     from ambfit.estimation.core import FitError
     from ambfit.faces.cli.progress import progress_bar
 
@@ -238,7 +252,8 @@ def diagnose(
     ds = read_data(data, desc, accept_implausible)
     try:
         with progress_bar() as bar:
-            dg = run_diagnosis(ds, bearing=desc, pair_verdict=pair_verdict, progress=bar,
+            dg = run_diagnosis(ds, bearing=desc, rules=Rules(occam=occam.value), pair_verdict=pair_verdict,
+                               progress=bar,
                                **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, ValueError, OSError) as exc:
         fail(str(exc))
