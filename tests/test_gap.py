@@ -5,7 +5,7 @@ import pytest
 
 from ambfit import Bearing, rig
 from ambfit import diagnosis as gap
-from ambfit.diagnosis import text
+from ambfit.diagnosis import Rules, text
 from ambfit.estimation import fit
 from ambfit.physics import effects as E
 from ambfit.rig import protocol as P
@@ -138,10 +138,13 @@ def test_diagnose_cli_writes_contract_json_and_figures(tmp_path, saturated):
     from ambfit.faces.cli import app
     csv, js, rep = tmp_path / "s.csv", tmp_path / "d.json", tmp_path / "report"
     saturated.to_csv(csv, index=False)
-    r = CliRunner().invoke(app, ["diagnose", str(csv), "--json", str(js), "--report", str(rep)])
+    r = CliRunner().invoke(app, ["diagnose", str(csv), "--json", str(js), "--report", str(rep), "--occam", "siblings"])
     assert r.exit_code == 0, r.output
     rec = json.loads(js.read_text())
     assert rec["verdict"] == "saturation" and (rep / "ranking.png").exists() and (rep / "residuals.png").exists()
+    # the rules the verdict was decided by, the option's among them (fringing widened by the flux families'
+    # signature explains these data too: a sibling, spared unless ahead)
+    assert rec["rules"]["occam"] == "siblings" and rec["rules"]["graded_remainder"] == Rules().graded_remainder
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
