@@ -10,6 +10,7 @@ with ``gap_zoo.score``.
 
     .venv/bin/python benchmarks/zoo_replay.py collect --seed 3131 --draws 300 --workers 2 --into /tmp/zoo3131
     .venv/bin/python benchmarks/zoo_replay.py replay /tmp/zoo3131 [--rule ahead_se=1.5 ...]
+    .venv/bin/python benchmarks/zoo_replay.py replay /tmp/zoo7373 --variant occam=all --variant occam=none --md T.md
 
 A replay is what the diagnosis would say only up to what follows the decision (a magnetic circuit's pieces; the
 zoo's bearing has no B-H curve, so none).
@@ -115,6 +116,24 @@ def table(rows: list[dict]) -> str:
     return " ".join(f"{k} {100 * c[k] / n:.1f}%" for k in CATEGORIES) + f" (n={n})"
 
 
+def compare(draws: list[dict], rules, variants: list[str], into) -> str:
+    """A Markdown table: each category's share of ``draws`` under each variant of ``rules``, overall and by kind."""
+    def share(rows, cat):
+        return f"{100 * sum(r['category'] == cat for r in rows) / len(rows):.1f} %" if rows else "-"
+
+    md = [f"Rules replayed on the stored scores of {len(draws)} law-zoo draws ({', '.join(f'`{p}`' for p in into)}; "
+          "`benchmarks/zoo_replay.py`).", "",
+          "| rules | draws | " + " | ".join(CATEGORIES) + " |", "|---|---|" + "---|" * len(CATEGORIES)]
+    for spec in variants:
+        kw = dict((k, _value(v)) for k, v in (s.split("=", 1) for s in spec.split(",") if s))
+        rows = replay(draws, dataclasses.replace(rules, **kw))
+        for kind in (None, "single", "pair", "no_family", "none"):
+            sel = [r for r in rows if kind is None or r["kind"] == kind]
+            md.append(f"| `{spec}` | {kind or 'all'} ({len(sel)}) | " + " | ".join(share(sel, c) for c in CATEGORIES)
+                      + " |")
+    return "\n".join(md)
+
+
 def _value(text: str):
     for kind in (int, float):
         try:
@@ -137,6 +156,9 @@ def main():
     r.add_argument("into", type=Path, nargs="+")
     r.add_argument("--rule", action="append", default=[], help="a Rules field=value")
     r.add_argument("--list", action="store_true", help="every draw whose category is not right")
+    r.add_argument("--variant", action="append", default=[],
+                   help="a rule set to compare, 'field=value,field=value' on top of --rule (repeatable)")
+    r.add_argument("--md", type=Path, default=None, help="write the comparison of the variants here (Markdown)")
     args = ap.parse_args()
     if args.what == "collect":
         from functools import partial
@@ -155,6 +177,12 @@ def main():
 
     rules = dataclasses.replace(Rules(), **dict((k, _value(v)) for k, v in (s.split("=", 1) for s in args.rule)))
     draws = [d for into in args.into for d in load(into)]
+    if args.variant:
+        md = compare(draws, rules, args.variant, args.into)
+        print(md)
+        if args.md is not None:
+            args.md.write_text(md + "\n")
+        return
     rows = replay(draws, rules)
     print(table(rows))
     for kind in ("none", "single", "pair", "no_family"):
