@@ -91,3 +91,9 @@ def test_the_recommended_protocol_separates_them_when_run():
     again = ambfit.diagnose(rig.simulate(spec, plan, effect, seed=np.random.default_rng(5)).data, check_force=False,
                             discrepancy=False)
     assert again.verdict == "iron_reluctance", str(again)
+
+
+def test_a_protocol_at_many_biases_names_their_number_and_range():
+    # a random protocol's biases are many: the advice says how many and where, not each one
+    assert separation._listed(np.array([1.0, 1.2, 1.4])) == "1, 1.2, 1.4"
+    assert separation._listed(np.round(np.linspace(0.9, 1.8, 48), 3)) == "48 of them, 0.9-1.8"

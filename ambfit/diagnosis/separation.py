@@ -93,6 +93,13 @@ def separate_by(models: list, df: pd.DataFrame, bearing, noise: dict, enough: fl
                       time_tied=time_tied(df), separates=scores[best] > enough)
 
 
+def _listed(values, most: int = 8) -> str:
+    """``values`` spelt out, or, when there are more than ``most``, their number and range."""
+    if len(values) > most:
+        return f"{len(values)} of them, {min(values):g}-{max(values):g}"
+    return ", ".join(f"{v:g}" for v in values)
+
+
 def designs(fitted, df: pd.DataFrame, bearing) -> dict:
     """The protocols scored, scaled to the bearing and centred on ``fitted``'s effective origin: ``{description:
     Protocol}`` (a bias sweep to 80 % of the coil limit, set-points across 60 % of the back-up clearance at these
@@ -111,7 +118,7 @@ def designs(fitted, df: pd.DataFrame, bearing) -> dict:
         "the effective origin, under 4 known loads":
             protocol.rich(biases=sweep, span=reach, center=centre, masses_kg=masses, rotor_kg=kg),
         f"9 set-points across ±{reach * 1e6:.0f} µm of the effective origin at this data's biases "
-        f"({', '.join(f'{b:g}' for b in biases)} A), under 4 known loads":
+        f"({_listed(biases)} A), under 4 known loads":
             protocol.rich(biases=tuple(biases), span=reach, n_positions=9, center=centre, masses_kg=masses,
                           rotor_kg=kg),
         f"the biases {sweep[0]:g}-{sweep[-1]:g} A in shuffled order at a 5 x 3 grid of set-points within "
