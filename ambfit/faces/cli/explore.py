@@ -58,6 +58,17 @@ class Occam(str, Enum):
     none = "none"
 
 
+OccamOption = Annotated[Occam, typer.Option(
+    help="Which more flexible models (pairs, laws widened by their family's signature) must predict the held-out "
+         "readings better than a library law that explains them before they count as its rivals: all of them; "
+         "siblings (only widened laws of the law's own signature: another family's physics that predicts as well "
+         "leaves the verdict undecided); none (a family is named only when its best model beats every other "
+         "family's clearly). Stricter names fewer wrong families on laws unlike the library's, and fewer right "
+         "ones on the library's own.")]
+"""``--occam``: :attr:`ambfit.diagnosis.Rules.occam` for the commands that diagnose (diagnose, design
+--discriminate)."""
+
+
 @app.command("solution-space")
 def solution_space_cmd(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV.")],
@@ -149,6 +160,7 @@ def design(
                                                "explain them alike (verdict undecided), say which protocol within "
                                                "the bearing's limits would tell them apart (expected log Bayes "
                                                "factor of each protocol scored).")] = False,
+    occam: OccamOption = Occam.all,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty; with
     --discriminate, the protocol that best tells the diagnosis' undecided candidates apart."""
@@ -162,7 +174,7 @@ def design(
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
     if discriminate:
-        _discriminate(ds, desc, json_out, declared_noise(current_noise_ma, position_noise_um))
+        _discriminate(ds, desc, json_out, declared_noise(current_noise_ma, position_noise_um), occam.value)
         return
     try:
         with progress_bar(2) as bar:
@@ -182,24 +194,29 @@ def design(
         write_json(rec.to_json(), json_out)
 
 
-def _discriminate(ds, desc, json_out, noise: dict) -> None:
+def _discriminate(ds, desc, json_out, noise: dict, occam: str) -> None:
     """``design --discriminate``: the diagnosis' candidates and the protocols that would separate them."""
     from ambfit.data import DataError
+    from ambfit.diagnosis import Rules
     from ambfit.diagnosis import diagnose as run_diagnosis
     from ambfit.estimation.core import FitError
     from ambfit.faces.cli.progress import progress_bar
 
     try:
         with progress_bar() as bar:
-            dg = run_diagnosis(ds, bearing=desc, progress=bar, check_force=False, **noise)
+            dg = run_diagnosis(ds, bearing=desc, rules=Rules(occam=occam), progress=bar, check_force=False,
+                               **noise)
     except (DataError, ValueError, OSError) as exc:
         fail(str(exc))
     except FitError as exc:
         fail(str(exc), 3)
     sep = dg.separation
     if dg.verdict != "undecided" or sep is None:
-        note(f"verdict: {dg.verdict}: nothing to tell apart" + (
-            " (the data single it out)" if dg.verdict not in ("none", "unexplained", "undecided") else ""))
+        named = dg.verdict not in ("none", "unexplained", "undecided")
+        note(f"verdict: {dg.verdict}: nothing to tell apart" + (" (the data single it out)" if named else ""))
+        if named and dg.confounded_with and occam != "none":
+            note(f"{', '.join(dg.confounded_with)} explain these data too but did not count as rivals (more "
+                 "flexible, or naming more families); --occam none weighs every other family's model")
         record = {"verdict": dg.verdict, "candidates": [], "separate_by": None}
     else:
         note(f"undecided between {', '.join(dg.decision.candidates)}; these data: expected log Bayes factor "
@@ -227,13 +244,7 @@ def diagnose(
     report: Annotated[Path | None, typer.Option(help="Write figures here: ranking.png and residuals.png "
                                                 "(residuals against the most structured variable, before and "
                                                 "after adding the verdict effect).")] = None,
-    occam: Annotated[Occam, typer.Option(
-        help="Which more flexible models (pairs, laws widened by their family's signature) must predict the "
-             "held-out readings better than a library law that explains them before they count as its rivals: "
-             "all of them; siblings (only widened laws of the law's own signature: another family's physics "
-             "that predicts as well leaves the verdict undecided); none (a family is named only when its best "
-             "model beats every other family's clearly). Stricter names fewer wrong families on laws unlike "
-             "the library's, and fewer right ones on the library's own.")] = Occam.all,
+    occam: OccamOption = Occam.all,
 ):
     """Where the ideal force model and the data disagree, which unmodelled effect explains it on held-out
     data, how far the gap shrinks, and how the identified parameters differ from the bearing as drawn."""
