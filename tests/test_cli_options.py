@@ -121,6 +121,6 @@ def test_the_design_targets_are_the_head_parameters():
 def test_the_diagnose_occam_choices_are_the_rules():
     """``ambfit diagnose --occam`` offers :data:`ambfit.diagnosis.verdict.OCCAM`, its default the rules' default."""
     from ambfit.diagnosis.verdict import OCCAM, Rules
-    from ambfit.faces.cli.explore import Occam
+    from ambfit.faces.cli.fitting import Occam
 
     assert [o.value for o in Occam] == list(OCCAM) and Occam.all.value == Rules().occam

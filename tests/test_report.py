@@ -298,7 +298,8 @@ def test_data_report_skips_sections_on_request(tmp_path):
 def test_data_report_cli_writes_all_sections(tmp_path):
     out = tmp_path / "rep"
     r = CliRunner().invoke(app, ["report", str(TABLE2), "--out", str(out),
-                                 "--steps", "400", "--max-steps", "400", "--ensembles", "2", "--design-steps", "3"])
+                                 "--steps", "400", "--max-steps", "400", "--ensembles", "2", "--design-steps", "3",
+                                 "--occam", "none"])
     assert r.exit_code == 0, r.output
     page = (out / "index.html").read_text()
     assert _self_contained(page)
@@ -312,6 +313,7 @@ def test_data_report_cli_writes_all_sections(tmp_path):
     assert set(rec) == {"data", "n_rows", "least_squares", "closed_form", "bayes", "solution_space", "design",
                         "diagnosis", "warnings"}
     assert f'<p class="verdict">verdict: {rec["diagnosis"]["verdict"]}' in page
+    assert rec["diagnosis"]["rules"]["occam"] == "none"          # the naming preference reached the diagnosis
     assert f"{rec['bayes']['n_ensembles']} independent emcee ensembles" in page
     # the combined uncertainty (GUM) beside the noise-only error, the same number in the page and the JSON
     v0 = rec["least_squares"]["params"]["v0_um"]

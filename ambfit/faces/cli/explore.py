@@ -23,7 +23,7 @@ from ambfit.faces.cli.app import (
     warn,
     write_json,
 )
-from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
+from ambfit.faces.cli.fitting import CurrentNoiseOption, Occam, OccamOption, PositionNoiseOption, declared_noise
 from ambfit.faces.cli.options import number, span
 
 MAX_DESIGN_STEPS = 1_000
@@ -49,24 +49,6 @@ class Target(str, Enum):
 class Criterion(str, Enum):
     A = "A"
     D = "D"
-
-
-class Occam(str, Enum):
-    # ambfit.diagnosis.verdict.OCCAM, spelt here as Target is (test_cli_options holds the two equal)
-    all = "all"
-    siblings = "siblings"
-    none = "none"
-
-
-OccamOption = Annotated[Occam, typer.Option(
-    help="Which more flexible models (pairs, laws widened by their family's signature) must predict the held-out "
-         "readings better than a library law that explains them before they count as its rivals: all of them; "
-         "siblings (only widened laws of the law's own signature: another family's physics that predicts as well "
-         "leaves the verdict undecided); none (a family is named only when its best model beats every other "
-         "family's clearly). Stricter names fewer wrong families on laws unlike the library's, and fewer right "
-         "ones on the library's own.")]
-"""``--occam``: :attr:`ambfit.diagnosis.Rules.occam` for the commands that diagnose (diagnose, design
---discriminate)."""
 
 
 @app.command("solution-space")

@@ -30,6 +30,24 @@ def declared_noise(current_noise_ma: float | None, position_noise_um: float | No
                 sigma_x=None if position_noise_um is None else position_noise_um * 1e-6)
 
 
+class Occam(str, Enum):
+    # ambfit.diagnosis.verdict.OCCAM, spelt here as Target is (test_cli_options holds the two equal)
+    all = "all"
+    siblings = "siblings"
+    none = "none"
+
+
+OccamOption = Annotated[Occam, typer.Option(
+    help="Which more flexible models (pairs, laws widened by their family's signature) must predict the held-out "
+         "readings better than a library law that explains them before they count as its rivals: all of them; "
+         "siblings (only widened laws of the law's own signature: another family's physics that predicts as well "
+         "leaves the verdict undecided); none (a family is named only when its best model beats every other "
+         "family's clearly). Stricter names fewer wrong families on laws unlike the library's, and fewer right "
+         "ones on the library's own.")]
+"""``--occam``: :attr:`ambfit.diagnosis.Rules.occam` for the commands that diagnose (diagnose, design
+--discriminate, report)."""
+
+
 class Method(str, Enum):
     least_squares = "least-squares"
     closed_form = "closed-form"

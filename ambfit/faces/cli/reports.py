@@ -21,7 +21,7 @@ from ambfit.faces.cli.app import (
     read_data,
 )
 from ambfit.faces.cli.explore import MAX_DESIGN_STEPS
-from ambfit.faces.cli.fitting import CurrentNoiseOption, PositionNoiseOption, declared_noise
+from ambfit.faces.cli.fitting import CurrentNoiseOption, Occam, OccamOption, PositionNoiseOption, declared_noise
 from ambfit.faces.cli.options import number
 from ambfit.faces.cli.sample import EMCEE_STEPS, MAX_ENSEMBLES, MAX_STEPS, MIN_STEPS
 
@@ -55,6 +55,7 @@ def report(
     current_noise_ma: CurrentNoiseOption = None,
     position_noise_um: PositionNoiseOption = None,
     accept_implausible: AcceptOption = False,
+    occam: OccamOption = Occam.all,
 ):
     """One self-contained HTML page: identification table, posterior summary and pair plot, solution-space
     map, design recommendation and diagnosis."""
@@ -75,7 +76,7 @@ def report(
             path, rec = report_mod.data_report(
                 data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                 bearing=desc, max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
-                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar,
+                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar, occam=occam.value,
                 **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, OSError) as exc:
         fail(str(exc))
