@@ -20,14 +20,13 @@ import argparse
 import dataclasses
 import pickle
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from gap_zoo import CATEGORIES, score  # noqa: E402
+from gap_zoo import CATEGORIES, fractions, score  # noqa: E402
 
 
 def _light(model):
@@ -108,30 +107,32 @@ def replay(draws: list[dict], rules) -> list[dict]:
     return rows
 
 
+def _shares(rows: list[dict]) -> list[str]:
+    """Each category's share of ``rows`` (:func:`gap_zoo.fractions`), to a tenth of a per cent."""
+    f = fractions(rows)
+    return [f"{100 * f[c]:.1f} %" if f["n"] else "-" for c in CATEGORIES]
+
+
 def table(rows: list[dict]) -> str:
-    n = len(rows)
-    if not n:
-        return "(n=0)"
-    c = Counter(r["category"] for r in rows)
-    return " ".join(f"{k} {100 * c[k] / n:.1f}%" for k in CATEGORIES) + f" (n={n})"
+    return " ".join(f"{c} {s}" for c, s in zip(CATEGORIES, _shares(rows))) + f" (n={len(rows)})"
 
 
 def compare(draws: list[dict], rules, variants: list[str], into) -> str:
     """A Markdown table: each category's share of ``draws`` under each variant of ``rules``, overall and by kind."""
-    def share(rows, cat):
-        return f"{100 * sum(r['category'] == cat for r in rows) / len(rows):.1f} %" if rows else "-"
-
     md = [f"Rules replayed on the stored scores of {len(draws)} law-zoo draws ({', '.join(f'`{p}`' for p in into)}; "
           "`benchmarks/zoo_replay.py`).", "",
           "| rules | draws | " + " | ".join(CATEGORIES) + " |", "|---|---|" + "---|" * len(CATEGORIES)]
     for spec in variants:
-        kw = dict((k, _value(v)) for k, v in (s.split("=", 1) for s in spec.split(",") if s))
-        rows = replay(draws, dataclasses.replace(rules, **kw))
+        rows = replay(draws, with_fields(rules, spec.split(",")))
         for kind in (None, "single", "pair", "no_family", "none"):
             sel = [r for r in rows if kind is None or r["kind"] == kind]
-            md.append(f"| `{spec}` | {kind or 'all'} ({len(sel)}) | " + " | ".join(share(sel, c) for c in CATEGORIES)
-                      + " |")
+            md.append(f"| `{spec}` | {kind or 'all'} ({len(sel)}) | " + " | ".join(_shares(sel)) + " |")
     return "\n".join(md)
+
+
+def with_fields(rules, items: list[str]):
+    """``rules`` with the fields ``items`` (``field=value`` each) set."""
+    return dataclasses.replace(rules, **{k: _value(v) for k, v in (s.split("=", 1) for s in items if s)})
 
 
 def _value(text: str):
@@ -175,7 +176,7 @@ def main():
         return
     from ambfit.diagnosis.verdict import Rules
 
-    rules = dataclasses.replace(Rules(), **dict((k, _value(v)) for k, v in (s.split("=", 1) for s in args.rule)))
+    rules = with_fields(Rules(), args.rule)
     draws = [d for into in args.into for d in load(into)]
     if args.variant:
         md = compare(draws, rules, args.variant, args.into)

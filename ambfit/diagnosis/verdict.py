@@ -22,10 +22,10 @@ name; its family is named only when that model is clearly better than every othe
 tier, that rivals it; otherwise the verdict is ``undecided`` and lists them (``candidates``, best first).  A more
 flexible model rivals the simplest explanation only when it explains the data and is *ahead* of it (better by
 ``Rules.ahead_se`` standard errors, short of clearly; ``Rules.occam`` says which models this spares).  Families
-sharing a signature are told apart by their own laws, or not at all.  When nothing explains the data the verdict is ``unexplained``, with the model that
-removes most reported (``best``), unless one removes nearly all of the excess and beats every other family's model:
-it is named, graded short of the floor.  A clear
-widened law *below* the floor has learnt how the readings' noise moves the force (one load per axis lets a
+sharing a signature are told apart by their own laws, or not at all.  When nothing explains the data the verdict
+is ``unexplained``, with the model that removes most reported (``best``), unless one removes nearly all of the
+excess and beats every other family's model: it is named, graded short of the floor.  A clear widened law *below*
+the floor has learnt how the readings' noise moves the force (one load per axis lets a
 correction flatten the law): then no widened law is judged by its held-out score (``Verdict.unjudged``).
 :func:`needs_pairs` and :func:`needs_signatures` say, from the same rules,
 whether the scores so far call for more candidates.  Nothing here fits: every function is pure, and unit tests
@@ -91,9 +91,9 @@ class Rules:
     ahead_se : float
         Ahead: a paired difference of held-out deviances beyond this many of its standard errors, at most
         ``margin_se`` (when two models predict alike, one is ahead of the other with probability ``P(Z < -ahead_se)``,
-        about one in six at 1).  With :attr:`occam` "all": on the law zoo's first 100 draws (those studied while the rules
-        were made) 1 turns 2 of 7 wrong claims and 2 right verdicts into undecided ones, 3 of them holding the
-        truth; 0 turns the same 2 wrong claims and 4 right verdicts, 1.5 only 1 wrong claim; on 20 cases of the
+        about one in six at 1).  With :attr:`occam` "all": on the law zoo's first 100 draws (those studied while
+        the rules were made) 1 turns 2 of 7 wrong claims and 2 right verdicts into undecided ones, 3 of them
+        holding the truth; 0 turns the same 2 wrong claims and 4 right verdicts, 1.5 only 1 wrong claim; on 20 cases of the
         rig's own laws none of them changes a verdict.
     occam : {"all", "siblings", "none"}
         Which more flexible models (a pair against a law, a widened law against either) that are not clearly
@@ -414,7 +414,8 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
         better = [c for c in best_of.values() if judge.explains(c) and judge.clearly_better(c, top)]
     best_of.pop(frozenset(top.families), None)
     rivals = [c for c in best_of.values() if not judge.clearly_better(top, c) and not (
-        _occam(judge.rules, top, c) and not judge.clearly_better(c, top) and not (judge.explains(c) and judge.ahead(c, top)))]
+        _occam(judge.rules, top, c) and not judge.clearly_better(c, top)
+        and not (judge.explains(c) and judge.ahead(c, top)))]
     if top.kind == "signature":
         # any family's widened law on the same signature, its best model or not (its own law may score lower)
         held = {frozenset(top.families)} | {frozenset(r.families) for r in rivals}

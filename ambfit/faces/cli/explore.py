@@ -194,7 +194,7 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str) -> None:
         fail(str(exc), 3)
     sep = dg.separation
     if dg.verdict != "undecided" or sep is None:
-        named = dg.verdict not in ("none", "unexplained", "undecided")
+        named = dg.decision.kind == "named"
         note(f"verdict: {dg.verdict}: nothing to tell apart" + (" (the data single it out)" if named else ""))
         if named and dg.confounded_with and occam != "none":
             note(f"{', '.join(dg.confounded_with)} explain these data too but did not count as rivals (more "

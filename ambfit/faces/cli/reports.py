@@ -60,6 +60,7 @@ def report(
     """One self-contained HTML page: identification table, posterior summary and pair plot, solution-space
     map, design recommendation and diagnosis."""
     from ambfit.data import DataError
+    from ambfit.diagnosis import Rules
     from ambfit.faces import report as report_mod
     from ambfit.faces.cli.progress import progress_bar
     from ambfit.faces.report.dataset import FILES
@@ -76,7 +77,7 @@ def report(
             path, rec = report_mod.data_report(
                 data, out, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                 bearing=desc, max_radius_um=max_radius_um, do_posterior=posterior, do_diagnosis=diagnosis, seed=seed,
-                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar, occam=occam.value,
+                command="ambfit report " + " ".join(sys.argv[2:]), progress=bar, rules=Rules(occam=occam.value),
                 **declared_noise(current_noise_ma, position_noise_um))
     except (DataError, OSError) as exc:
         fail(str(exc))

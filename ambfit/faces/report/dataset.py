@@ -301,7 +301,7 @@ def _step(progress, name: str) -> None:
 
 
 def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_steps, bearing, max_radius_um, do_posterior,
-              do_diagnosis, seed, progress=None, noise=None, found: dict | None = None, occam: str = "all") -> dict:
+              do_diagnosis, seed, progress=None, noise=None, found: dict | None = None, rules=None) -> dict:
     """Sections 1-5 after a successful least-squares fit ``res``; fills ``record`` with each result's JSON and
     ``found`` with the results themselves (``budget``, ``post``, ``diagnosed``, ``spaces``: the summary box's).
     ``noise``: the declared ``sigma_i``/``sigma_x`` (:func:`data_report`)."""
@@ -372,7 +372,7 @@ def _sections(ds, res, record: dict, *, steps, max_steps, ensembles, design_step
     def diagnose():
         from ambfit import diagnosis as gap
 
-        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress, rules=gap.Rules(occam=occam), **noise)
+        dg = gap.diagnose(ds, bearing=bearing, baseline=res, progress=progress, rules=rules, **noise)
         record["diagnosis"] = dg.to_json()
         found["diagnosed"] = dg
         return diagnosis(dg)
@@ -389,7 +389,7 @@ FILES = ("index.html", "report.json")
 def data_report(data_path, out, *, steps: int = N_STEPS, max_steps: int = MAX_STEPS, ensembles: int = 4, design_steps: int = 8,
                 bearing=PAPER_BEARING, max_radius_um: float | None = None, do_posterior: bool = True,
                 do_diagnosis: bool = True, seed: int = 0, command: str = "", progress=None, sigma_i: float | None = None,
-                sigma_x: float | None = None, occam: str = "all") -> tuple[Path, dict]:
+                sigma_x: float | None = None, rules=None) -> tuple[Path, dict]:
     """Identify, sample, map, design and diagnose one contract CSV; write ``out/index.html`` (self-contained)
     and ``out/report.json``.  Returns the HTML path and the JSON record.  Sections that cannot run (e.g. the
     closed form on non-symmetric pairs) say why instead of stopping the report; when least squares fails,
@@ -397,8 +397,8 @@ def data_report(data_path, out, *, steps: int = N_STEPS, max_steps: int = MAX_ST
     called as ``progress("report: <section>", done, total)`` as each section starts (and by the diagnosis as
     ``progress("candidate effects", done, total)``, and by the sampler, :func:`ambfit.estimation.bayes.sample`).
     ``sigma_i`` [A] and ``sigma_x`` [m] declare the readings' noise for every fit of the report (as in
-    :func:`ambfit.estimation.fit.fit`; default: the std columns, else estimated).  ``occam``: the diagnosis'
-    naming preference (:attr:`ambfit.diagnosis.Rules.occam`).
+    :func:`ambfit.estimation.fit.fit`; default: the std columns, else estimated).  ``rules``: the diagnosis'
+    thresholds (:class:`ambfit.diagnosis.Rules`; default: its defaults).
 
     Raises :class:`ambfit.data.DataError` when the file does not meet the data contract.
     """
@@ -424,7 +424,7 @@ def data_report(data_path, out, *, steps: int = N_STEPS, max_steps: int = MAX_ST
         sections |= _sections(ds, res, record, steps=steps, max_steps=max_steps, ensembles=ensembles, design_steps=design_steps,
                               bearing=bearing, max_radius_um=max_radius_um, do_posterior=do_posterior,
                               do_diagnosis=do_diagnosis, seed=seed, progress=progress,
-                              noise=dict(sigma_i=sigma_i, sigma_x=sigma_x), found=found, occam=occam)
+                              noise=dict(sigma_i=sigma_i, sigma_x=sigma_x), found=found, rules=rules)
         sections["summary"] = summary_box(res, bearing=bearing, **found)
     record["warnings"] = sections["summary"]["warnings"]
     _step(progress, "writing")
