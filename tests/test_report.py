@@ -485,11 +485,12 @@ def test_the_summary_box_flags_a_posterior_away_from_least_squares(data, ls):
     post = bayes.sample(data, n_ensembles=2, n_steps=300, max_steps=300, seed=1, ls=ls)
     box = dataset.summary_box(ls, bearing=PAPER_BEARING, post=post)
     assert not any("disagree" in w for w in box["warnings"])
+    before = post.agreement()["z"]["v0"]          # (the corrected least-squares estimate sits a fraction of an sd off)
     draws = post.draws.copy()
     draws[..., post.names.index("v0")] += 3 * post.error("v0")
     box = dataset.summary_box(ls, bearing=PAPER_BEARING, post=dataclasses.replace(post, draws=draws))
     text = plain(section(DATA, "summary", box))
-    assert "posterior and least squares disagree beyond 2 sd on v0 (+3.0 sd)" in text
+    assert f"posterior and least squares disagree beyond 2 sd on v0 ({before + 3:+.1f} sd)" in text
 
 
 def test_the_summary_box_gives_the_verdicts_parameters_beside_the_ideal_laws():

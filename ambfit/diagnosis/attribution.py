@@ -120,7 +120,7 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
 def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:
     """The ideal law's fit of every row: raises :class:`~ambfit.FitError` when the design does not identify it or
     it stopped further than :data:`BASELINE_EDM` from its minimum."""
-    res = fit(df, bearing=bearing, throw=False, **noise)
+    res = fit(df, bearing=bearing, throw=False, debias="none", **noise)
     if not (res.well_conditioned and res.edm < BASELINE_EDM):
         res.raise_for_health()
     return res

@@ -124,7 +124,7 @@ def force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True
         effects, fitted_all, with_discrepancy, steps, folds_ = job
         try:
             return force_check(df, effects, bearing=bearing, base=fitted_all, discrepancy=with_discrepancy,
-                               max_steps=steps, fitted=folds_, each=each, **noise)
+                               max_steps=steps, fitted=folds_, each=each, debias="none", **noise)
         except FitError as exc:
             return exc
 

@@ -118,7 +118,7 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
             # alpha=0: no reading is tested as an outlier (a refit without a piece misfits many; naming them
             # would cost a Cauchy-weighted refit per call and change nothing here)
             f = fit(data, [off[piece]], bearing=bearing, start_from=f, max_steps=step, throw=False, mask=keep,
-                    loss="linear", alpha=0.0, held_noise=held, **noise)
+                    loss="linear", alpha=0.0, held_noise=held, debias="none", **noise)
             refits[piece] = f
             spent[piece] += max(f.num_steps, 1)
             if _settled(f, threshold) or decided(piece):

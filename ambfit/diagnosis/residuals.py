@@ -121,7 +121,7 @@ def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins
     from scipy.special import chdtrc, ndtri
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
-    result = result or fit(df, bearing=bearing)
+    result = result or fit(df, bearing=bearing, debias="none")
     z = np.asarray(result.residuals)
     ov = operating_variables(df, result)
     tests, cells = [], []

@@ -81,12 +81,13 @@ class Scorer:
             # tested again (alpha=0): one outlier test per model, not one per fold, whose Cauchy-weighted anchor
             # would cost a solve per fold of a misfitting candidate only to conclude that it does not fit
             return fit(self.df, effect_sets[k], bearing=self.bearing, mask=(~test & full[k].fitted_rows).astype(float),
-                       start_from=full[k], max_steps=steps[k], throw=False, alpha=0.0, **self.noise)
+                       start_from=full[k], max_steps=steps[k], throw=False, alpha=0.0, debias="none",
+                       **self.noise)
 
         def fit_all(k):
             full[k] = self.base if not effect_sets[k] else fit(
                 self.df, effect_sets[k], bearing=self.bearing, start_from=self.base, max_steps=steps[k], throw=False,
-                **self.noise)
+                debias="none", **self.noise)
 
         def fit_all_then_folds(k):
             fit_all(k)

@@ -70,8 +70,8 @@ def pad(probs: Sequence[Problem], rows: int) -> Problem:
 
 @eqx.filter_jit
 def _vmapped(theta0, probs, model, max_steps, settings) -> Solution:
-    """:func:`solve` of a batch; ``settings`` (reweightings, EDM stop and tolerance) as arrays: traced, one program
-    for any values."""
+    """:func:`solve` of a batch; the step budget and ``settings`` (reweightings, EDM stop and tolerance) as arrays:
+    traced, one program for any values."""
     return jax.vmap(lambda t, p: solve(t, p, model, max_steps=max_steps, **settings))(theta0, probs)
 
 
@@ -104,8 +104,8 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
             starts[b, :6 + m], starts[b, 6 + loads:] = t[:6 + m], t[6 + m:]
         for i, part in enumerate(parts):
             batch = slice(i * size, (i + 1) * size)
-            sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model, max_steps,
-                           {k: np.asarray(v) for k, v in settings.items()})
+            sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model,
+                           np.asarray(max_steps), {k: np.asarray(v) for k, v in settings.items()})
             ok = np.asarray(sol.result == optx.RESULTS.successful)
             theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
                                                                             sol.jac_all, sol.z))
@@ -175,3 +175,50 @@ def precompile(rows: Sequence[int], loads: Sequence[int] = (0,), *, bearing=None
             for steps, size in ((min(FIRST_STEPS, max_steps), BATCH), (max_steps, BATCH_AGAIN)):
                 _solve_batch([theta, theta], [prob, prob], model, steps, size)
     return len(done)
+
+
+def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model, frees: Sequence[np.ndarray],
+              covs: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The second-order bias of each estimate (:func:`ambfit.estimation.debias.second_order_biases`): ``thetas``
+    scaled, ``frees`` the estimated entries, ``covs`` their scaled covariance [free, free].  A data set alone runs
+    at its own shape; several are padded to their solve's buckets and run ``BATCH`` at a time.  Returns each bias
+    (scaled, over the whole of its theta; 0 outside the free entries, not finite where it is not determined)."""
+    from ambfit.estimation.debias import second_order_biases
+
+    def full(t, free, cov):
+        c = np.zeros((len(t), len(t)))
+        c[np.ix_(free, free)] = cov
+        return c
+
+    if len(probs) == 1:
+        one = jax.tree.map(lambda a: np.asarray(a)[None], probs[0])
+        return [second_order_biases(np.asarray(thetas[0])[None], one, model, np.asarray(frees[0])[None],
+                                    full(thetas[0], frees[0], covs[0])[None])[0]]
+    out: list = [None] * len(probs)
+    sizes = [(len(np.asarray(p.mask)), len(t) - 6 - model.n) for p, t in zip(probs, thetas)]
+    keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
+    for key in dict.fromkeys(keys):
+        rows, loads = key
+        members = [s for s, k in enumerate(keys) if k == key]
+        for lo in range(0, len(members), BATCH):
+            part = members[lo:lo + BATCH]
+            order = part + [part[0]] * (BATCH - len(part))
+            width = 6 + loads + model.n
+            theta, free, cov = np.zeros((BATCH, width)), np.zeros((BATCH, width), bool), np.zeros((BATCH, width, width))
+            cols = []
+            for b, s in enumerate(order):
+                m = sizes[s][1]
+                c = np.r_[0:6 + m, 6 + loads:width]
+                theta[b, c], free[b, c] = thetas[s], frees[s]
+                cov[b][np.ix_(c, c)] = full(thetas[s], frees[s], covs[s])
+                cols.append(c)
+            bias = second_order_biases(theta, pad([probs[s] for s in order], rows), model, free, cov)
+            for b, s in enumerate(part):
+                out[s] = bias[b, cols[b]]
+    return out
+
+
+def measure_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model = IDEAL) -> list[Solution]:
+    """Each problem measured at ``thetas`` as a solve ends (weights, residuals and Jacobians there), without a step:
+    the solve's own compiled programs with no step budget and no reweighting round."""
+    return _solve_batch(list(thetas), list(probs), model, 0, BATCH, reweightings=0)

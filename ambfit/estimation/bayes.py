@@ -351,7 +351,7 @@ class Target:
     def of(cls, data, prior: Prior | None, bearing: Bearing, ls: FitResult | None, fit_kw: dict) -> Target:
         prior = prior if prior is not None else Prior.from_bearing(bearing)
         df = data.frame if isinstance(data, Dataset) else data
-        ls = ls or fit(df, bearing=bearing, **fit_kw)
+        ls = ls or fit(df, bearing=bearing, **({"debias": "none"} | fit_kw))
         prob, meta = build_problem(df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))
         free = free_mask(prob, meta)
         scale = param_scale(prob.n_loads)

@@ -192,7 +192,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=None, o
     res = weights_at
     if res is None:
         try:
-            res = fit(sub, bearing=bearing, **noise)
+            res = fit(sub, bearing=bearing, debias="none", **noise)
         except FitError:  # unidentifiable designs still have a map: weight at the nominal point
             res = None
     sd_g = sd_x = np.nan
@@ -336,6 +336,6 @@ def effect_identification(data: Dataset | pd.DataFrame, effects, start=None, *, 
     from ambfit.estimation.identification import prior_shares
 
     if start is None:
-        start = fit(data, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, throw=False)
+        start = fit(data, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, throw=False, debias="none")
     prob, meta = build_problem(data, sigma_i=sigma_i, sigma_x=sigma_x)
     return prior_shares(prob, meta, Model.of(tuple(effects), bearing), start)

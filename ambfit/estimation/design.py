@@ -234,7 +234,7 @@ def recommend(data: Dataset | pd.DataFrame, *, n_steps: int = 8, candidates: pd.
     from ambfit.rig.limits import step_limits
 
     df = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
-    res = result or fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x)
+    res = result or fit(df, bearing=bearing, sigma_i=sigma_i, sigma_x=sigma_x, debias="none")
     bearing = res.bearing
     if target not in res.names:
         raise ValueError(f"target {target!r} is not estimated here; choose one of {res.names}")

@@ -57,7 +57,7 @@ import pandas as pd
 
 from ambfit.data import DataError, Dataset, file_rows, zero_based
 from ambfit.estimation import plausibility, robust, seeds
-from ambfit.estimation.batches import solve_sets
+from ambfit.estimation.batches import bias_sets, measure_sets, solve_sets
 from ambfit.estimation.core import (
     EDM_MAX,
     K_REFERENCE,
@@ -65,6 +65,7 @@ from ambfit.estimation.core import (
     Meta,
     Model,
     Problem,
+    free_mask,
     si_scale,
     to_theta,
 )
@@ -86,7 +87,7 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         sigma_i: float | None = None, sigma_x: float | None = None, mask=None, start_from: FitResult | None = None,
         require_k: bool = False, max_condition: float = 1e8, max_relative_gap_std: float = 0.1,
         p_min: float = 1e-3, max_steps: int = 200, loss: str = "auto", alpha: float = robust.ALPHA,
-        debias: int = 0, seed: int = 0, held_noise=None, throw: bool = True) -> FitResult:
+        debias: int | str = "second-order", seed: int = 0, held_noise=None, throw: bool = True) -> FitResult:
     """Weighted least squares of gap, origin (k with known loads, nuisance loads, effect parameters).
 
     Parameters
@@ -123,9 +124,14 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
     alpha : float
         False-alarm probability of the outlier test on clean data; 0: no test (a refit that leaves out the
         readings its model's fit of every row named, as cross-validation folds do).
-    debias : int
-        Number of synthetic data sets for the parametric-bootstrap bias correction
-        (:mod:`ambfit.estimation.debias`, ideal law only); 0 (default) reports the plain estimate.
+    debias : "second-order", "none" or int
+        The estimator's bias of second order in the noise, subtracted from the estimate
+        (:mod:`ambfit.estimation.debias`): ``"second-order"`` (default) by the delta method, at the cost of about
+        one more evaluation of the model's derivatives; an integer ``n`` by a parametric bootstrap of ``n``
+        synthetic data sets (ideal law only); ``"none"`` (or 0): the plain least-squares estimate.  The result
+        is measured at the corrected estimate (residuals, χ², covariance; the shift is a fraction of a standard
+        error) and ``bias_correction`` says what was subtracted; the outlier test is the minimum's.  Not applied
+        to a fit that did not converge, is not identified, or uses a robust loss.
     seed : int
         Seed of the bootstrap.
     held_noise : array[n], optional
@@ -179,7 +185,7 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
              start_from: Sequence[FitResult | None] | None = None, held_noise: Sequence | None = None,
              require_k: bool = False, max_condition: float = 1e8, max_relative_gap_std: float = 0.1,
              p_min: float = 1e-3, max_steps: int = 200, loss: str = "auto", alpha: float = robust.ALPHA,
-             debias: int = 0, seed: int = 0, name_outliers: bool = True) -> list:
+             debias: int | str = "second-order", seed: int = 0, name_outliers: bool = True) -> list:
     """:func:`fit` of every data set (health as data, as with ``throw=False``), solved together.
 
     The data sets may differ in length, axes, biases, set-points, iterations, load groups and bearing; each
@@ -215,6 +221,7 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
     if len(bearings) != n:
         raise ValueError(f"bearing: one for all data sets or one per data set ({n}), got {len(bearings)}")
     masks, froms, helds = _each(mask, n, "mask"), _each(start_from, n, "start_from"), _each(held_noise, n, "held_noise")
+    second_order, debias = _debias_mode(debias)
     if debias and tuple(effects):
         raise ValueError("the bootstrap bias correction (debias) is implemented for the ideal law only")
     thresholds = Thresholds(max_condition=max_condition, max_relative_gap_std=max_relative_gap_std, p_min=p_min,
@@ -252,7 +259,7 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
         # an extended model starts from the ideal law's fit, without that fit's outliers
         todo = [s for s in range(n) if out[s] is None and froms[s] is None]
         ideal = fit_many([dfs[s] for s in todo], (), bearing=[bearings[s] for s in todo],
-                         mask=[masks[s] for s in todo], **opts)
+                         mask=[masks[s] for s in todo], debias="none", **opts)
         for s, res in zip(todo, ideal):
             if isinstance(res, BaseException):
                 out[s] = res
@@ -309,6 +316,8 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
                              inherited=inherited[s], name_outliers=name_outliers, t=t.get(s))
         except _FAILURES as exc:
             out[s] = exc
+    if second_order:
+        _subtract_bias(out, fitted, probs, {s: built[s][1] for s in fitted}, models, bearings, thresholds)
     for s in fitted:    # an effect these data do not determine makes the solver wander: say which, from the start
         res = out[s]
         if models[bearings[s]].n and isinstance(res, FitResult) and not res.converged and froms[s] is not None \
@@ -316,6 +325,59 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
             out[s] = dataclasses.replace(res, effect_identification=prior_shares(probs[s], built[s][1],
                                                                                  models[bearings[s]], froms[s]))
     return out
+
+
+DEBIAS = ("second-order", "none")
+"""The named bias corrections of :func:`fit` (an integer asks for the bootstrap)."""
+
+
+def _debias_mode(debias) -> tuple[bool, int]:
+    """``(second order, bootstrap sets)`` from :func:`fit`'s ``debias``."""
+    if isinstance(debias, str):
+        if debias not in DEBIAS:
+            raise ValueError(f"debias must be one of {DEBIAS} or a number of bootstrap sets, got {debias!r}")
+        return debias == "second-order", 0
+    if isinstance(debias, bool) or not isinstance(debias, (int, np.integer)) or debias < 0:
+        raise ValueError(f"debias must be one of {DEBIAS} or a number of bootstrap sets (>= 0), got {debias!r}")
+    return False, int(debias)
+
+
+def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: dict, bearings: list,
+                   thresholds: Thresholds):
+    """Each fitted least-squares result of ``out`` less its second-order bias (:func:`ambfit.estimation.debias.
+    second_order_biases`), in place, measured again at the corrected estimate (residuals, χ², covariance); the
+    solve's record (steps, EDM, outcome) and the outlier test stay as they were.  Fits that did not converge, are
+    not identified or use a robust loss are left as they are."""
+    for b, model in models.items():
+        todo = [s for s in fitted if bearings[s] == b and isinstance(out[s], FitResult) and out[s].edm < EDM_MAX
+                and out[s].loss in ("auto", "linear") and np.all(np.isfinite(out[s].cov)) and not out[s].bias_correction]
+        if not todo:
+            continue
+        ps = [probs[s] if out[s].weights is None else probs[s].with_mask(out[s].weights) for s in todo]
+        frees = [free_mask(p, metas[s], model) for p, s in zip(ps, todo)]
+        scales = [si_scale(p, model)[0] for p in ps]
+        covs = [out[s].cov / np.outer(sc[f], sc[f]) for s, f, sc in zip(todo, frees, scales)]
+        biases = bias_sets([out[s].theta for s in todo], ps, model, frees, covs)
+        # the bias grows with the noise variance: where that was estimated, by the fit's estimate of it
+        biases = [bias * out[s].reduced_chi2 if out[s].noise_estimated else bias for s, bias in zip(todo, biases)]
+        keep = [j for j, bias in enumerate(biases) if np.all(np.isfinite(bias))]
+        thetas = [np.asarray(out[todo[j]].theta) - biases[j] for j in keep]
+        again = results_at(measure_sets(thetas, [ps[j] for j in keep], model), [ps[j] for j in keep],
+                           [metas[todo[j]] for j in keep], model, [out[todo[j]].start for j in keep], thresholds)
+        for j, new in zip(keep, again):
+            s, res, free, scale = todo[j], out[todo[j]], frees[j], scales[j]
+            if isinstance(new, BaseException):
+                continue
+            moved = {f: getattr(new, f) for f in _AT_ESTIMATE}
+            out[s] = dataclasses.replace(
+                res, **moved, bias_correction={"method": "second-order", **{
+                    n: {"subtracted": float(v)} for n, v in zip(res.names, biases[j][free] * scale[free])}},
+                implausible=tuple(plausibility.check_result(dict(zip(res.names, new.values)), model.bearing)))
+
+
+_AT_ESTIMATE = ("values", "std", "cov", "corr", "chi2", "dof", "residuals", "condition", "weak_direction",
+                "noise_source", "theta", "effects", "jacobian_rows")
+"""What a result measures at its estimate (the rest is the solve's record, the outlier test and the flags)."""
 
 
 def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias, seed, inherited, name_outliers,

@@ -71,6 +71,11 @@ class FitResult:
         ``ideal`` or the effect names joined by ``+``.
     theta : array
         The scaled parameter vector (:mod:`ambfit.estimation.core`).
+    bias_correction : dict or None
+        What was subtracted from the least-squares minimum to give ``values`` and ``theta`` (SI, per parameter:
+        ``{"method": "second-order" | "bootstrap", name: {"subtracted": ...}}``); the other fields are measured
+        at the corrected estimate, but for the solve's record (``edm``, ``num_steps``, ``optimistix``) and the
+        outlier test, which are the minimum's.  None: the plain estimate.
     """
 
     names: list
@@ -346,9 +351,13 @@ class FitResult:
         out = [f"noise: {self.noise_source}; start: {self.start}; condition {self.condition:.3g}; {self.weak_direction}"]
         if self.bias_correction:
             bc = self.bias_correction
-            out.append("bias correction subtracted (µm): " + ", ".join(
-                f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in GEOMETRY if n in bc)
-                + f" ({bc['n']} synthetic sets)")
+            if bc.get("method") == "second-order":
+                out.append("second-order bias subtracted (µm): " + ", ".join(
+                    f"{n} {bc[n]['subtracted'] * 1e6:+.3f}" for n in GEOMETRY if n in bc))
+            else:
+                out.append("bias correction subtracted (µm): " + ", ".join(
+                    f"{n} {bc[n]['subtracted'] * 1e6:+.3f} ± {bc[n]['mc_error'] * 1e6:.3f}" for n in GEOMETRY if n in bc)
+                    + f" ({bc['n']} synthetic sets)")
         out += [f"k_{ax} not identified: no known load on axis {ax} (gap and origin do not need it)"
                 for ax, ok in self.k_by_axis.items() if not ok]
         if self.outlier_note:

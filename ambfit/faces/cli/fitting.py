@@ -128,7 +128,7 @@ class _Options:
     current_noise_ma: float | None
     position_noise_um: float | None
     require_k: bool
-    debias: int
+    debias: int | str
     loss: str
     keep_duplicates: bool
     accept: bool

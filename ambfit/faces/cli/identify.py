@@ -51,6 +51,23 @@ MAX_WORKERS = 4 * (os.cpu_count() or 1)
 """Most local worker processes: beyond a few per core they only contend for it."""
 
 
+def _debias_choice(param: typer.CallbackParam, value: str):
+    """``--debias``: a named correction (:data:`ambfit.estimation.fit.DEBIAS`) or a number of bootstrap sets (0 is
+    'none')."""
+    from ambfit.faces.cli.options import _fail
+
+    text = value.strip().lower()
+    if text in ("second-order", "none"):
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        _fail(param, value, "must be 'second-order', 'none' or a number of synthetic data sets")
+    if not 0 <= n <= MAX_DEBIAS:
+        _fail(param, value, f"a number of synthetic data sets must be within [0, {MAX_DEBIAS}]")
+    return n or "none"
+
+
 @app.command()
 def check(
     data: Annotated[Path, typer.Argument(help="Perturbation data, contract CSV (see ambfit/docs/data-format.md).")],
@@ -119,9 +136,12 @@ def identify(
     position_noise_um: PositionNoiseOption = None,
     require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
                                             "(needs known loads).")] = False,
-    debias: Annotated[int, typer.Option(callback=number(0, MAX_DEBIAS), help="Subtract the estimator's second-order bias, estimated from this "
-                                        "many synthetic data sets of the fitted model (0: off; 2000 is "
-                                        "plenty).")] = 0,
+    debias: Annotated[str, typer.Option(metavar="second-order|none|N", callback=_debias_choice,
+                                        help="The estimator's bias of second order in the noise, subtracted from "
+                                        "the estimate: 'second-order' by the delta method (costs less than the "
+                                        "fit); N: from N synthetic data sets of the fitted ideal law (a "
+                                        "parametric bootstrap; 2000 are plenty); 'none': the plain least-squares "
+                                        "estimate.")] = "second-order",
     max_position_um: Annotated[float | None, typer.Option(callback=number(0, low_open=True),
                                                           help="Reject positions at least this large [µm] "
                                                           "(unit check; default: the bearing's nominal "
@@ -147,7 +167,7 @@ def identify(
                                                     "readings determine them (several biases), fit them "
                                                     "(current_offset) and report that fit, saying so; "
                                                     "--no-fit-current-zeros keeps the ideal law and only "
-                                                    "advises.  One data set, least squares without --debias "
+                                                    "advises.  One data set, least squares without --debias N "
                                                     "or --effect (several files and --by groups get no "
                                                     "budget).")] = True,
     accept_implausible: AcceptOption = False,
@@ -308,7 +328,8 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
     kw = opts.fit_kw()
     noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
     b = budget(ds, res, **noise) if res.converged and res.well_conditioned else None
-    instead = fit_instead(ds, res, b, **noise) if b is not None and not opts.debias else None
+    bootstrap = not isinstance(opts.debias, str)
+    instead = fit_instead(ds, res, b, **noise, debias=opts.debias) if b is not None and not bootstrap else None
     if instead is not None and opts.fit_current_zeros:
         note(f"{instead.text}; the fit below does (--no-fit-current-zeros keeps the ideal law and its budget)")
         res, b = instead.fit, instead.budget
