@@ -178,11 +178,12 @@ def precompile(rows: Sequence[int], loads: Sequence[int] = (0,), *, bearing=None
 
 
 def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model, frees: Sequence[np.ndarray],
-              covs: Sequence[np.ndarray]) -> list[np.ndarray]:
+              covs: Sequence[np.ndarray], shares: Sequence = None) -> list[np.ndarray]:
     """The second-order bias of each estimate (:func:`ambfit.estimation.debias.second_order_biases`): ``thetas``
-    scaled, ``frees`` the estimated entries, ``covs`` their scaled covariance [free, free].  A data set alone runs
-    at its own shape; several are padded to their solve's buckets and run ``BATCH`` at a time.  Returns each bias
-    (scaled, over the whole of its theta; 0 outside the free entries, not finite where it is not determined)."""
+    scaled, ``frees`` the estimated entries, ``covs`` their scaled covariance [free, free], ``shares`` each one's
+    noise variance per kind of reading relative to its problem's (default 1).  A data set alone runs at its own
+    shape; several are padded to their solve's buckets and run ``BATCH`` at a time.  Returns each bias (scaled, over
+    the whole of its theta; 0 outside the free entries, not finite where it is not determined)."""
     from ambfit.estimation.debias import second_order_biases
 
     def full(t, free, cov):
@@ -190,10 +191,11 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
         c[np.ix_(free, free)] = cov
         return c
 
+    shares = np.ones((len(probs), 3)) if shares is None else np.asarray(shares, dtype=float)
     if len(probs) == 1:
         one = jax.tree.map(lambda a: np.asarray(a)[None], probs[0])
         return [second_order_biases(np.asarray(thetas[0])[None], one, model, np.asarray(frees[0])[None],
-                                    full(thetas[0], frees[0], covs[0])[None])[0]]
+                                    full(thetas[0], frees[0], covs[0])[None], shares[:1])[0]]
     out: list = [None] * len(probs)
     sizes = [(len(np.asarray(p.mask)), len(t) - 6 - model.n) for p, t in zip(probs, thetas)]
     keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
@@ -212,7 +214,7 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
                 theta[b, c], free[b, c] = thetas[s], frees[s]
                 cov[b][np.ix_(c, c)] = full(thetas[s], frees[s], covs[s])
                 cols.append(c)
-            bias = second_order_biases(theta, pad([probs[s] for s in order], rows), model, free, cov)
+            bias = second_order_biases(theta, pad([probs[s] for s in order], rows), model, free, cov, shares[order])
             for b, s in enumerate(part):
                 out[s] = bias[b, cols[b]]
     return out

@@ -3,26 +3,27 @@ parametric bootstrap.
 
 Currents enter the force law squared and every reading is noisy, so the estimator of :mod:`ambfit.estimation.fit`
 has a bias of second order in the noise (an errors-in-variables effect: a row's Jacobian and weight correlate with
-its own noise).  On the paper's Table 2 design at 0.6 mA it is about +0.1 standard deviations on the origins and
--0.04 on k, and it grows with the square of the noise: enough to put a study of a few hundred data sets several
-standard errors off.
+its own noise).  ``benchmarks/ls_bias.py`` measures it on the paper's protocols: about +0.1 standard deviations on
+the origins at 0.6 mA, three times that at 1.8 mA, and several standard deviations with the current channels' zeros
+free: enough to put a study of a few hundred data sets many standard errors off.
 
-Second order (:func:`second_order_bias`)
-----------------------------------------
-The estimate solves ``psi(theta, m) = sum_j w_j (F_j - L_j) dF_j/dtheta = 0`` (weights ``w = 1 / s_eff^2`` held, the
-effect priors added) for the readings ``m``.  Expanding the implicit function ``theta(m)`` to second order about
-the true readings, with independent noise of variance ``sigma_k^2`` on each reading ``k``,
+Second order (:func:`second_order_biases`)
+------------------------------------------
+The estimate solves ``psi(theta, m) = sum_j w_j (F_j - L_j) dF_j/dtheta + q = 0`` for the readings ``m``
+(``w = 1 / s_eff^2`` at ``theta``, as the reweighting's fixed point has them; ``q`` the effect priors').
+Expanding the implicit function ``theta(m)`` to second order about the noise-free readings, with independent
+noise of variance ``sigma_k^2`` on each reading ``k``,
 
-    E[theta] - theta = -1/2 A^-1 sum_k sigma_k^2 (psi_mm,kk + 2 psi_theta,m_k v_k + psi_theta,theta[v_k, v_k]),
+    E[theta] - theta(m_true) = -1/2 A^-1 sum_k sigma_k^2 (psi_mm,kk + 2 psi_theta,m_k v_k + psi_theta,theta[v_k, v_k]),
     A = d psi / d theta,   v_k = -A^-1 psi_m_k,
 
 the same expansion as Cox and Snell's (J. R. Stat. Soc. B 30, 248, 1968) for an estimating equation, here in the
 readings instead of the responses (Amemiya and Fuller, Ann. Stat. 16, 147, 1988, for errors in variables).
-Every term is an exact derivative (forward mode through :func:`ambfit.estimation.core.measured`); evaluated at the
-estimate and the measured readings instead of the unknown truth it leaves an error of third order.  It costs
-about one more evaluation of the Jacobian's derivatives, less than the solve.  The force of a row depends only
-on that row's readings, so one tangent per kind of reading (top current, bottom current, position) gives every
-row's derivative at once.
+``theta(m_true)`` is the truth for the ideal law; with effects under priors it is the noise-free estimate, so the
+priors' pull towards their centres stays (it is not noise).  The derivatives are differences of the model
+(:func:`_moments`); evaluated at the estimate and the measured readings instead of the unknown truth, the
+expansion leaves an error of third order.  The force of a row depends only on that row's readings, so one
+difference per kind of reading (top current, bottom current, position) gives every row's derivative at once.
 
 Bootstrap (:func:`bootstrap_bias`)
 ----------------------------------
@@ -136,14 +137,13 @@ def debiased(res: FitResult, prob: Problem, meta: Meta, model: Model, thresholds
            for n, b, e in zip(res.names, correction.bias[free] * scale, correction.mc_error[free] * scale)}})
 
 
-
 # --- second order ------------------------------------------------------------------------------------------
 
 THETA_STEP = 0.01
-"""Differences along theta step this fraction of a standard error (along each square root of the covariance):
-steps of one standard error put the derivatives of the estimating equation up to 6 % off (forward differences,
-against nested forward derivatives on Table 2 at 1.8 mA); a hundredth of one leaves the truncation far below a per
-cent, and each row's difference is taken before the sum, so round-off stays below it too."""
+"""Differences along theta step this fraction of a standard error (along each square root of the covariance).
+Steps of a whole standard error put the derivatives of the estimating equation up to 6 % off on Table 2 at 1.8 mA
+(against nested forward derivatives); a hundredth of one, below 0.1 %.  Each row's difference is taken before the
+sum over rows, so round-off stays far below that."""
 
 
 def _scores(prob: Problem, model: Model, free):
@@ -162,19 +162,20 @@ def _scores(prob: Problem, model: Model, free):
     return scores, prior
 
 
-def _moments(theta, steps, prob: Problem, model: Model, free):
+def _moments(theta, steps, prob: Problem, model: Model, free, share):
     """What the second-order bias needs from the model, by differences along the columns ``u_j`` of ``steps``
     (scaled, [p, q]) and along the readings:
 
     - ``a_u[j] = (psi(theta + u_j) - psi(theta - u_j)) / 2`` [q, p], i.e. ``A u_j``;
     - ``h_uu[j] = psi(theta + u_j) + psi(theta - u_j) - 2 psi(theta)`` [q, p], i.e. ``psi_theta,theta[u_j, u_j]``;
     - at ``theta``, ``t1 = sum_k sigma_k^2 psi_mm,kk`` [p] and ``B = sum_k sigma_k^2 psi_m_k psi_m_k^T`` [p, p];
-    - ``K[a, j, d] = sum_k sigma_k^2 (d psi_m_k,a / d u_j) psi_m_k,d`` [p, q, p].
+    - ``cross[a, j, d] = sum_k sigma_k^2 (d psi_m_k,a / d u_j) psi_m_k,d`` [p, q, p].
 
     Along the readings: central differences of one noise std (a reading without noise gets a step of 1e-9 and no
     weight); along theta: central differences of ``u_j``, each row's before the sum (``psi`` is a sum of large
-    terms that cancel at the estimate).  One vmapped program of the model: nested forward derivatives compile
-    several times slower.
+    terms that cancel at the estimate).  All of it is one vmapped evaluation of the model, at the ``2q + 1``
+    points and the seven readings of each row.  ``share[3]`` scales the noise variance of each kind of reading
+    (top current, bottom current, position) in the sums, not in the weights.
     """
     free = jnp.asarray(free, dtype=float)
     r = prob.readings
@@ -183,13 +184,13 @@ def _moments(theta, steps, prob: Problem, model: Model, free):
                        for s in (prob.s_top, prob.s_bottom, prob.s_x)])              # [3, rows]
     base = jnp.stack((r.i_top, r.i_bottom, r.x))
     h = jnp.where(sigma > 0, sigma, 1e-9)
-    var = sigma**2
+    var = sigma**2 * jnp.asarray(share, dtype=float)[:, None]
     eye = jnp.eye(3)[:, :, None]
     readings = jnp.concatenate([base[None], base[None] + eye * h[None], base[None] - eye * h[None]])   # [7, 3, rows]
     # the seven readings of every row as one problem of 7 x rows rows (a row's force is its own): one evaluation
-    # of the model, where a vmap over the readings would compile twice as long
-    tiled = jax.tree.map(lambda a: jnp.tile(a, (7,) + (1,) * (a.ndim - 1)) if a.ndim and a.shape[0] == n else a,
-                         prob)
+    # of the model per point, not one per reading
+    tiled = jax.tree.map(lambda a: jnp.tile(a, (7,) + (1,) * (a.ndim - 1)) if a.ndim else a, prob)
+    tiled = eqx.tree_at(lambda t: t.k_free, tiled, prob.k_free)        # (per axis, not per row)
     tiled = tiled.with_readings(*readings.transpose(1, 0, 2).reshape(3, 7 * n))
     scores, prior = _scores(tiled, model, free)
     q = steps.shape[1]
@@ -205,33 +206,70 @@ def _moments(theta, steps, prob: Problem, model: Model, free):
     h_uu = (g[up] + g[down] - 2.0 * g[0][None]).sum(axis=1)
     t1 = jnp.einsum("cn,cna->a", var / h**2, d2[0])
     b = jnp.einsum("cn,cna,cnb->ab", var, d1[0], d1[0])
-    k = jnp.einsum("cn,jcna,cnd->ajd", var, (d1[up] - d1[down]) / 2.0, d1[0])
-    return a_u, h_uu, t1, b, k
+    cross = jnp.einsum("cn,jcna,cnd->ajd", var, (d1[up] - d1[down]) / 2.0, d1[0])
+    return a_u, h_uu, t1, b, cross
 
 
-moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, None, 0)))
-""":func:`_moments` of a batch of data sets (leading axis of theta, steps, problems and free masks)."""
+moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, None, 0, 0)))
+""":func:`_moments` of a batch of data sets (leading axis of theta, steps, problems, free masks and shares)."""
 
 
-def second_order_biases(thetas, probs: Problem, model: Model, free, cov):
-    """Second-order bias of each estimate (module docstring), stacked: ``thetas[sets, p]`` (scaled), ``probs`` a
-    batch of problems (leading axis ``sets``; their masks the fits' row weights), ``free[sets, p]`` 1 for the
-    estimated entries, ``cov[sets, p, p]`` the scaled covariance of the estimate (0 outside the free entries),
-    whose square roots ``U`` (``cov = U U^T``) set the steps along theta.  Returns ``bias[sets, p]`` (scaled, 0
-    outside the free entries; not finite where the covariance or the estimating equation is singular).
+def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """Second-order bias of each of a batch of estimates (module docstring).
 
-    ``A = d psi / d theta`` is ``(A U) U^+``; ``psi_theta,theta`` contracted with ``M = A^-1 B A^-T`` is
-    ``sum_jl C_jl psi_theta,theta[u_j, u_l]`` with ``C = U^+ M U^+T``, of which the diagonal is measured.  ``M`` is
-    the covariance the noise gives the estimate and ``U U^T`` the covariance the fit reports, so ``C`` is the
-    identity but for the residuals' share of ``A`` and ``B``, of relative order ``n^-1/2``: the off-diagonal
-    terms it leaves out are that small a share of a term that is itself a share of the bias (the whole stays within
-    2 % of the exact expansion on the tests' data).
+    Parameters
+    ----------
+    thetas : array[sets, p]
+        The estimates (scaled parameter vectors, :mod:`ambfit.estimation.core`).
+    probs : Problem
+        Their problems stacked (leading axis ``sets``), each masked to the rows its fit used.
+    model : Model
+        The model fitted.
+    free : array[sets, p]
+        1 for the estimated entries of theta.
+    cov : array[sets, p, p]
+        The scaled covariance of each estimate (0 outside its free entries); its square roots ``U``
+        (``cov = U U^T``) set the steps along theta.
+    share : array[3] or array[sets, 3]
+        Scales each kind of reading's noise variance (top current, bottom current, position) in the bias but not in
+        the fit's weights: ``(1, 1, 0)`` is the bias the current noise alone causes; a noise estimated from the
+        residuals enters as its ratio to the problem's unit weights.
+
+    Returns
+    -------
+    array[sets, p]
+        The biases (scaled; 0 outside the free entries; NaN where the estimating equation's derivative is
+        singular).
+
+    Notes
+    -----
+    ``A = d psi / d theta`` is ``(A U) U^+``.  ``psi_theta,theta`` contracted with ``M = A^-1 B A^-T`` is ``sum_jl
+    C_jl psi_theta,theta[u_j, u_l]`` with ``C = U^+ M U^+T``, of which the diagonal is measured: ``M`` is the
+    covariance the noise gives the estimate and ``U U^T`` the one the fit reports, so ``C`` is the identity but for
+    the residuals' share of ``A`` and ``B``, of relative order ``rows^-1/2``.
+
+    Examples
+    --------
+    >>> import jax, numpy as np
+    >>> from ambfit.estimation import core, fit
+    >>> from ambfit.rig import protocol, virtual as rig
+    >>> data = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=1).data
+    >>> res = fit.fit(data, debias="none")
+    >>> prob, meta = core.build_problem(data)
+    >>> free = core.free_mask(prob, meta)
+    >>> scale = core.si_scale(prob)[0][free]
+    >>> bias = second_order_biases(res.theta[None], jax.tree.map(lambda a: np.asarray(a)[None], prob), core.IDEAL,
+    ...                            free[None], (res.cov / np.outer(scale, scale))[None])[0]
+    >>> bool(0.05 < bias[2] * scale[2] / res.error("v0") < 0.2)       # the origin's bias in its standard errors
+    True
     """
     free = np.asarray(free, dtype=float)
     thetas = np.asarray(thetas, dtype=float)
     lam, vec = np.linalg.eigh(cov)
     roots = vec * np.sqrt(np.maximum(lam, 0.0))[:, None, :]               # [sets, p, p]: cov = roots roots^T
-    a_u, h_uu, t1, b, k = (np.asarray(a) for a in moments_of_sets(thetas, THETA_STEP * roots, probs, model, free))
+    share = np.broadcast_to(np.asarray(share, dtype=float), (len(thetas), 3))
+    a_u, h_uu, t1, b, cross = (np.asarray(a) for a in moments_of_sets(thetas, THETA_STEP * roots, probs, model, free,
+                                                                       share))
     p = free.shape[1]
     u_inv = np.linalg.pinv(roots)
     a = (np.einsum("sja,sjb->sab", a_u / THETA_STEP, u_inv) * free[:, :, None] * free[:, None, :]
@@ -240,6 +278,6 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov):
         a_inv = np.linalg.inv(a)
         c = u_inv @ a_inv @ b @ np.swapaxes(a_inv, 1, 2) @ np.swapaxes(u_inv, 1, 2)
         t3 = np.einsum("sj,sja->sa", np.diagonal(c, axis1=1, axis2=2), h_uu / THETA_STEP**2)
-        cross = -2.0 * np.einsum("sajd,sjd->sa", k / THETA_STEP, u_inv @ a_inv)
-        bias = -0.5 * np.einsum("sab,sb->sa", a_inv, (t1 + cross + t3) * free)
+        t2 = -2.0 * np.einsum("sajd,sjd->sa", cross / THETA_STEP, u_inv @ a_inv)
+        bias = -0.5 * np.einsum("sab,sb->sa", a_inv, (t1 + t2 + t3) * free)
     return np.where(np.isfinite(a_inv).all(axis=(1, 2))[:, None], bias, np.nan)

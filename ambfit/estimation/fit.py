@@ -16,9 +16,11 @@ For Gaussian noise that is small next to the operating point (0.6 mA against
 with the latent true values profiled out; its information matrix is the
 Cramér-Rao bound of :mod:`ambfit.estimation.information`.  We prefer it to *output error*
 (predict the control current and compare) because it treats both coils and the
-position sensor symmetrically and needs no root solve per reading; unbiasedness
-and unit-variance pulls are checked on rig data in the tests and in
-``benchmarks/ls_efficiency.py``.  ``s_eff`` is held fixed while Levenberg-Marquardt
+position sensor symmetrically and needs no root solve per reading.  Its bias of
+second order in the noise (errors in variables: a row's Jacobian and weight correlate
+with its own noise) is subtracted by default (:mod:`ambfit.estimation.debias`);
+unbiasedness, spread at the bound and unit-variance pulls are checked on rig data in the
+tests and in ``benchmarks/ls_bias.py`` and ``benchmarks/ls_efficiency.py``.  ``s_eff`` is held fixed while Levenberg-Marquardt
 runs and re-evaluated at its estimate (``REWEIGHTINGS`` rounds: iteratively
 reweighted least squares), the usual choice that keeps the estimator consistent.
 
@@ -126,12 +128,13 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         readings its model's fit of every row named, as cross-validation folds do).
     debias : "second-order", "none" or int
         The estimator's bias of second order in the noise, subtracted from the estimate
-        (:mod:`ambfit.estimation.debias`): ``"second-order"`` (default) by the delta method, at the cost of about
-        one more evaluation of the model's derivatives; an integer ``n`` by a parametric bootstrap of ``n``
+        (:mod:`ambfit.estimation.debias`): ``"second-order"`` (default) by the delta method, from differences of
+        the model at a few dozen points around the estimate (one vmapped program); an integer ``n`` by a parametric bootstrap of ``n``
         synthetic data sets (ideal law only); ``"none"`` (or 0): the plain least-squares estimate.  The result
         is measured at the corrected estimate (residuals, χ², covariance; the shift is a fraction of a standard
         error) and ``bias_correction`` says what was subtracted; the outlier test is the minimum's.  Not applied
-        to a fit that did not converge, is not identified, or uses a robust loss.
+        to a fit that did not converge, is not identified, or uses a robust loss (``bias_correction`` then says
+        why).
     seed : int
         Seed of the bootstrap.
     held_noise : array[n], optional
@@ -204,8 +207,9 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
     mask, start_from, held_noise : sequence, optional
         As in :func:`fit`, one entry per data set (None in a place: that data set's default).
     name_outliers : bool
-        Run the outlier test (default); False: plain least squares for every data set with no test (a Monte
-        Carlo study's estimates: what ``loss="linear"`` gives, without naming the readings beyond the bound).
+        Run the outlier test (default); False: least squares of every row of every data set with no test (a Monte
+        Carlo study's estimates: what ``loss="linear"`` gives, without naming the readings beyond the bound; the
+        bias correction as ``debias`` says).
 
     Returns
     -------
@@ -342,36 +346,62 @@ def _debias_mode(debias) -> tuple[bool, int]:
     return False, int(debias)
 
 
+def _not_corrected(res: FitResult) -> str | None:
+    """Why the second-order correction does not apply to ``res`` (None: it does)."""
+    if res.loss not in ("auto", "linear"):
+        return f"the {res.loss} loss' estimate is not the least-squares one the expansion describes"
+    if not res.edm < EDM_MAX:
+        return "the fit did not converge"
+    if not (res.well_conditioned and np.all(np.isfinite(res.cov))):
+        return "the design does not identify the parameters"
+    return None
+
+
 def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: dict, bearings: list,
                    thresholds: Thresholds):
     """Each fitted least-squares result of ``out`` less its second-order bias (:func:`ambfit.estimation.debias.
     second_order_biases`), in place, measured again at the corrected estimate (residuals, χ², covariance); the
-    solve's record (steps, EDM, outcome) and the outlier test stay as they were.  Fits that did not converge, are
-    not identified or use a robust loss are left as they are."""
+    solve's record (steps, EDM, outcome) and the outlier test stay as they were.  A fit the correction does not
+    apply to (:func:`_not_corrected`) keeps its estimate, and its ``bias_correction`` says why."""
+    def skipped(s, why):
+        out[s] = dataclasses.replace(out[s], bias_correction={"method": "second-order", "skipped": why})
+
     for b, model in models.items():
-        todo = [s for s in fitted if bearings[s] == b and isinstance(out[s], FitResult) and out[s].edm < EDM_MAX
-                and out[s].loss in ("auto", "linear") and np.all(np.isfinite(out[s].cov)) and not out[s].bias_correction]
+        mine = [s for s in fitted if bearings[s] == b and isinstance(out[s], FitResult) and not out[s].bias_correction]
+        for s in mine:
+            why = _not_corrected(out[s])
+            if why:
+                skipped(s, why)
+        todo = [s for s in mine if not out[s].bias_correction]
         if not todo:
             continue
-        ps = [probs[s] if out[s].weights is None else probs[s].with_mask(out[s].weights) for s in todo]
+        # the rows each fit used, at the caller's weights (an outlier test records its own as 0 or 1)
+        ps = [probs[s] if out[s].weights is None
+              else probs[s].with_mask(np.asarray(probs[s].mask) * (np.asarray(out[s].weights) > 0)) for s in todo]
         frees = [free_mask(p, metas[s], model) for p, s in zip(ps, todo)]
         scales = [si_scale(p, model)[0] for p in ps]
         covs = [out[s].cov / np.outer(sc[f], sc[f]) for s, f, sc in zip(todo, frees, scales)]
-        biases = bias_sets([out[s].theta for s in todo], ps, model, frees, covs)
-        # the bias grows with the noise variance: where that was estimated, by the fit's estimate of it
-        biases = [bias * out[s].reduced_chi2 if out[s].noise_estimated else bias for s, bias in zip(todo, biases)]
+        # the bias grows with the noise variance: a current noise estimated from the residuals is the unit
+        # weights' times the reduced χ² (the position noise is then declared, or none)
+        shares = [(out[s].reduced_chi2,) * 2 + (1.0,) if out[s].noise_estimated else (1.0, 1.0, 1.0) for s in todo]
+        biases = bias_sets([out[s].theta for s in todo], ps, model, frees, covs, shares)
         keep = [j for j, bias in enumerate(biases) if np.all(np.isfinite(bias))]
+        for j in set(range(len(todo))) - set(keep):
+            skipped(todo[j], "the estimating equation does not determine the estimate (a singular derivative)")
         thetas = [np.asarray(out[todo[j]].theta) - biases[j] for j in keep]
         again = results_at(measure_sets(thetas, [ps[j] for j in keep], model), [ps[j] for j in keep],
                            [metas[todo[j]] for j in keep], model, [out[todo[j]].start for j in keep], thresholds)
         for j, new in zip(keep, again):
             s, res, free, scale = todo[j], out[todo[j]], frees[j], scales[j]
             if isinstance(new, BaseException):
+                skipped(s, f"the corrected estimate cannot be measured: {new}")
                 continue
             moved = {f: getattr(new, f) for f in _AT_ESTIMATE}
+            subtracted = biases[j][free] * scale[free]
             out[s] = dataclasses.replace(
-                res, **moved, bias_correction={"method": "second-order", **{
-                    n: {"subtracted": float(v)} for n, v in zip(res.names, biases[j][free] * scale[free])}},
+                res, **moved,
+                bias_correction={"method": "second-order",
+                                 **{n: {"subtracted": float(v)} for n, v in zip(res.names, subtracted)}},
                 implausible=tuple(plausibility.check_result(dict(zip(res.names, new.values)), model.bearing)))
 
 

@@ -73,7 +73,9 @@ class FitResult:
         The scaled parameter vector (:mod:`ambfit.estimation.core`).
     bias_correction : dict or None
         What was subtracted from the least-squares minimum to give ``values`` and ``theta`` (SI, per parameter:
-        ``{"method": "second-order" | "bootstrap", name: {"subtracted": ...}}``); the other fields are measured
+        ``{"method": "second-order" | "bootstrap", name: {"subtracted": ...}}``, or ``{"method": "second-order",
+        "skipped": why}`` where the correction does not apply and the estimate is the plain one); the other fields are
+        measured
         at the corrected estimate, but for the solve's record (``edm``, ``num_steps``, ``optimistix``) and the
         outlier test, which are the minimum's.  None: the plain estimate.
     """
@@ -351,7 +353,9 @@ class FitResult:
         out = [f"noise: {self.noise_source}; start: {self.start}; condition {self.condition:.3g}; {self.weak_direction}"]
         if self.bias_correction:
             bc = self.bias_correction
-            if bc.get("method") == "second-order":
+            if bc.get("skipped"):
+                out.append(f"second-order bias not subtracted: {bc['skipped']}")
+            elif bc.get("method") == "second-order":
                 out.append("second-order bias subtracted (µm): " + ", ".join(
                     f"{n} {bc[n]['subtracted'] * 1e6:+.3f}" for n in GEOMETRY if n in bc))
             else:

@@ -43,29 +43,12 @@ from ambfit.faces.cli.fitting import (
     drop_duplicates,
 )
 from ambfit.faces.cli.groups import _expand, _identify_groups
-from ambfit.faces.cli.options import number
+from ambfit.faces.cli.options import debias_choice, number
 
 MAX_DEBIAS = 100_000
-"""Most synthetic data sets for --debias (2000 are plenty; each is a fit)."""
+"""Most synthetic data sets for --debias N (2000 are plenty; each is a fit)."""
 MAX_WORKERS = 4 * (os.cpu_count() or 1)
 """Most local worker processes: beyond a few per core they only contend for it."""
-
-
-def _debias_choice(param: typer.CallbackParam, value: str):
-    """``--debias``: a named correction (:data:`ambfit.estimation.fit.DEBIAS`) or a number of bootstrap sets (0 is
-    'none')."""
-    from ambfit.faces.cli.options import _fail
-
-    text = value.strip().lower()
-    if text in ("second-order", "none"):
-        return text
-    try:
-        n = int(text)
-    except ValueError:
-        _fail(param, value, "must be 'second-order', 'none' or a number of synthetic data sets")
-    if not 0 <= n <= MAX_DEBIAS:
-        _fail(param, value, f"a number of synthetic data sets must be within [0, {MAX_DEBIAS}]")
-    return n or "none"
 
 
 @app.command()
@@ -136,7 +119,7 @@ def identify(
     position_noise_um: PositionNoiseOption = None,
     require_k: Annotated[bool, typer.Option(help="Fail unless k can be calibrated on every axis "
                                             "(needs known loads).")] = False,
-    debias: Annotated[str, typer.Option(metavar="second-order|none|N", callback=_debias_choice,
+    debias: Annotated[str, typer.Option(metavar="second-order|none|N", callback=debias_choice(MAX_DEBIAS),
                                         help="The estimator's bias of second order in the noise, subtracted from "
                                         "the estimate: 'second-order' by the delta method (costs less than the "
                                         "fit); N: from N synthetic data sets of the fitted ideal law (a "
@@ -327,9 +310,11 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
     _show_fit(res, name, len(ds))
     kw = opts.fit_kw()
     noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
-    b = budget(ds, res, **noise) if res.converged and res.well_conditioned else None
+    # the budget's refits as the fit was made, but never a bootstrap each
     bootstrap = not isinstance(opts.debias, str)
-    instead = fit_instead(ds, res, b, **noise, debias=opts.debias) if b is not None and not bootstrap else None
+    again = noise | {"debias": "none" if bootstrap else opts.debias}
+    b = budget(ds, res, **again) if res.converged and res.well_conditioned else None
+    instead = fit_instead(ds, res, b, **again) if b is not None and not bootstrap else None
     if instead is not None and opts.fit_current_zeros:
         note(f"{instead.text}; the fit below does (--no-fit-current-zeros keeps the ideal law and its budget)")
         res, b = instead.fit, instead.budget

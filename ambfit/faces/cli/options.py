@@ -68,6 +68,24 @@ def number(low=None, high=None, *, low_open: bool = False):
     return callback
 
 
+def debias_choice(most: int):
+    """A callback for ``--debias``: 'second-order', 'none' or a number of bootstrap data sets within ``[0, most]``
+    (0 is 'none'); returns the name or the number, as :func:`ambfit.fit` takes it."""
+    def callback(param: typer.CallbackParam, value: str):
+        text = value.strip().lower()
+        if text in ("second-order", "none"):
+            return text
+        try:
+            n = int(text)
+        except ValueError:
+            _fail(param, value, "must be 'second-order', 'none' or a number of synthetic data sets")
+        if not 0 <= n <= most:
+            _fail(param, value, f"a number of synthetic data sets must be within [0, {most}]")
+        return n or "none"
+
+    return callback
+
+
 def parse_numbers(text: str) -> list[float]:
     """``'1.4,1.6'`` as numbers; raises ValueError naming the part that is not one."""
     parts = [p.strip() for p in text.split(",")]
