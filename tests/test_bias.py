@@ -197,6 +197,18 @@ def test_no_correction_where_it_does_not_apply(table2):
         assert set(res.bias_correction) == {"method", "skipped"}
         assert "second-order bias not subtracted: " in " ".join(res.notes())
     assert fit.fit(table2, max_condition=10, throw=False).values == pytest.approx(plain.values, rel=1e-12)
+
+
+def test_a_correction_beyond_the_expansion_is_not_made(table2, monkeypatch):
+    # the ideal law's correction here moves the estimate by about 0.4 standard errors jointly
+    res = fit.fit(table2)
+    assert "skipped" not in res.bias_correction
+    monkeypatch.setattr(fit, "MAX_SHIFT", 0.3)
+    res = fit.fit(table2)
+    assert "higher orders are not negligible" in res.bias_correction["skipped"]
+    assert res.values == pytest.approx(fit.fit(table2, debias="none").values, rel=1e-12)
+    monkeypatch.setattr(fit, "MAX_SHIFT", 0.5)
+    assert "skipped" not in fit.fit(table2).bias_correction
     boot = fit.fit(table2, debias=50, seed=1).bias_correction
     assert boot["method"] == "bootstrap" and boot["n"] == 50
     for bad in ("third-order", -1, 1.5, True):

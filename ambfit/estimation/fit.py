@@ -72,7 +72,7 @@ from ambfit.estimation.core import (
     to_theta,
 )
 from ambfit.estimation.covariance import result_at, results_at
-from ambfit.estimation.debias import debiased
+from ambfit.estimation.debias import MAX_SHIFT, debiased
 from ambfit.estimation.identification import prior_shares
 from ambfit.estimation.outliers import screen, studentized
 from ambfit.estimation.problem import build_problems
@@ -385,9 +385,17 @@ def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: di
         # weights' times the reduced χ² (the position noise is then declared, or none)
         shares = [(out[s].reduced_chi2,) * 2 + (1.0,) if out[s].noise_estimated else (1.0, 1.0, 1.0) for s in todo]
         biases = bias_sets([out[s].theta for s in todo], ps, model, frees, covs, shares)
-        keep = [j for j, bias in enumerate(biases) if np.all(np.isfinite(bias))]
-        for j in set(range(len(todo))) - set(keep):
-            skipped(todo[j], "the estimating equation does not determine the estimate (a singular derivative)")
+        keep = []
+        for j, (s, bias, free, cov) in enumerate(zip(todo, biases, frees, covs)):
+            if not np.all(np.isfinite(bias)):
+                skipped(s, "the estimating equation does not determine the estimate (a singular derivative)")
+                continue
+            shift = float(np.sqrt(max(bias[free] @ np.linalg.lstsq(cov, bias[free], rcond=None)[0], 0.0)))
+            if shift > MAX_SHIFT:
+                skipped(s, f"the second-order term moves the estimate by {shift:.2g} standard errors (more than "
+                           f"{MAX_SHIFT:g}): the expansion's higher orders are not negligible")
+                continue
+            keep.append(j)
         thetas = [np.asarray(out[todo[j]].theta) - biases[j] for j in keep]
         again = results_at(measure_sets(thetas, [ps[j] for j in keep], model), [ps[j] for j in keep],
                            [metas[todo[j]] for j in keep], model, [out[todo[j]].start for j in keep], thresholds)
