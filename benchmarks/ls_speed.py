@@ -103,8 +103,11 @@ def many_fits(n, repeats):
     th0 = jnp.asarray(theta0)
     probs = batches.pad([b[0] for b in built], batches.row_bucket(len(data[0])))
     steps = lm.FIRST_STEPS
-    vm = lambda: jax.block_until_ready(batches._vmapped(th0, probs, IDEAL, steps).theta)  # noqa: E731
-    converged = float(np.mean(np.asarray(batches._vmapped(th0, probs, IDEAL, steps).edm) < core.EDM_MAX))
+    settings = {"reweightings": np.asarray(lm.REWEIGHTINGS), "edm_round": np.asarray(lm.EDM_ROUND),
+                "rtol": np.asarray(lm.RTOL)}
+    vm = lambda: jax.block_until_ready(batches._vmapped(th0, probs, IDEAL, np.asarray(steps), settings).theta)  # noqa: E731
+    converged = float(np.mean(np.asarray(batches._vmapped(th0, probs, IDEAL, np.asarray(steps), settings).edm)
+                              < core.EDM_MAX))
     vm()
 
     def loop():

@@ -184,7 +184,14 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
     noise variance per kind of reading relative to its problem's (default 1).  A data set alone runs at its own
     shape; several are padded to their solve's buckets and run ``BATCH`` at a time.  Returns each bias (scaled, over
     the whole of its theta; 0 outside the free entries, not finite where it is not determined)."""
-    from ambfit.estimation.debias import second_order_biases
+    from ambfit.estimation.debias import MAX_ROWS, second_order_biases
+
+    probs, scales = list(probs), np.ones(len(probs))
+    for s, prob in enumerate(probs):        # a long data set: an evenly spaced subset of its fitted rows
+        used = np.nonzero(np.asarray(prob.mask) > 0)[0]
+        if len(used) > MAX_ROWS:
+            probs[s] = _rows(prob, used[np.linspace(0, len(used) - 1, MAX_ROWS).round().astype(int)])
+            scales[s] = len(used) / MAX_ROWS
 
     def full(t, free, cov):
         c = np.zeros((len(t), len(t)))
@@ -195,7 +202,7 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
     if len(probs) == 1:
         one = jax.tree.map(lambda a: np.asarray(a)[None], probs[0])
         return [second_order_biases(np.asarray(thetas[0])[None], one, model, np.asarray(frees[0])[None],
-                                    full(thetas[0], frees[0], covs[0])[None], shares[:1])[0]]
+                                    full(thetas[0], frees[0], covs[0])[None], shares[:1], scales[:1])[0]]
     out: list = [None] * len(probs)
     sizes = [(len(np.asarray(p.mask)), len(t) - 6 - model.n) for p, t in zip(probs, thetas)]
     keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
@@ -214,7 +221,8 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
                 theta[b, c], free[b, c] = thetas[s], frees[s]
                 cov[b][np.ix_(c, c)] = full(thetas[s], frees[s], covs[s])
                 cols.append(c)
-            bias = second_order_biases(theta, pad([probs[s] for s in order], rows), model, free, cov, shares[order])
+            bias = second_order_biases(theta, pad([probs[s] for s in order], rows), model, free, cov, shares[order],
+                                       scales[order])
             for b, s in enumerate(part):
                 out[s] = bias[b, cols[b]]
     return out
@@ -224,3 +232,9 @@ def measure_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: 
     """Each problem measured at ``thetas`` as a solve ends (weights, residuals and Jacobians there), without a step:
     the solve's own compiled programs with no step budget and no reweighting round."""
     return _solve_batch(list(thetas), list(probs), model, 0, BATCH, reweightings=0)
+
+
+def _rows(prob: Problem, rows: np.ndarray) -> Problem:
+    """The problem of these rows only (every field with one entry per row; the axes' fields stay)."""
+    n = len(np.asarray(prob.mask))
+    return jax.tree.map(lambda a: np.asarray(a)[rows] if np.ndim(a) and np.shape(a)[0] == n else a, prob)

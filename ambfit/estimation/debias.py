@@ -139,12 +139,24 @@ def debiased(res: FitResult, prob: Problem, meta: Meta, model: Model, thresholds
 
 # --- second order ------------------------------------------------------------------------------------------
 
-MAX_SHIFT = 2.0
-"""The correction is applied only where it moves the estimate by at most this many standard errors jointly
-(``sqrt(b^T C^-1 b)``, ``C`` the estimate's covariance): the expansion is the first term of a series in the
-noise, and a shift of the order of the noise's own scatter says the next terms are not negligible.  Measured: the
-ideal law 0.15-0.4 (Table 2 at 0.6 and 1.8 mA), the current channels' zeros fitted 1.4 (a correction a Monte Carlo
-confirms, ``benchmarks/ls_bias.py``), the magnetic circuit on the finite-element bearing 9."""
+MAX_ROWS = 8192
+"""A data set of more rows has its bias's sums over rows taken over an evenly spaced subset of this many, scaled
+up: their sampling error is about ``MAX_ROWS^-1/2`` of the bias (a per cent), where the whole set would cost many
+times the fit and its memory."""
+
+MAX_SHIFT = 1.0
+"""The correction is applied only where it moves the estimate by at most this many standard errors of a fit of
+as many readings as parameters (``sqrt(b^T C^-1 b p / n)``, ``C`` the estimate's covariance, ``p`` parameters,
+``n`` readings): the expansion is a series in each reading's noise, whose first term as large as one reading's
+own scatter says the next terms are not negligible.  (The joint shift in standard errors of the fit itself grows
+as ``sqrt(n)`` where the expansion holds as well as ever.)  Measured: the ideal law 0.04-0.11 (Table 2 at 0.6 and
+1.8 mA, 80 to 32000 readings), the current channels' zeros fitted 0.5 (a correction a Monte Carlo confirms,
+``benchmarks/ls_bias.py``), the magnetic circuit on the finite-element bearing 1.2."""
+
+QUADRATIC_RISE = 2.0
+"""The corrected estimate must raise χ² by at most this many times the rise the quadratic model predicts
+(``b^T C^-1 b``), plus one: a larger rise says the objective is not quadratic over the step, so neither is the
+expansion (the magnetic circuit on the finite-element bearing: 3300 against 87 predicted)."""
 
 THETA_STEP = 0.01
 """Differences along theta step this fraction of a standard error (along each square root of the covariance).
@@ -154,26 +166,22 @@ sum over rows, so round-off stays far below that."""
 
 
 def _scores(prob: Problem, model: Model, free):
-    """Each row's share of the estimating equation ``psi`` [rows, p] at ``(theta, readings)``, and the effect
-    priors' share of it at ``theta``."""
+    """Each row's share of the estimating equation ``psi`` [rows, p] at ``(theta, readings)`` (the effect priors
+    add ``q``, linear in theta)."""
     weight = jnp.asarray(prob.mask, dtype=float) ** 2
 
     def scores(th, readings):
         f, s, jac = measured(th, prob.with_readings(readings.i_top, readings.i_bottom, readings.x), model)
         return (weight * f / s**2)[:, None] * jac * free
 
-    def prior(th):
-        p = th.shape[0]
-        return (jnp.zeros_like(th).at[p - model.n:].set(th[p - model.n:]) if model.n else jnp.zeros_like(th)) * free
-
-    return scores, prior
+    return scores
 
 
 def _moments(theta, steps, prob: Problem, model: Model, free, share):
     """What the second-order bias needs from the model, by differences along the columns ``u_j`` of ``steps``
     (scaled, [p, q]) and along the readings:
 
-    - ``a_u[j] = (psi(theta + u_j) - psi(theta - u_j)) / 2`` [q, p], i.e. ``A u_j``;
+    - ``a_u[j] = (psi(theta + u_j) - psi(theta - u_j)) / 2`` [q, p], i.e. ``A u_j`` (the rows' share);
     - ``h_uu[j] = psi(theta + u_j) + psi(theta - u_j) - 2 psi(theta)`` [q, p], i.e. ``psi_theta,theta[u_j, u_j]``;
     - at ``theta``, ``t1 = sum_k sigma_k^2 psi_mm,kk`` [p] and ``B = sum_k sigma_k^2 psi_m_k psi_m_k^T`` [p, p];
     - ``cross[a, j, d] = sum_k sigma_k^2 (d psi_m_k,a / d u_j) psi_m_k,d`` [p, q, p].
@@ -199,7 +207,7 @@ def _moments(theta, steps, prob: Problem, model: Model, free, share):
     tiled = jax.tree.map(lambda a: jnp.tile(a, (7,) + (1,) * (a.ndim - 1)) if a.ndim else a, prob)
     tiled = eqx.tree_at(lambda t: t.k_free, tiled, prob.k_free)        # (per axis, not per row)
     tiled = tiled.with_readings(*readings.transpose(1, 0, 2).reshape(3, 7 * n))
-    scores, prior = _scores(tiled, model, free)
+    scores = _scores(tiled, model, free)
     q = steps.shape[1]
     points = jnp.concatenate([theta[None], theta[None] + steps.T, theta[None] - steps.T])           # [2q + 1, p]
 
@@ -209,7 +217,7 @@ def _moments(theta, steps, prob: Problem, model: Model, free, share):
 
     g, d1, d2 = jax.vmap(at)(points)
     up, down = slice(1, q + 1), slice(q + 1, 2 * q + 1)
-    a_u = (g[up] - g[down]).sum(axis=1) / 2.0 + jax.vmap(prior)(steps.T)
+    a_u = (g[up] - g[down]).sum(axis=1) / 2.0           # (the rows' share: the priors' is added by the caller)
     h_uu = (g[up] + g[down] - 2.0 * g[0][None]).sum(axis=1)
     t1 = jnp.einsum("cn,cna->a", var / h**2, d2[0])
     b = jnp.einsum("cn,cna,cnb->ab", var, d1[0], d1[0])
@@ -221,7 +229,8 @@ moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, Non
 """:func:`_moments` of a batch of data sets (leading axis of theta, steps, problems, free masks and shares)."""
 
 
-def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(1.0, 1.0, 1.0)) -> np.ndarray:
+def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(1.0, 1.0, 1.0),
+                        row_scale=1.0) -> np.ndarray:
     """Second-order bias of each of a batch of estimates (module docstring).
 
     Parameters
@@ -241,6 +250,9 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
         Scales each kind of reading's noise variance (top current, bottom current, position) in the bias but not in
         the fit's weights: ``(1, 1, 0)`` is the bias the current noise alone causes; a noise estimated from the
         residuals enters as its ratio to the problem's unit weights.
+    row_scale : float or array[sets]
+        Each problem's rows stand for this many times as many (an evenly spaced subset of a long data set's rows:
+        the sums over rows scaled up, :data:`MAX_ROWS`).
 
     Returns
     -------
@@ -275,8 +287,12 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     lam, vec = np.linalg.eigh(cov)
     roots = vec * np.sqrt(np.maximum(lam, 0.0))[:, None, :]               # [sets, p, p]: cov = roots roots^T
     share = np.broadcast_to(np.asarray(share, dtype=float), (len(thetas), 3))
-    a_u, h_uu, t1, b, cross = (np.asarray(a) for a in moments_of_sets(thetas, THETA_STEP * roots, probs, model, free,
-                                                                       share))
+    a_u, h_uu, t1, b, cross = (np.asarray(a) * np.broadcast_to(np.asarray(row_scale, dtype=float),
+                                                                (len(thetas),)).reshape((-1,) + (1,) * (a.ndim - 1))
+                               for a in moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share))
+    if model.n:                 # the priors' share of A u_j: the steps' entries of q
+        p = thetas.shape[1]
+        a_u[:, :, p - model.n:] += THETA_STEP * np.swapaxes(roots, 1, 2)[:, :, p - model.n:] * free[:, None, p - model.n:]
     p = free.shape[1]
     u_inv = np.linalg.pinv(roots)
     a = (np.einsum("sja,sjb->sab", a_u / THETA_STEP, u_inv) * free[:, :, None] * free[:, None, :]
