@@ -258,8 +258,9 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
         keep = res.fitted_rows.astype(float)
 
         def refit(table):
+            # the plain estimate: a bias correction would cancel in the difference of a term's two refits
             return fit(table, res.effects, bearing=res.bearing, start_from=res, mask=keep, alpha=0.0, throw=False,
-                       **({"loss": res.loss} | fit_kw))
+                       **({"loss": res.loss} | fit_kw | {"debias": "none"}))
 
     effects = tuple(type(e).name for e in res.effects)
     found = terms(frame, bearing, effects)

@@ -310,11 +310,10 @@ def _identify_ls(ds, name, opts: _Options) -> dict:
     _show_fit(res, name, len(ds))
     kw = opts.fit_kw()
     noise = {k: kw[k] for k in ("sigma_i", "sigma_x", "require_k", "loss")}
-    # the budget's refits as the fit was made, but never a bootstrap each
     bootstrap = not isinstance(opts.debias, str)
-    again = noise | {"debias": "none" if bootstrap else opts.debias}
-    b = budget(ds, res, **again) if res.converged and res.well_conditioned else None
-    instead = fit_instead(ds, res, b, **again) if b is not None and not bootstrap else None
+    b = budget(ds, res, **noise) if res.converged and res.well_conditioned else None
+    # (the fit with the current zeros is made as this one was, but never with a bootstrap)
+    instead = fit_instead(ds, res, b, **noise, debias=opts.debias) if b is not None and not bootstrap else None
     if instead is not None and opts.fit_current_zeros:
         note(f"{instead.text}; the fit below does (--no-fit-current-zeros keeps the ideal law and its budget)")
         res, b = instead.fit, instead.budget
