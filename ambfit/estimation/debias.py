@@ -153,11 +153,6 @@ as ``sqrt(n)`` where the expansion holds as well as ever.)  Measured: the ideal 
 1.8 mA, 80 to 32000 readings), the current channels' zeros fitted 0.5 (a correction a Monte Carlo confirms,
 ``benchmarks/ls_bias.py``), the magnetic circuit on the finite-element bearing 1.2."""
 
-QUADRATIC_RISE = 2.0
-"""The corrected estimate must raise χ² by at most this many times the rise the quadratic model predicts
-(``b^T C^-1 b``), plus one: a larger rise says the objective is not quadratic over the step, so neither is the
-expansion (the magnetic circuit on the finite-element bearing: 3300 against 87 predicted)."""
-
 THETA_STEP = 0.01
 """Differences along theta step this fraction of a standard error (along each square root of the covariance).
 Steps of a whole standard error put the derivatives of the estimating equation up to 6 % off on Table 2 at 1.8 mA

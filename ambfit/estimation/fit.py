@@ -72,7 +72,7 @@ from ambfit.estimation.core import (
     to_theta,
 )
 from ambfit.estimation.covariance import result_at, results_at
-from ambfit.estimation.debias import MAX_SHIFT, QUADRATIC_RISE, debiased
+from ambfit.estimation.debias import MAX_SHIFT, debiased
 from ambfit.estimation.identification import prior_shares
 from ambfit.estimation.outliers import screen, studentized
 from ambfit.estimation.problem import build_problems
@@ -385,13 +385,13 @@ def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: di
         # weights' times the reduced χ² (the position noise is then declared, or none)
         shares = [(out[s].reduced_chi2,) * 2 + (1.0,) if out[s].noise_estimated else (1.0, 1.0, 1.0) for s in todo]
         biases = bias_sets([out[s].theta for s in todo], ps, model, frees, covs, shares)
-        keep, joint = [], {}
+        keep = []
         for j, (s, bias, free, cov) in enumerate(zip(todo, biases, frees, covs)):
             if not np.all(np.isfinite(bias)):
                 skipped(s, "the estimating equation does not determine the estimate (a singular derivative)")
                 continue
-            joint[j] = float(max(bias[free] @ np.linalg.lstsq(cov, bias[free], rcond=None)[0], 0.0))
-            shift = np.sqrt(joint[j] * free.sum() / max(out[s].n_fit_rows, 1))
+            joint = float(max(bias[free] @ np.linalg.lstsq(cov, bias[free], rcond=None)[0], 0.0))
+            shift = np.sqrt(joint * free.sum() / max(out[s].n_fit_rows, 1))
             if shift > MAX_SHIFT:
                 skipped(s, f"the second-order term moves the estimate by {shift:.2g} standard errors of a fit of as "
                            f"many readings as parameters (more than {MAX_SHIFT:g}): the expansion's higher orders "
@@ -405,12 +405,6 @@ def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: di
             s, res, free, scale = todo[j], out[todo[j]], frees[j], scales[j]
             if isinstance(new, BaseException):
                 skipped(s, f"the corrected estimate cannot be measured: {new}")
-                continue
-            # (χ² is in the noise's units: an estimated noise scales the quadratic model's prediction)
-            predicted = joint[j] * (res.reduced_chi2 if res.noise_estimated else 1.0)
-            if new.chi2 - res.chi2 > QUADRATIC_RISE * predicted + 1.0:
-                skipped(s, f"χ² rises by {new.chi2 - res.chi2:.3g} at the corrected estimate where the quadratic "
-                           f"model predicts {predicted:.3g}: the expansion does not hold over the step")
                 continue
             moved = {f: getattr(new, f) for f in _AT_ESTIMATE}
             subtracted = biases[j][free] * scale[free]
