@@ -228,7 +228,7 @@ def test_identify_takes_the_correction_by_name_or_number(tmp_path, table2):
     table2.to_csv(csv, index=False)
     runner = CliRunner()
     out = {}
-    for choice in ("second-order", "none", "40"):
+    for choice in (*fit.DEBIAS, "40"):      # (the option's names, kept in the light CLI module, are the fit's)
         js = tmp_path / f"{choice}.json"
         r = runner.invoke(app, ["identify", str(csv), "--debias", choice, "--json", str(js), "--no-force-check"])
         assert r.exit_code == 0, r.output

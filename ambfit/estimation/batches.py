@@ -88,21 +88,13 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
         sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps, **settings)
         return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
     out: list = [None] * len(probs)
-    # (rows, nuisance loads): a start holds the six head entries, one per load, then the model's effect entries
-    sizes = [(len(np.asarray(p.mask)), len(t) - 6 - model.n) for p, t in zip(probs, thetas)]
-    keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
-    for key in dict.fromkeys(keys):
-        rows, loads = key
-        members = [s for s, k in enumerate(keys) if k == key]
-        parts = [members[lo:lo + size] for lo in range(0, len(members), size)]
-        order = [s for part in parts for s in part + [part[0]] * (size - len(part))]
+    for rows, loads, parts in _buckets(thetas, probs, model, size):
+        order = [s for part, padded in parts for s in padded]
         stacked = pad([probs[s] for s in order], rows)          # every batch of the bucket at once
         starts = np.zeros((len(order), 6 + loads + model.n))
         for b, s in enumerate(order):
-            t = np.asarray(thetas[s], dtype=float)
-            m = sizes[s][1]
-            starts[b, :6 + m], starts[b, 6 + loads:] = t[:6 + m], t[6 + m:]
-        for i, part in enumerate(parts):
+            starts[b, _columns(thetas[s], model, loads)] = thetas[s]
+        for i, (part, _) in enumerate(parts):
             batch = slice(i * size, (i + 1) * size)
             sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model,
                            np.asarray(max_steps), {k: np.asarray(v) for k, v in settings.items()})
@@ -110,18 +102,36 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
             theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
                                                                             sol.jac_all, sol.z))
             for b, s in enumerate(part):
-                nr, m = sizes[s]
-                if m == loads and not model.n:          # no padded loads nor priors: the data set's own block
-                    cut = (slice(0, nr), slice(0, 6 + m))
-                    th = theta[b, :6 + m]
+                nr, cols = len(np.asarray(probs[s].mask)), _columns(thetas[s], model, loads)
+                if len(cols) == 6 + loads and not model.n:  # no padded loads nor priors: the data set's own block
+                    cut = (slice(0, nr), slice(0, len(cols)))
+                    th = theta[b, :len(cols)]
                 else:
-                    cols = np.r_[0:6 + m, 6 + loads:6 + loads + model.n]
                     # rows: the data set's own, then the effect priors' (after the padded rows)
                     cut = np.ix_(np.r_[0:nr, rows:rows + model.n], cols)
                     th = theta[b, cols]
                 out[s] = Solution(theta=th, result=_text(ok[b], sol.result, b), steps=steps[b], edm=edm[b],
                                   jac=jac[b][cut], jac_all=jac_all[b][cut], z=z[b, :nr])
     return out
+
+
+def _buckets(thetas, probs, model: Model, size: int):
+    """The data sets grouped as a batched program takes them: per bucket ``(rows, loads, parts)``, its padded rows
+    and nuisance loads (:func:`row_bucket`, :func:`load_bucket`) and its batches ``(members, padded)``, each at most
+    ``size`` data sets, ``padded`` filled up to ``size`` with copies of its first member."""
+    # (rows, nuisance loads): a theta holds the six head entries, one per load, then the model's effect entries
+    keys = [(row_bucket(len(np.asarray(p.mask))), load_bucket(len(t) - 6 - model.n)) for p, t in zip(probs, thetas)]
+    for key in dict.fromkeys(keys):
+        members = [s for s, k in enumerate(keys) if k == key]
+        parts = [members[lo:lo + size] for lo in range(0, len(members), size)]
+        yield key[0], key[1], [(part, part + [part[0]] * (size - len(part))) for part in parts]
+
+
+def _columns(theta, model: Model, loads: int) -> np.ndarray:
+    """Where a data set's theta sits in its bucket's, whose ``loads`` nuisance loads follow the head: the head and
+    its own loads, then the effect entries after the padded loads."""
+    own = len(theta) - model.n
+    return np.r_[0:own, 6 + loads:6 + loads + model.n]
 
 
 def solve_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model = IDEAL,
@@ -204,27 +214,18 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
         return [second_order_biases(np.asarray(thetas[0])[None], one, model, np.asarray(frees[0])[None],
                                     full(thetas[0], frees[0], covs[0])[None], shares[:1], scales[:1])[0]]
     out: list = [None] * len(probs)
-    sizes = [(len(np.asarray(p.mask)), len(t) - 6 - model.n) for p, t in zip(probs, thetas)]
-    keys = [(row_bucket(nr), load_bucket(m)) for nr, m in sizes]
-    for key in dict.fromkeys(keys):
-        rows, loads = key
-        members = [s for s, k in enumerate(keys) if k == key]
-        for lo in range(0, len(members), BATCH):
-            part = members[lo:lo + BATCH]
-            order = part + [part[0]] * (BATCH - len(part))
-            width = 6 + loads + model.n
+    for rows, loads, parts in _buckets(thetas, probs, model, BATCH):
+        width = 6 + loads + model.n
+        for part, order in parts:
             theta, free, cov = np.zeros((BATCH, width)), np.zeros((BATCH, width), bool), np.zeros((BATCH, width, width))
-            cols = []
             for b, s in enumerate(order):
-                m = sizes[s][1]
-                c = np.r_[0:6 + m, 6 + loads:width]
+                c = _columns(thetas[s], model, loads)
                 theta[b, c], free[b, c] = thetas[s], frees[s]
                 cov[b][np.ix_(c, c)] = full(thetas[s], frees[s], covs[s])
-                cols.append(c)
             bias = second_order_biases(theta, pad([probs[s] for s in order], rows), model, free, cov, shares[order],
                                        scales[order])
             for b, s in enumerate(part):
-                out[s] = bias[b, cols[b]]
+                out[s] = bias[b, _columns(thetas[s], model, loads)]
     return out
 
 

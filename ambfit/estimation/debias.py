@@ -279,16 +279,16 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     """
     free = np.asarray(free, dtype=float)
     thetas = np.asarray(thetas, dtype=float)
+    sets, p = thetas.shape
     lam, vec = np.linalg.eigh(cov)
     roots = vec * np.sqrt(np.maximum(lam, 0.0))[:, None, :]               # [sets, p, p]: cov = roots roots^T
-    share = np.broadcast_to(np.asarray(share, dtype=float), (len(thetas), 3))
-    a_u, h_uu, t1, b, cross = (np.asarray(a) * np.broadcast_to(np.asarray(row_scale, dtype=float),
-                                                                (len(thetas),)).reshape((-1,) + (1,) * (a.ndim - 1))
+    share = np.broadcast_to(np.asarray(share, dtype=float), (sets, 3))
+    rows = np.broadcast_to(np.asarray(row_scale, dtype=float), (sets,))
+    a_u, h_uu, t1, b, cross = (np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1))
                                for a in moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share))
     if model.n:                 # the priors' share of A u_j: the steps' entries of q
-        p = thetas.shape[1]
-        a_u[:, :, p - model.n:] += THETA_STEP * np.swapaxes(roots, 1, 2)[:, :, p - model.n:] * free[:, None, p - model.n:]
-    p = free.shape[1]
+        q = slice(p - model.n, p)
+        a_u[:, :, q] += THETA_STEP * np.swapaxes(roots, 1, 2)[:, :, q] * free[:, None, q]
     u_inv = np.linalg.pinv(roots)
     a = (np.einsum("sja,sjb->sab", a_u / THETA_STEP, u_inv) * free[:, :, None] * free[:, None, :]
          + (1.0 - free)[:, :, None] * np.eye(p))
