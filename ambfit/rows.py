@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ambfit.data import Dataset, group_labels
+from ambfit.data import Dataset, group_labels, joint_codes
 
 
 def runs(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
@@ -97,23 +97,39 @@ def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     return np.where(partner >= 0, it[partner], np.nan), np.where(partner >= 0, ib[partner], np.nan)
 
 
-def clock(df: pd.DataFrame) -> np.ndarray | None:
+def clock(df: pd.DataFrame, sets: np.ndarray | None = None) -> np.ndarray | None:
     """Each row's time [s] from the start of its clock; ``None`` without a ``time_s`` column.
 
     One clock holds within an experiment (contract section 1).  When each experiment, in the order the file
     lists them, starts after the one before it ends, they were read one after another on one clock, and the
     whole file counts from its first reading (a drift runs on across experiments); otherwise each experiment's
     clock restarted, and each counts from its own first reading.  Either way nothing depends on where a clock's
-    zero is.
+    zero is.  ``sets`` (each row's data set, one set's rows together) decides this for each data set of a
+    joined table on its own, as for that table alone.
     """
     if "time_s" not in df.columns:
         return None
-    t = df["time_s"].astype(float)
-    exp = group_labels(df["experiment"]) if "experiment" in df.columns else pd.Series("", index=df.index)
-    spans = t.groupby(exp.to_numpy(), sort=False).agg(["min", "max"]).dropna()
-    one_clock = bool(np.all(spans["min"].to_numpy()[1:] >= spans["max"].to_numpy()[:-1]))
-    start = t.min() if one_clock else t.groupby(exp.to_numpy()).transform("min")
-    return (t - start).to_numpy()
+    t = df["time_s"].to_numpy(float)
+    n = len(t)
+    sets = np.zeros(n, dtype=np.int64) if sets is None else np.asarray(sets)
+    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(n)
+    code = joint_codes(sets, exp)                  # each set's experiments, in the order the file lists them
+    count = int(code.max(initial=-1)) + 1
+    lo, hi = np.full(count + 1, np.inf), np.full(count + 1, -np.inf)   # (a last one for rows of no experiment)
+    np.fmin.at(lo, code, t)
+    np.fmax.at(hi, code, t)
+    lo[-1], hi[-1] = np.inf, -np.inf
+    owner = np.zeros(count + 1, dtype=np.int64)
+    owner[code] = sets
+    timed = np.nonzero(np.isfinite(lo))[0]         # experiments with a reading's time
+    after = owner[timed[1:]] == owner[timed[:-1]]
+    restarted = after & ~(lo[timed[1:]] >= hi[timed[:-1]])
+    one_clock = np.ones(int(sets.max(initial=-1)) + 1, dtype=bool)
+    one_clock[owner[timed[1:]][restarted]] = False
+    first = np.full(len(one_clock), np.inf)
+    np.fmin.at(first, sets, t)
+    lo, first = np.where(np.isfinite(lo), lo, np.nan), np.where(np.isfinite(first), first, np.nan)
+    return t - np.where(one_clock[sets], first[sets], lo[code])
 
 
 STEADY_K = 0.01

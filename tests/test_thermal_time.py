@@ -5,6 +5,7 @@ Reference values come from the rig's truth (the rates it was given), not from ea
 
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
@@ -188,3 +189,18 @@ def test_the_clock_is_one_run_only_when_every_experiment_follows_the_one_before(
     got = rows_mod.clock(restart)
     assert got[0] == got[100] == got[200] == 0.0
     assert rows_mod.clock(timed.drop(columns="time_s")) is None
+
+
+def test_a_joined_tables_clocks_are_each_tables_own(timed):
+    """A study's joined table decides each data set's clock as that table alone would (one run or restarted), and
+    rows of no experiment or no time count as they do there."""
+    t = timed.time_s.to_numpy()
+    three = timed.assign(experiment=np.repeat(["a", "b", "c"], [100, 100, len(timed) - 200]))
+    restart = three.assign(time_s=np.where(three.experiment == "c", t - t[200], t))
+    gaps = restart.assign(time_s=np.where(np.arange(len(t)) % 7 == 0, np.nan, restart.time_s),
+                          experiment=np.where(np.arange(len(t)) % 11 == 0, None, restart.experiment))
+    tables = [three, restart, gaps, restart.iloc[150:260], three.iloc[:0]]
+    sets = np.repeat(np.arange(len(tables)), [len(x) for x in tables])
+    joined = rows_mod.clock(pd.concat(tables, ignore_index=True), sets)
+    np.testing.assert_array_equal(joined, np.concatenate([rows_mod.clock(x) for x in tables]))
+    assert np.isnan(joined[sets == 2]).any() and np.all(joined[sets == 1][[0, 100, 200]] == 0.0)

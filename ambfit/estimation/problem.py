@@ -299,8 +299,7 @@ def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
     prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups)
     offsets = np.cumsum([0] + list(lengths))
     # each data set's clock is its own (whether its experiments ran on one clock is decided per table)
-    own = {".readings.time": np.concatenate([clock(joined.iloc[lo:hi]) for lo, hi in zip(offsets[:-1], offsets[1:])])
-           } if "time_s" in joined else {}
+    own = {".readings.time": clock(joined, set_id)} if "time_s" in joined else {}
     rows = _slicer(prob, own)
     gidx, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
     # each data set's load groups are numbered one after another from its first: its own numbers start at 0
