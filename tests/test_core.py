@@ -277,6 +277,39 @@ def test_the_solve_measures_every_rows_jacobian_and_fits_only_the_masked_rows():
     alone = fit(sim[keep > 0].reset_index(drop=True), [E.Saturation()], loss="linear", throw=False)
     assert alone.names == res.names
     np.testing.assert_allclose(res.std, alone.std, rtol=1e-5)
+    # and every row's effective noise, the unit of its residual
+    s = np.asarray(core.noise_std(jnp.asarray(res.theta), prob, model))
+    np.testing.assert_allclose(res.row_noise, s, rtol=1e-12)
+    np.testing.assert_allclose(res.residuals[: len(sim)] * s, np.asarray(core.misfit(res.theta, prob, model)[0]),
+                               rtol=1e-9, atol=1e-12 * np.abs(s).max())
+
+
+def test_problems_padded_to_one_shape_measure_as_each_alone():
+    """The vmapped measurement of problems padded to a common number of rows and loads gives each problem's own
+    rows: forces, effective noise and Jacobian columns (its head, its loads, the effects)."""
+    from ambfit.estimation.batches import pad
+
+    model = core.Model.of([E.Saturation(b_sat=jnp.asarray(1.3))])
+    tables = [rig.simulate(rig.PAPER_RIG, P.rich(), seed=1).data,
+              rig.simulate(rig.PAPER_RIG, P.paper_table2(), seed=2).data]
+    built = [core.build_problem(t) for t in tables]
+    rows, loads = 1024, 32
+    assert rows >= max(len(t) for t in tables) and loads >= max(len(m.load_groups) for _, m in built)
+    thetas = []
+    for prob, meta in built:
+        theta = np.zeros(6 + loads + model.n)
+        theta[:6] = core.to_theta(760e-6, 0.0, core.K_REFERENCE, np.zeros(0))[:6] + 0.01
+        theta[6:6 + len(meta.load_groups)] = np.linspace(-0.5, 0.5, len(meta.load_groups))
+        theta[-model.n:] = 0.3
+        thetas.append(theta)
+    f, s, jac = (np.asarray(a) for a in core.measured_sets(np.stack(thetas), pad([p for p, _ in built], rows), model))
+    for b, ((prob, meta), theta) in enumerate(zip(built, thetas)):
+        n, own = len(np.asarray(prob.mask)), np.r_[0:6 + len(meta.load_groups), 6 + loads:6 + loads + model.n]
+        f1, s1, j1 = core.rows_measured(theta[own], prob, meta, model)
+        np.testing.assert_allclose(f[b, :n], f1, rtol=1e-12, atol=1e-12 * np.abs(f1).max())
+        np.testing.assert_allclose(s[b, :n], s1, rtol=1e-12)
+        np.testing.assert_allclose(jac[b, :n][:, own[core.free_mask(prob, meta, model)]], j1, rtol=1e-10,
+                                   atol=1e-12 * np.abs(j1).max())
 
 
 # --- one compiled solve for a set of models -----------------------------------------------------------------

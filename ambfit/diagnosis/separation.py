@@ -81,11 +81,9 @@ def separate_by(models: list, df: pd.DataFrame, bearing, noise: dict, enough: fl
     that counts as separating (:attr:`ambfit.diagnosis.verdict.Rules.separate_log_bayes`)."""
     if len(models) < 2:
         return None
-    scores = {}
-    own = _discrimination(models, df, noise)
-    for what, data in _protocols(models[0], df, bearing):
-        scores[what] = _discrimination(models, data, {})
-    scores = {k: v for k, v in scores.items() if np.isfinite(v)}
+    runs = _protocols(models[0], df, bearing)
+    own, *each = _discriminations(models, [(df, noise)] + [(data, {}) for _, data in runs])
+    scores = {what: v for (what, _), v in zip(runs, each) if np.isfinite(v)}
     if not scores:
         return None
     best = max(scores, key=scores.get)
@@ -159,21 +157,44 @@ def _noise_of(df: pd.DataFrame) -> tuple[float, float]:
             float(pos) if np.isfinite(pos) and pos > 0 else rig.Noise().position)
 
 
-def _discrimination(models: list, data: pd.DataFrame, noise: dict) -> float:
-    """The least expected log Bayes factor, over every ordered pair of ``models``, on ``data``'s readings."""
-    from ambfit.data import zero_based
-    from ambfit.estimation.core import Model, build_problem, misfit, row_jacobian
+def _discriminations(models: list, tables: list) -> list[float]:
+    """The least expected log Bayes factor, over every ordered pair of ``models``, on each of ``tables``' readings
+    (``(data, noise)`` each).  Each model is measured on every table at once: the tables' problems padded to one
+    shape (rows and loads) and vmapped, one compiled program per model instead of one per model and table."""
+    from jax import tree_util
 
-    df = zero_based(data)
-    prob, meta = build_problem(df, **noise)
-    preds = []
-    for m in models:
-        model = Model.of(m.effects, m.bearing)
-        n_loads = len(m.theta) - 6 - model.n
-        theta = np.concatenate([m.theta[:6], np.zeros(len(meta.load_groups)), m.theta[6 + n_loads:]])
-        f, s = (np.asarray(a) for a in misfit(theta, prob, model))
-        # each model's Jacobian once: it is the refitted side of every pair it is in
-        preds.append((f, s, row_jacobian(theta, prob, meta, model)))
+    from ambfit.data import zero_based
+    from ambfit.estimation.batches import load_bucket, pad, row_bucket
+    from ambfit.estimation.core import Model, build_problem, free_mask, measured_sets
+
+    built = [build_problem(zero_based(data), **noise) for data, noise in tables]
+    # tables whose problems share a structure (which optional columns they have) are measured together
+    kinds: dict = {}
+    for t, (prob, _) in enumerate(built):
+        kinds.setdefault(tree_util.tree_structure(prob), []).append(t)
+    preds: list = [[] for _ in tables]
+    for members in kinds.values():
+        rows = row_bucket(max(len(np.asarray(built[t][0].mask)) for t in members))
+        loads = load_bucket(max(len(built[t][1].load_groups) for t in members))
+        stacked = pad([built[t][0] for t in members], rows)
+        for m in models:
+            model = Model.of(m.effects, m.bearing)
+            head, tail = m.theta[:6], m.theta[len(m.theta) - model.n:]
+            theta = np.tile(np.concatenate([head, np.zeros(loads), tail]), (len(members), 1))
+            f, s, jac = (np.asarray(a) for a in measured_sets(theta, stacked, model))
+            for b, t in enumerate(members):
+                prob, meta = built[t]
+                n = len(np.asarray(prob.mask))
+                # the table's own columns (the head, its loads, the effects) that it estimates
+                cols = np.r_[0:6 + len(meta.load_groups), 6 + loads:6 + loads + model.n][free_mask(prob, meta, model)]
+                # each model's Jacobian once: it is the refitted side of every pair it is in
+                preds[t].append((f[b, :n], s[b, :n], jac[b, :n][:, cols]))
+    return [_least(p) for p in preds]
+
+
+def _least(preds: list) -> float:
+    """The least expected log Bayes factor over every ordered pair of models measured on one table (``(F - L,
+    s_eff, Jacobian)`` each, with loads at zero: a load's column absorbs them)."""
     least = np.inf
     for (fa, _, _), (fb, sb, jac) in itertools.permutations(preds, 2):
         delta = (fa - fb) / sb

@@ -99,8 +99,8 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
             sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model,
                            np.asarray(max_steps), {k: np.asarray(v) for k, v in settings.items()})
             ok = np.asarray(sol.result == optx.RESULTS.successful)
-            theta, steps, edm, jac, jac_all, z = (np.asarray(a) for a in (sol.theta, sol.steps, sol.edm, sol.jac,
-                                                                            sol.jac_all, sol.z))
+            theta, steps, edm, jac, jac_all, z, s_eff = (np.asarray(a) for a in (
+                sol.theta, sol.steps, sol.edm, sol.jac, sol.jac_all, sol.z, sol.s))
             for b, s in enumerate(part):
                 nr, cols = len(np.asarray(probs[s].mask)), _columns(thetas[s], model, loads)
                 if len(cols) == 6 + loads and not model.n:  # no padded loads nor priors: the data set's own block
@@ -111,7 +111,7 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
                     cut = np.ix_(np.r_[0:nr, rows:rows + model.n], cols)
                     th = theta[b, cols]
                 out[s] = Solution(theta=th, result=_text(ok[b], sol.result, b), steps=steps[b], edm=edm[b],
-                                  jac=jac[b][cut], jac_all=jac_all[b][cut], z=z[b, :nr])
+                                  jac=jac[b][cut], jac_all=jac_all[b][cut], z=z[b, :nr], s=s_eff[b, :nr])
     return out
 
 

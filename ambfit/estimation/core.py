@@ -315,11 +315,30 @@ def free_mask(prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
                     + [True] * (len(meta.load_groups) + model.n))
 
 
+def _measure_rows(theta, prob: Problem, model: Model):
+    f, s, jac = measured(theta, prob, model)
+    return f, s, weighted(theta, (f, s, jac), jnp.ones_like(f), model.n)[1][: f.shape[0]]
+
+
+_rows_measured = eqx.filter_jit(_measure_rows)
+
+measured_sets = eqx.filter_jit(eqx.filter_vmap(_measure_rows, in_axes=(0, 0, None)))
+""":func:`rows_measured` of a batch of problems (leading axis of theta and of the problems' leaves; every column of
+theta): ``F - L``, ``s_eff`` and the weight-1 Jacobian of every row, with no cut to the free columns."""
+
+
+def rows_measured(theta, prob: Problem, meta: Meta, model: Model = IDEAL) -> tuple[np.ndarray, ...]:
+    """``F - L`` [N], ``s_eff`` [N] and the Jacobian of the standardized residual at weight 1 (free columns) of every
+    row, held-out rows too: one compiled program per model and shape (a fit measures all three with its solve:
+    ``FitResult.residuals``, ``row_noise``, ``jacobian_rows``)."""
+    f, s, jac = (np.asarray(a) for a in _rows_measured(jnp.asarray(theta), prob, model))
+    return f, s, jac[:, free_mask(prob, meta, model)]
+
+
 def row_jacobian(theta, prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
     """Jacobian of every row's standardized residual at weight 1 (held-out rows too), free columns only: what
     leverages and the discrepancy's projection need (a fit measures it with its solve: ``FitResult.jacobian_rows``)."""
-    ones = prob.with_mask(np.ones(len(prob.mask)))
-    return np.asarray(jacobian(jnp.asarray(theta), ones, model))[: len(prob.mask)][:, free_mask(prob, meta, model)]
+    return rows_measured(theta, prob, meta, model)[2]
 
 
 def free_names(meta: Meta, free: np.ndarray, model: Model = IDEAL) -> list[str]:

@@ -175,4 +175,5 @@ def _measure(idx, free, masks, theta, z, j, sols, probs, metas, model, hows, thr
             n_rows=metas[s].n_rows, n_fit_rows=int(used[b].sum()),
             effects=model.build(theta[b, theta.shape[1] - model.n:]) if model.n else effects, model=model_name,
             bearing=bearing, theta=theta[b], thresholds=thresholds,
-            jacobian_rows=rows_all[b], **(extras[s] if extras is not None else {}))
+            jacobian_rows=rows_all[b], row_noise=np.asarray(sol.s)[:n_rows],
+            **(extras[s] if extras is not None else {}))

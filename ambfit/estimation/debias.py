@@ -49,15 +49,13 @@ from ambfit.estimation.core import (
     Model,
     Problem,
     free_mask,
-    jacobian,
     measured,
     si_scale,
-    standardized,
     target,
     unpack,
 )
 from ambfit.estimation.covariance import result_at
-from ambfit.estimation.lm import Solution, solve
+from ambfit.estimation.lm import measure, solve
 from ambfit.estimation.results import FitResult, Thresholds
 from ambfit.physics.model import pole_gaps
 
@@ -124,10 +122,8 @@ def debiased(res: FitResult, prob: Problem, meta: Meta, model: Model, thresholds
     covariance, conditioning and χ² measured again at the corrected estimate."""
     correction = bootstrap_bias(res.theta, prob, prob.bias, n=n, seed=seed, model=model)
     theta = res.theta - correction.bias
-    t = jnp.asarray(theta)
-    sol = Solution(theta=theta, result=res.optimistix, steps=res.num_steps, edm=res.edm,
-                   jac=np.asarray(jacobian(t, prob, model)), z=np.asarray(standardized(t, prob, model)),
-                   jac_all=np.asarray(jacobian(t, prob.with_mask(np.ones(len(prob.mask))), model)))
+    # measured at the corrected estimate; the solve's record is the fit's
+    sol = measure(theta, prob, model)._replace(result=res.optimistix, steps=res.num_steps, edm=res.edm)
     res = result_at(sol, prob, meta, model, res.start, thresholds)
     free = free_mask(prob, meta)
     scale = si_scale(prob)[0][free]

@@ -219,7 +219,9 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     rows = result.jacobian_rows
     # measured with the fit's solve, every row at weight 1: the same matrix
     jac = rows if rows is not None and rows.shape == (n, int(free.sum())) else row_jacobian(theta, prob, meta, model)
-    s = np.asarray(noise_std(theta, prob, model))
+    s = result.row_noise
+    if s is None or np.shape(s) != (n,):
+        s = np.asarray(noise_std(theta, prob, model))
     if mask is not None:
         w = np.asarray(mask, dtype=float) ** 2
     elif result.weights is not None:

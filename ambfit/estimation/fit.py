@@ -416,7 +416,7 @@ def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: di
 
 
 _AT_ESTIMATE = ("values", "std", "cov", "corr", "chi2", "dof", "residuals", "condition", "weak_direction",
-                "noise_source", "theta", "effects", "jacobian_rows")
+                "noise_source", "theta", "effects", "jacobian_rows", "row_noise")
 """What a result measures at its estimate (the rest is the solve's record, the outlier test and the flags)."""
 
 

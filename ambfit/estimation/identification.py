@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ambfit.estimation.core import Meta, Model, Problem, free_mask, free_names, row_jacobian
+from ambfit.estimation.core import Meta, Model, Problem, free_mask, free_names
+from ambfit.estimation.lm import measure
 
 MAX_PRIOR_SHARE = 0.25
 """An effect parameter is determined by the data when its variance, at the start of the extended fit, is below this
@@ -54,7 +55,9 @@ def prior_shares(prob: Problem, meta: Meta, model: Model, start) -> dict:
     if not model.n:
         return {}
     theta = np.concatenate([np.asarray(start.theta), np.zeros(model.n)])
-    jac = row_jacobian(theta, prob, meta, model)[start.fitted_rows]
+    # measured by the solve's own program (no step): the fit just compiled it for this model and shape
+    rows = np.asarray(measure(theta, prob, model).jac_all)[: len(np.asarray(prob.mask))]
+    jac = rows[:, free_mask(prob, meta, model)][start.fitted_rows]
     info = jac.T @ jac
     info[-model.n:, -model.n:] += np.eye(model.n)          # q ~ N(0, 1): the effects' weak priors
     share = np.diag(np.linalg.pinv(info))[-model.n:]

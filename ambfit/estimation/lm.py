@@ -74,6 +74,8 @@ class Solution(NamedTuple):
         The same with every row at weight 1 (outlier tests and leverages of held-out rows need it).
     z : array[rows]
         ``(F - L) / s_eff`` of every row.
+    s : array[rows]
+        ``s_eff`` [N] of every row (the effective noise std the solution's weights hold).
     """
 
     theta: jnp.ndarray
@@ -83,6 +85,7 @@ class Solution(NamedTuple):
     jac: jnp.ndarray
     jac_all: jnp.ndarray
     z: jnp.ndarray
+    s: jnp.ndarray
 
     @property
     def converged(self):
@@ -237,7 +240,7 @@ def _solve_in(theta0, prob, models, index, budget, reweightings, edm_round, rtol
     r, j = weighted(c.y, c.at, prob.mask, n)
     j_all = weighted(c.y, c.at, jnp.ones_like(prob.mask), n)[1]
     f, s, _ = c.at
-    return Solution(theta=c.y, result=c.result, steps=c.total, edm=distance(j, r), jac=j, jac_all=j_all, z=f / s)
+    return Solution(theta=c.y, result=c.result, steps=c.total, edm=distance(j, r), jac=j, jac_all=j_all, z=f / s, s=s)
 
 
 _PARTS = Recent(64)
@@ -311,9 +314,16 @@ def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_ST
             theta0 = np.concatenate([theta0, np.zeros(pad)])
         program, p_leaves, m_leaves = _compiled(prob, models)
         sol = program(theta0, p_leaves, m_leaves, np.asarray(index), *_settings(np, *settings))
-        sol = sol._replace(**{k: np.asarray(getattr(sol, k)) for k in ("theta", "steps", "edm", "jac", "jac_all", "z")})
+        sol = sol._replace(**{k: np.asarray(getattr(sol, k)) for k in ("theta", "steps", "edm", "jac", "jac_all", "z", "s")})
     if pad:
         width, rows = sol.theta.shape[-1] - pad, sol.jac.shape[-2] - pad
         sol = sol._replace(theta=sol.theta[..., :width], jac=sol.jac[..., :rows, :width],
                            jac_all=sol.jac_all[..., :rows, :width])
     return sol
+
+
+def measure(theta, prob: Problem, model: Model = IDEAL) -> Solution:
+    """The problem measured at ``theta`` as a solve ends (its weights, residuals, Jacobians and noise there), without
+    a step: the solve's own compiled program with no step budget and no reweighting round, so that a model already
+    fitted at this shape compiles nothing more."""
+    return solve(theta, prob, model, 0, reweightings=0)

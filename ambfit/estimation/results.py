@@ -113,6 +113,9 @@ class FitResult:
     jacobian_rows: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     """Jacobian of every row's standardized residual (weight 1, held-out rows too) at ``theta``, free columns
     (what the outlier test's leverages need; measured with the solve)."""
+    row_noise: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    """Effective noise std ``s_eff`` [N] of every row (held-out rows too) at ``theta``, measured with the solve: the
+    unit of :attr:`residuals` (what the discrepancy's basis is standardized by)."""
     plain_shift: dict | None = None
     implausible: tuple = ()
     effect_identification: dict | None = None     # {effect parameter: share of its prior's variance left}
