@@ -9,6 +9,7 @@ thousands of data sets compiles a handful of programs.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -130,8 +131,14 @@ def _buckets(thetas, probs, model: Model, size: int):
 def _columns(theta, model: Model, loads: int) -> np.ndarray:
     """Where a data set's theta sits in its bucket's, whose ``loads`` nuisance loads follow the head: the head and
     its own loads, then the effect entries after the padded loads."""
-    own = len(theta) - model.n
-    return np.r_[0:own, 6 + loads:6 + loads + model.n]
+    return _placed(len(theta) - model.n, model.n, loads)
+
+
+@functools.lru_cache(maxsize=1024)
+def _placed(own: int, n: int, loads: int) -> np.ndarray:
+    cols = np.concatenate([np.arange(own), np.arange(6 + loads, 6 + loads + n)])
+    cols.flags.writeable = False           # (shared by every call with these sizes)
+    return cols
 
 
 def solve_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Model = IDEAL,

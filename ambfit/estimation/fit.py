@@ -376,8 +376,7 @@ def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: di
         if not todo:
             continue
         # the rows each fit used, at the caller's weights (an outlier test records its own as 0 or 1)
-        ps = [probs[s] if out[s].weights is None
-              else probs[s].with_mask(np.asarray(probs[s].mask) * (np.asarray(out[s].weights) > 0)) for s in todo]
+        ps = [_used_rows(probs[s], out[s].weights) for s in todo]
         frees = [free_mask(p, metas[s], model) for p, s in zip(ps, todo)]
         scales = [si_scale(p, model)[0] for p in ps]
         covs = [out[s].cov / np.outer(sc[f], sc[f]) for s, f, sc in zip(todo, frees, scales)]
@@ -413,6 +412,15 @@ def _subtract_bias(out: list, fitted: list, probs: list, metas: dict, models: di
                 bias_correction={"method": "second-order",
                                  **{n: {"subtracted": float(v)} for n, v in zip(res.names, subtracted)}},
                 implausible=tuple(plausibility.check_result(dict(zip(res.names, new.values)), model.bearing)))
+
+
+def _used_rows(prob: Problem, weights) -> Problem:
+    """``prob`` with the rows a fit gave no weight to masked out (itself when that changes nothing)."""
+    if weights is None:
+        return prob
+    mask = np.asarray(prob.mask)
+    used = mask * (np.asarray(weights) > 0)
+    return prob if np.array_equal(used, mask) else prob.with_mask(used)
 
 
 _AT_ESTIMATE = ("values", "std", "cov", "corr", "chi2", "dof", "residuals", "condition", "weak_direction",
