@@ -75,22 +75,41 @@ def _check_step(it, ib, sigma, n_avg):
 
 
 def _predicted_std(x, it, ib, sigma, n_avg, bearing) -> float:
-    """Standard deviation of one iteration's gap that current noise ``sigma`` gives (linear propagation)."""
+    """Standard deviation of one iteration's gap that current noise ``sigma`` gives (linear propagation: the gap's
+    forward differences in each current, all solved at once; NaN when a moved current makes Eq. 6-7 unsolvable)."""
     if sigma is None or not np.isfinite(sigma) or sigma <= 0:
         return math.nan
-    base = solve(x, it, ib, bearing=bearing, _propagate=False).g0
     h = 1e-7
-    grads = []
-    for cur in (it, ib):
-        for idx in np.ndindex(cur.shape):
-            pert = cur.copy()
-            pert[idx] += h
-            args = (pert, ib) if cur is it else (it, pert)
-            try:
-                grads.append((solve(x, *args, bearing=bearing, _propagate=False).g0 - base) / h)
-            except ClosedFormError:
-                return math.nan
-    return float(np.sqrt(np.sum(np.square(grads))) * sigma / math.sqrt(n_avg))
+    moved = np.eye(it.size).reshape(it.size, *it.shape) * h
+    still = np.zeros_like(moved)
+    # the readings as they are, then each top current moved by h, then each bottom current
+    g0 = _gaps(x, np.concatenate([it[None], it + moved, it + still]), np.concatenate([ib[None], ib + still, ib + moved]),
+               bearing.cos_alpha)
+    if not np.all(np.isfinite(g0)):
+        return math.nan
+    return float(np.sqrt(np.sum(np.square((g0[1:] - g0[0]) / h))) * sigma / math.sqrt(n_avg))
+
+
+def _gaps(x, it, ib, c) -> np.ndarray:
+    """Eq. 6-7's gap [m] of a stack of one iteration's currents ``it``, ``ib`` [..., positions, 2] at the positions
+    ``x`` [m], as :func:`solve` finds it; NaN where :func:`solve` would refuse (no ratio, a singular or
+    ill-conditioned Eq. 7, a non-physical solution)."""
+    num = np.square(it[..., 0]) - np.square(it[..., 1])
+    den = np.square(ib[..., 0]) - np.square(ib[..., 1])
+    p = np.where((num == 0.0) | (den == 0.0), np.nan, eq6(it[..., 0], ib[..., 0], it[..., 1], ib[..., 1]))
+    finite = np.all(np.isfinite(p), axis=-1)
+    a, rhs = eq7_system(np.where(finite[..., None], p, 0.0), x, c)
+    sv = np.linalg.svd(a, compute_uv=False)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.where(sv[..., -1] > 0, sv[..., 0] / sv[..., -1], np.inf)
+        if len(x) == 2:
+            g0, x0 = eq7(p, x, c)
+        else:
+            sol = np.linalg.pinv(a) @ rhs[..., None]
+            g0, x0 = sol[..., 0, 0], sol[..., 1, 0] / c
+        u = (x0[..., None] + x) * c
+        ok = finite & (cond < MAX_CONDITION) & (g0 > 0) & np.all(np.abs(u) < g0[..., None], axis=-1)
+    return np.where(ok, g0, np.nan)
 
 
 def position_labels(df, group=None, *, set_point_tolerance: float = POSITION_TOLERANCE) -> np.ndarray:

@@ -104,35 +104,53 @@ def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solutio
     """
     own = f"{df['axis'].iloc[0]}_um"
     labels = position_labels(df, set_point_tolerance=1e-9)     # a set-point is a commanded value: equal or not
-    biases = np.unique(df["bias_A"].to_numpy(float))
+    bias = df["bias_A"].to_numpy(float)
+    biases = np.unique(bias)
     if len(biases) != 2:
         raise ClosedFormError(f"Eq. 6 needs exactly two bias settings per iteration, found {biases.tolist()} A")
-    xs, it, ib, loads = [], [], [], []
-    for lab in np.unique(labels):
-        sub = df[labels == lab]
-        row_t, row_b, row_l = [], [], []
-        for b in biases:
-            s = sub[sub["bias_A"] == b]
-            if s.empty:
-                raise ClosedFormError(
-                    f"position {sub[own].mean():.4g} µm has no reading at bias {b:g} A: each position needs both biases")
-            row_t.append(s["i_top_A"].mean())
-            row_b.append(s["i_bottom_A"].mean())
-            row_l.append(s["load_N"].mean() if "load_N" in s.columns else math.nan)
-        if "load_id" in sub.columns and sub["load_id"].nunique() > 1:
-            raise ClosedFormError(f"position {sub[own].mean():.4g} µm: the two biases carry different loads "
-                                  f"{sorted(sub['load_id'].unique().tolist())}; Eq. 5 needs the same load")
-        xs.append(sub[own].mean() * 1e-6)
-        it.append(row_t)
-        ib.append(row_b)
-        loads.append(row_l)
+    n_pos = int(labels.max()) + 1                              # (labels number the positions 0, 1, ...)
+    at = np.searchsorted(biases, bias)
+    position = _means(df[own].to_numpy(float), labels, n_pos)
+    count = np.zeros((n_pos, 2), dtype=int)
+    np.add.at(count, (labels, at), 1)
+    if not count.all():
+        p, b = np.argwhere(count == 0)[0]
+        raise ClosedFormError(f"position {position[p]:.4g} µm has no reading at bias {biases[b]:g} A: each position "
+                              "needs both biases")
+    if "load_id" in df.columns:
+        ids = pd.factorize(df["load_id"])[0]                   # (a missing id is no id: -1)
+        known = ids >= 0
+        lo, hi = np.full(n_pos, np.iinfo(np.int64).max), np.full(n_pos, -1)
+        np.minimum.at(lo, labels[known], ids[known])
+        np.maximum.at(hi, labels[known], ids[known])
+        mixed = np.nonzero((hi >= 0) & (lo != hi))[0]
+        if len(mixed):
+            p = mixed[0]
+            found = sorted(df["load_id"][labels == p].dropna().unique().tolist())
+            raise ClosedFormError(f"position {position[p]:.4g} µm: the two biases carry different loads {found}; "
+                                  "Eq. 5 needs the same load")
+    cell = labels * 2 + at                                      # (position, bias)
+    it = _means(df["i_top_A"].to_numpy(float), cell, 2 * n_pos).reshape(n_pos, 2)
+    ib = _means(df["i_bottom_A"].to_numpy(float), cell, 2 * n_pos).reshape(n_pos, 2)
+    loads = (_means(df["load_N"].to_numpy(float), cell, 2 * n_pos).reshape(n_pos, 2) if "load_N" in df.columns
+             else np.full((n_pos, 2), math.nan))
+    xs = position * 1e-6
     sigma = None
     if all(c in df.columns for c in ("i_top_std_A", "i_bottom_std_A")):
         std = df[["i_top_std_A", "i_bottom_std_A"]].to_numpy(float)
         sigma = float(np.mean(std)) if np.isfinite(std).all() else None
     n_avg = max(1, len(df) // (2 * len(xs)))
-    return solve(np.array(xs), np.array(it), np.array(ib), biases=tuple(biases), loads=np.array(loads), bearing=bearing,
-                 sigma_i=sigma, n_avg=n_avg)
+    return solve(xs, it, ib, biases=tuple(biases), loads=loads, bearing=bearing, sigma_i=sigma, n_avg=n_avg)
+
+
+def _means(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """Each group's mean of ``values``, missing values left out (NaN for a group with none), as pandas' mean."""
+    known = ~np.isnan(values)
+    total, count = np.zeros(n), np.zeros(n)
+    np.add.at(total, group[known], values[known])
+    np.add.at(count, group[known], 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan)
 
 
 @dataclasses.dataclass(frozen=True)
