@@ -28,6 +28,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -67,8 +68,12 @@ class BearingParams(eqx.Module):
 
     @classmethod
     def from_values(cls, g0, x0, k) -> BearingParams:
-        """Build from scalars (same for both axes) or pairs ``(v, w)``, SI units."""
-        return cls(*(jnp.broadcast_to(jnp.asarray(a, dtype=float), (2,)) for a in (g0, x0, k)))
+        """Build from scalars (same for both axes) or pairs ``(v, w)``, SI units (NumPy arrays from concrete values,
+        which every JAX function takes without an eager dispatch per field; JAX arrays from traced ones)."""
+        values = (g0, x0, k)
+        if any(isinstance(a, jax.core.Tracer) for v in values for a in jax.tree.leaves(v)):
+            return cls(*(jnp.broadcast_to(jnp.asarray(a, dtype=float), (2,)) for a in values))
+        return cls(*(np.array(np.broadcast_to(np.asarray(a, dtype=float), (2,))) for a in values))
 
     def as_dict_um(self) -> dict[str, float]:
         """Parameters with the contract's names and units (µm, N m^2/A^2)."""
