@@ -122,7 +122,8 @@ def one_thread(data, n: int = 3) -> float:
 def fold_routes(data, n: int = 3) -> dict:
     """Warm median seconds of one model's fold refits by the two routes the core offers: one fit per fold (what
     the diagnosis runs, two at a time on threads) and one batched ``fit_many`` over the fold masks (padded and
-    vmapped as a study's data sets are); and the largest relative difference of their estimates."""
+    vmapped as a study's data sets are), both without the bias correction as the diagnosis' folds; and the largest
+    relative difference of their estimates."""
     from ambfit.diagnosis.heldout import folds
     from ambfit.estimation.fit import fit, fit_many
 
@@ -131,10 +132,10 @@ def fold_routes(data, n: int = 3) -> dict:
     effects = (E.Saturation(),)
     full = fit(df, effects, start_from=fit(df), max_steps=60, throw=False)
     masks = [(~t & full.fitted_rows).astype(float) for t in tests]
-    single = lambda: [fit(df, effects, mask=m, start_from=full, max_steps=60, throw=False, alpha=0.0)  # noqa: E731
-                      for m in masks]
+    single = lambda: [fit(df, effects, mask=m, start_from=full, max_steps=60, throw=False, alpha=0.0,  # noqa: E731
+                          debias="none") for m in masks]
     batched = lambda: fit_many([df] * len(masks), effects, mask=masks, start_from=[full] * len(masks),  # noqa: E731
-                               max_steps=60, alpha=0.0)
+                               max_steps=60, alpha=0.0, debias="none")
     out = {"folds": len(masks)}
     for name, route in (("one fit per fold", single), ("fit_many over fold masks", batched)):
         route()                                                                     # compiles
@@ -215,7 +216,7 @@ def render(out: dict) -> list[str]:
           f"{out['fold_routes']['one fit per fold']['seconds']:.3f} s, one batched `fit_many` over the fold masks "
           f"{out['fold_routes']['fit_many over fold masks']['seconds']:.3f} s (largest relative difference of the "
           f"estimates {out['fold_routes']['largest_relative_difference']:.1e}): the diagnosis runs one fit per fold; "
-          "a batch pads its data sets to a study's batch of 64 and rows to the next power of two.", "",
+          "a batch pads its rows to the next power of two, and its data sets too when they are fewer than 64.", "",
           "## The hard cases", "",
           "The golden diagnoses' data (`tests/test_diagnosis_golden.py`), each in a new process without and with "
           "the compilation cache, first in this process (after the cases above it: some programs are compiled "

@@ -83,7 +83,8 @@ def _text(ok: bool, result, b=None) -> str:
 def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, max_steps: int, size: int, *,
                  reweightings: int = REWEIGHTINGS, edm_round: float = EDM_ROUND, rtol: float = RTOL) -> list[Solution]:
     """:func:`solve` of each problem: alone at its own shape, or padded to its bucket and vmapped ``size`` at a
-    time (the last batch padded with copies of its first problem).  NumPy leaves, ``result`` as text."""
+    time (a smaller last batch padded to a power of two with copies of its first problem).  NumPy leaves,
+    ``result`` as text."""
     settings = dict(reweightings=reweightings, edm_round=edm_round, rtol=rtol)
     if len(probs) == 1:
         sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps, **settings)
@@ -95,8 +96,9 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
         starts = np.zeros((len(order), 6 + loads + model.n))
         for b, s in enumerate(order):
             starts[b, _columns(thetas[s], model, loads)] = thetas[s]
-        for i, (part, _) in enumerate(parts):
-            batch = slice(i * size, (i + 1) * size)
+        ends = np.cumsum([len(padded) for _, padded in parts])
+        for (part, padded), end in zip(parts, ends):
+            batch = slice(end - len(padded), end)
             sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model,
                            np.asarray(max_steps), {k: np.asarray(v) for k, v in settings.items()})
             ok = np.asarray(sol.result == optx.RESULTS.successful)
@@ -119,13 +121,15 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
 def _buckets(thetas, probs, model: Model, size: int):
     """The data sets grouped as a batched program takes them: per bucket ``(rows, loads, parts)``, its padded rows
     and nuisance loads (:func:`row_bucket`, :func:`load_bucket`) and its batches ``(members, padded)``, each at most
-    ``size`` data sets, ``padded`` filled up to ``size`` with copies of its first member."""
+    ``size`` data sets, ``padded`` filled with copies of its first member up to ``size``, or for fewer members up to
+    the next power of two (a few data sets are not solved sixty-four times over; a handful of batch shapes)."""
     # (rows, nuisance loads): a theta holds the six head entries, one per load, then the model's effect entries
     keys = [(row_bucket(len(np.asarray(p.mask))), load_bucket(len(t) - 6 - model.n)) for p, t in zip(probs, thetas)]
     for key in dict.fromkeys(keys):
         members = [s for s, k in enumerate(keys) if k == key]
         parts = [members[lo:lo + size] for lo in range(0, len(members), size)]
-        yield key[0], key[1], [(part, part + [part[0]] * (size - len(part))) for part in parts]
+        yield key[0], key[1], [(part, part + [part[0]] * (min(size, 1 << (len(part) - 1).bit_length()) - len(part)))
+                               for part in parts]
 
 
 def _columns(theta, model: Model, loads: int) -> np.ndarray:
@@ -190,7 +194,7 @@ def precompile(rows: Sequence[int], loads: Sequence[int] = (0,), *, bearing=None
             prob, meta = build_problem(frame)
             theta = to_theta(bearing.nominal_gap, 0.0, K_REFERENCE, np.zeros(len(meta.load_groups)))
             for steps, size in ((min(FIRST_STEPS, max_steps), BATCH), (max_steps, BATCH_AGAIN)):
-                _solve_batch([theta, theta], [prob, prob], model, steps, size)
+                _solve_batch([theta] * size, [prob] * size, model, steps, size)      # (a full batch's shape)
     return len(done)
 
 
@@ -224,7 +228,8 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
     for rows, loads, parts in _buckets(thetas, probs, model, BATCH):
         width = 6 + loads + model.n
         for part, order in parts:
-            theta, free, cov = np.zeros((BATCH, width)), np.zeros((BATCH, width), bool), np.zeros((BATCH, width, width))
+            k = len(order)
+            theta, free, cov = np.zeros((k, width)), np.zeros((k, width), bool), np.zeros((k, width, width))
             for b, s in enumerate(order):
                 c = _columns(thetas[s], model, loads)
                 theta[b, c], free[b, c] = thetas[s], frees[s]
