@@ -2,16 +2,17 @@
 
 1. One fit of ~1000 readings after compilation: our jitted LM (optimistix's iteration, written out in the core) vs
    scipy's MINPACK LM (``method="lm"``) given the same jitted residual and Jacobian
-   functions and the same start.  Target: >= 3x faster.
+   functions and the same start.  Target: >= 5x faster.
 2. 1000 data sets of the paper's Table 2 protocol (80 readings each), same
    closed-form seeds for both: our vmapped batch solve (and the jitted loop) vs
    a Python loop of scipy fits.  Target: >= 10x the throughput.  Ours runs
    ``FIRST_STEPS`` Levenberg-Marquardt steps per reweighting round (closed-form seeds make that
    enough: the fraction of data sets ending with EDM < 1e-6 is reported).
    And ``fit_many`` end to end (from the tables: problems, seeds, the solve, covariances, the outlier
-   test, plausibility) against that vmapped solve alone.  Target: within 5x.
+   test, plausibility), with its default second-order bias correction and without it, against that vmapped
+   solve alone.  Target: within 2x.
 3. Cold wall time of ``ambfit identify`` on the default data, in a fresh process:
-   without and with the persistent compilation cache.  Target: <= 3 s.  And ``ambfit --help``
+   without and with the persistent compilation cache.  Target: <= 2 s.  And ``ambfit --help``
    (it must import nothing heavy).  Target: <= 0.5 s.
 4. One data set of 200 000 readings (``--large-rows``): ``fit`` end to end, warm, against the same fit of a tenth
    of them.  Target: <= 12x, linear in the rows (a start that grew faster once took minutes).  And ``ambfit
@@ -137,9 +138,12 @@ def many_fits(n, repeats):
     t_vm, t_loop, t_sp = (_median_time(f, repeats) for f in (vm, loop, sp_loop))
     fit.fit_many(data)                                   # compiles its buckets
     t_e2e = _median_time(lambda: fit.fit_many(data), repeats)
+    fit.fit_many(data, debias="none")
+    t_plain = _median_time(lambda: fit.fit_many(data, debias="none"), repeats)
     return {"datasets": n, "rows_each": len(data[0]), "vmap_s": t_vm, "jit_loop_s": t_loop, "scipy_loop_s": t_sp,
             "throughput_ratio_vmap": t_sp / t_vm, "throughput_ratio_jit_loop": t_sp / t_loop,
             "fit_many_end_to_end_s": t_e2e, "fit_many_over_vmap": t_e2e / t_vm,
+            "fit_many_plain_s": t_plain, "fit_many_plain_over_vmap": t_plain / t_vm,
             "vmap_converged_fraction": converged, "faster_method": "vmap" if t_vm < t_loop else "loop"}
 
 
@@ -198,36 +202,41 @@ def main():
     ap.add_argument("--large-rows", type=int, default=200_000)
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
     args = ap.parse_args()
+    load = os.getloadavg()[0]
     s1 = single_fit(args.repeats)
     s2 = many_fits(args.datasets, max(1, args.repeats // 2))
     s3 = cold_identify(3)
     s4 = large_fit(args.large_rows)
     out = {"versions": {"jax": jax.__version__, "scipy": scipy.__version__}, "cpu_count": os.cpu_count(),
+           "load_average_at_start": load,
            "single_fit": s1, "batch": s2, "cold_identify": s3, "large": s4,
-           "targets": {"single_speedup": 3.0, "batch_throughput_ratio": 10.0, "fit_many_over_vmap": 5.0,
-                       "cold_identify_s": 3.0, "help_s": 0.5,
+           "targets": {"single_speedup": 5.0, "batch_throughput_ratio": 10.0, "fit_many_over_vmap": 2.0,
+                       "cold_identify_s": 2.0, "help_s": 0.5,
                        "large_scaling": 12.0}}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ls_speed.json").write_text(json.dumps(out, indent=2))
     md = ["# Least-squares speed vs scipy.optimize.least_squares (same residuals, same run)", "",
           "| measurement | ambfit | scipy | ratio | target |", "|---|---|---|---|---|",
           f"| one fit, {s1['rows']} readings (after compile) | {s1['ours_s'] * 1e3:.1f} ms | {s1['scipy_s'] * 1e3:.1f} ms "
-          f"| {s1['speedup']:.1f}x | ≥ 3x |",
+          f"| {s1['speedup']:.1f}x | ≥ 5x |",
           f"| {s2['datasets']} data sets x {s2['rows_each']} readings, vmap | {s2['vmap_s']:.2f} s | "
           f"{s2['scipy_loop_s']:.2f} s | {s2['throughput_ratio_vmap']:.1f}x | ≥ 10x |",
           f"| same, jitted loop | {s2['jit_loop_s']:.2f} s | {s2['scipy_loop_s']:.2f} s | "
           f"{s2['throughput_ratio_jit_loop']:.1f}x | |",
-          f"| `fit_many` end to end (tables, seeds, solve, covariances, outlier test) | {s2['fit_many_end_to_end_s']:.2f} s "
-          f"| vmapped solve {s2['vmap_s']:.2f} s | {s2['fit_many_over_vmap']:.1f}x the solve | ≤ 5x |",
-          f"| cold `ambfit identify` default data, no cache | {s3['no_cache_s']:.2f} s | | | ≤ 3 s |",
-          f"| cold `ambfit identify` default data, persistent cache | {s3['persistent_cache_s']:.2f} s | | | ≤ 3 s |",
+          f"| `fit_many` end to end (tables, seeds, solve, covariances, outlier test, second-order bias correction) "
+          f"| {s2['fit_many_end_to_end_s']:.2f} s | vmapped solve {s2['vmap_s']:.2f} s | "
+          f"{s2['fit_many_over_vmap']:.1f}x the solve | ≤ 2x |",
+          f"| same, `debias=\"none\"` | {s2['fit_many_plain_s']:.2f} s | vmapped solve {s2['vmap_s']:.2f} s | "
+          f"{s2['fit_many_plain_over_vmap']:.1f}x the solve | ≤ 2x |",
+          f"| cold `ambfit identify` default data, no cache | {s3['no_cache_s']:.2f} s | | | ≤ 2 s |",
+          f"| cold `ambfit identify` default data, persistent cache | {s3['persistent_cache_s']:.2f} s | | | ≤ 2 s |",
           f"| `ambfit --help` in a fresh process | {s3['help_s']:.2f} s | | | ≤ 0.5 s |",
           f"| `fit` of one data set of {s4['rows']} readings, warm (problem, start, solve, covariance, outlier test) "
           f"| {s4['fit_s']:.2f} s | a tenth of the rows {s4['tenth_fit_s']:.2f} s | {s4['scaling']:.1f}x "
           f"| ≤ 12x (linear) |",
           f"| cold `ambfit identify` of that file (read, checks, fit, table) | {s4['identify_cold_s']:.1f} s | | | |",
           "", f"Solutions agree to {s1['max_rel_diff_of_solutions']:.1e} (relative). jax {jax.__version__}, "
-          f"scipy {scipy.__version__}, {os.cpu_count()} cores."]
+          f"scipy {scipy.__version__}, {os.cpu_count()} cores, load average {load:.1f} at the start."]
     (args.out / "ls_speed.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
