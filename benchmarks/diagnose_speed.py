@@ -41,6 +41,7 @@ import numpy as np
 from ambfit import rig
 from ambfit.data import read_csv
 from ambfit.diagnosis import attribution
+from ambfit.estimation import batches
 from ambfit.physics import effects as E
 from ambfit.rig import protocol
 
@@ -216,7 +217,8 @@ def render(out: dict) -> list[str]:
           f"{out['fold_routes']['one fit per fold']['seconds']:.3f} s, one batched `fit_many` over the fold masks "
           f"{out['fold_routes']['fit_many over fold masks']['seconds']:.3f} s (largest relative difference of the "
           f"estimates {out['fold_routes']['largest_relative_difference']:.1e}): the diagnosis runs one fit per fold; "
-          "a batch pads its rows to the next power of two, and its data sets too when they are fewer than 64.", "",
+          f"a batch pads its rows to the next power of two, and its data sets too when they are fewer than "
+          f"{batches.BATCH}.", "",
           "## The hard cases", "",
           "The golden diagnoses' data (`tests/test_diagnosis_golden.py`), each in a new process without and with "
           "the compilation cache, first in this process (after the cases above it: some programs are compiled "

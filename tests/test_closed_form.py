@@ -244,3 +244,45 @@ def test_the_public_closed_form_is_checked_against_least_squares():
     judged = [ok for name, ok, _ in ambfit.closed_form(data).checks() if name == "agrees_with_least_squares"]
     alone = [ok for name, ok, _ in cf.identify(data).checks() if name == "agrees_with_least_squares"]
     assert judged == [True, True] and alone == [None, None]
+
+
+def test_the_predicted_gap_scatter_is_the_forward_differences_of_re_solving():
+    """The predicted scatter of one iteration's gap (all forward differences solved at once) against re-solving
+    Eq. 6-7 once per moved current, here, on random iterations of 2-5 positions; NaN exactly where a moved
+    current makes one of those solves fail."""
+    from ambfit.estimation.closed_form.equations import ClosedFormError, _predicted_std
+    from ambfit.physics.bearing import PAPER_BEARING
+
+    def by_loop(x, it, ib, sigma, h=1e-7):
+        base = cf.solve(x, it, ib, _propagate=False).g0
+        grads = []
+        for cur in (it, ib):
+            for idx in np.ndindex(cur.shape):
+                moved = cur.copy()
+                moved[idx] += h
+                try:
+                    g = cf.solve(x, *((moved, ib) if cur is it else (it, moved)), _propagate=False).g0
+                except ClosedFormError:
+                    return math.nan
+                grads.append((g - base) / h)
+        return float(np.sqrt(np.sum(np.square(grads))) * sigma)
+
+    rng = np.random.default_rng(4)
+    compared = 0
+    for _ in range(300):
+        n = int(rng.integers(2, 6))
+        x = np.sort(rng.uniform(-40e-6, 40e-6, n)) + np.arange(n) * 5e-6
+        it = 1.5 + rng.normal(0.0, 0.02, (n, 2))
+        ib = 1.5 + rng.normal(0.0, 0.02, (n, 2))
+        it[:, 1] -= rng.uniform(-0.3, 0.3)
+        ib[:, 1] -= rng.uniform(-0.3, 0.3)
+        try:
+            cf.solve(x, it, ib, _propagate=False)
+        except ClosedFormError:
+            continue
+        want, got = by_loop(x, it, ib, 6e-4), _predicted_std(x, it, ib, 6e-4, 1, PAPER_BEARING)
+        assert math.isnan(want) == math.isnan(got)
+        if not math.isnan(want):
+            assert got == pytest.approx(want, rel=1e-7)
+            compared += 1
+    assert compared > 30

@@ -78,3 +78,14 @@ def test_force_is_jittable_and_differentiable():
     g = jax.jit(jax.grad(lambda q: axis_force(q, r).sum()))(p)
     # dF/dk = F/k exactly
     assert float(g.k.sum()) == pytest.approx(float(axis_force(p, r).sum()) / 3.4e-6, rel=1e-12)
+
+
+def test_parameters_from_values_are_read_only_and_work_closed_over_by_a_jitted_function():
+    """Concrete parameters are NumPy pairs (no JAX dispatch per simulation); a jitted function that closes over
+    them indexes them by its traced axes, and traced values still give JAX arrays."""
+    p = BearingParams.from_values(g0=762e-6, x0=(33e-6, -11e-6), k=3.4452e-6)
+    assert isinstance(p.g0, np.ndarray) and not p.g0.flags.writeable
+    r = Readings.build(axis=[0, 1, 1], i_top=[1.6, 1.5, 1.2], i_bottom=[1.4, 1.5, 1.7], x=[0.0, 1e-6, -4e-6])
+    np.testing.assert_allclose(jax.jit(lambda r: axis_force(p, r))(r), axis_force(p, r), rtol=1e-14)
+    traced = jax.jit(lambda g: BearingParams.from_values(g0=g, x0=0.0, k=3.4e-6).g0 * 2.0)(np.asarray(762e-6))
+    np.testing.assert_allclose(traced, [1524e-6, 1524e-6])

@@ -199,7 +199,10 @@ def test_a_joined_tables_clocks_are_each_tables_own(timed):
     restart = three.assign(time_s=np.where(three.experiment == "c", t - t[200], t))
     gaps = restart.assign(time_s=np.where(np.arange(len(t)) % 7 == 0, np.nan, restart.time_s),
                           experiment=np.where(np.arange(len(t)) % 11 == 0, None, restart.experiment))
-    tables = [three, restart, gaps, restart.iloc[150:260], three.iloc[:0]]
+    # integer experiment codes with a missing one (a study's joined tables number theirs): no experiment at all
+    coded = restart.assign(experiment=pd.array(np.where(np.arange(len(t)) % 13 == 0, None,
+                                                        np.repeat([1, 2, 3], [100, 100, len(t) - 200])), dtype="Int64"))
+    tables = [three, restart, gaps, restart.iloc[150:260], three.iloc[:0], coded]
     sets = np.repeat(np.arange(len(tables)), [len(x) for x in tables])
     joined = rows_mod.clock(pd.concat(tables, ignore_index=True), sets)
     np.testing.assert_array_equal(joined, np.concatenate([rows_mod.clock(x) for x in tables]))

@@ -160,7 +160,7 @@ def _noise_of(df: pd.DataFrame) -> tuple[float, float]:
 def _discriminations(models: list, tables: list) -> list[float]:
     """The least expected log Bayes factor, over every ordered pair of ``models``, on each of ``tables``' readings
     (``(data, noise)`` each).  Each model is measured on every table at once: the tables' problems padded to one
-    shape (rows and loads) and vmapped, one compiled program per model instead of one per model and table."""
+    shape (rows and loads) and vmapped, so that a model compiles one program whatever the tables' lengths."""
     from jax import tree_util
 
     from ambfit.data import zero_based

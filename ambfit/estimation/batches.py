@@ -122,7 +122,7 @@ def _buckets(thetas, probs, model: Model, size: int):
     """The data sets grouped as a batched program takes them: per bucket ``(rows, loads, parts)``, its padded rows
     and nuisance loads (:func:`row_bucket`, :func:`load_bucket`) and its batches ``(members, padded)``, each at most
     ``size`` data sets, ``padded`` filled with copies of its first member up to ``size``, or for fewer members up to
-    the next power of two (a few data sets are not solved sixty-four times over; a handful of batch shapes)."""
+    the next power of two (a few data sets are not solved ``size`` times over; a handful of batch shapes)."""
     # (rows, nuisance loads): a theta holds the six head entries, one per load, then the model's effect entries
     keys = [(row_bucket(len(np.asarray(p.mask))), load_bucket(len(t) - 6 - model.n)) for p, t in zip(probs, thetas)]
     for key in dict.fromkeys(keys):
@@ -140,6 +140,7 @@ def _columns(theta, model: Model, loads: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=1024)
 def _placed(own: int, n: int, loads: int) -> np.ndarray:
+    """:func:`_columns` by sizes: ``own`` head and load entries, ``n`` effect entries, ``loads`` padded loads."""
     cols = np.concatenate([np.arange(own), np.arange(6 + loads, 6 + loads + n)])
     cols.flags.writeable = False           # (shared by every call with these sizes)
     return cols

@@ -316,6 +316,7 @@ def free_mask(prob: Problem, meta: Meta, model: Model = IDEAL) -> np.ndarray:
 
 
 def _measure_rows(theta, prob: Problem, model: Model):
+    """``F - L``, ``s_eff`` and the weight-1 Jacobian of the standardized residual of every row (every column)."""
     f, s, jac = measured(theta, prob, model)
     return f, s, weighted(theta, (f, s, jac), jnp.ones_like(f), model.n)[1][: f.shape[0]]
 

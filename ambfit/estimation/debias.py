@@ -278,10 +278,11 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     sets, p = thetas.shape
     lam, vec = np.linalg.eigh(cov)                                        # (ascending)
     roots = vec * np.sqrt(np.maximum(lam, 0.0))[:, None, :]               # [sets, p, p]: cov = roots roots^T
-    # only the directions an estimate moves along: held entries and a batch's padded loads have none, and a
-    # step of zero would evaluate the model for nothing
-    q = max(int(np.max(np.sum(lam > 0.0, axis=1), initial=0)), 1)
-    roots = roots[:, :, p - q:]                                            # [sets, p, q]
+    # only the directions an estimate moves along: held entries and a batch's padded loads have none (their
+    # eigenvalues are round-off of either sign), and a step of zero would evaluate the model for nothing.  As many
+    # as the batch's most estimated entries: a count the data fix, so one batch shape compiles once
+    moving = max(int(free.sum(axis=1).max(initial=0)), 1)
+    roots = roots[:, :, p - moving:]                                       # [sets, p, moving]
     share = np.broadcast_to(np.asarray(share, dtype=float), (sets, 3))
     rows = np.broadcast_to(np.asarray(row_scale, dtype=float), (sets,))
     a_u, h_uu, t1, b, cross = (np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1))

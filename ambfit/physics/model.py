@@ -41,6 +41,13 @@ from ambfit.physics.bearing import PAPER_BEARING, Bearing
 from ambfit.physics.stages import Context, _set
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``a``: parameters are values, not buffers to write into."""
+    a = np.array(a)
+    a.flags.writeable = False
+    return a
+
+
 class BearingParams(eqx.Module):
     """Effective parameters of a two-axis radial bearing (the paper's unknowns).
 
@@ -73,7 +80,7 @@ class BearingParams(eqx.Module):
         values = (g0, x0, k)
         if any(isinstance(a, jax.core.Tracer) for v in values for a in jax.tree.leaves(v)):
             return cls(*(jnp.broadcast_to(jnp.asarray(a, dtype=float), (2,)) for a in values))
-        return cls(*(np.array(np.broadcast_to(np.asarray(a, dtype=float), (2,))) for a in values))
+        return cls(*(_frozen(np.broadcast_to(np.asarray(a, dtype=float), (2,))) for a in values))
 
     def as_dict_um(self) -> dict[str, float]:
         """Parameters with the contract's names and units (µm, N m^2/A^2)."""
@@ -152,6 +159,14 @@ class Readings(eqx.Module):
         return int(self.axis.shape[0])
 
 
+def _per_row(value, axis):
+    """``value[axis]``, each row's entry of a per-axis pair: in JAX when either is traced (a pair of NumPy
+    parameters closed over by a jitted function), else as the arrays are (NumPy needs no dispatch)."""
+    if isinstance(value, jax.core.Tracer) or isinstance(axis, jax.core.Tracer):
+        return jnp.asarray(value)[axis]
+    return value[axis]
+
+
 def make_context(
     params: BearingParams, readings: Readings, *, bearing: Bearing = PAPER_BEARING, m_prev_top=None,
     m_prev_bottom=None,
@@ -163,8 +178,8 @@ def make_context(
         axis=ax, i_top=readings.i_top, i_bottom=readings.i_bottom, x=readings.x, y=readings.y,
         bias=readings.bias, time=readings.time, temperature=readings.temperature,
         dir_top=readings.dir_top, dir_bottom=readings.dir_bottom,
-        g0=params.g0[ax], x0=params.x0[ax], y0=params.x0[1 - ax], k=params.k[ax],
-        g0_other=params.g0[1 - ax], bearing=bearing,
+        g0=_per_row(params.g0, ax), x0=_per_row(params.x0, ax), y0=_per_row(params.x0, 1 - ax),
+        k=_per_row(params.k, ax), g0_other=_per_row(params.g0, 1 - ax), bearing=bearing,
         g_top=nan, g_bottom=nan, m_top=nan, m_bottom=nan, k_top=nan, k_bottom=nan,
         m_prev_top=nan if m_prev_top is None else jnp.asarray(m_prev_top, dtype=float),
         m_prev_bottom=nan if m_prev_bottom is None else jnp.asarray(m_prev_bottom, dtype=float),
