@@ -176,11 +176,13 @@ def _discriminations(models: list, tables: list) -> list[float]:
     for members in kinds.values():
         rows = row_bucket(max(len(np.asarray(built[t][0].mask)) for t in members))
         loads = load_bucket(max(len(built[t][1].load_groups) for t in members))
-        stacked = pad([built[t][0] for t in members], rows)
+        # (the tables too, to a power of two with copies of the first: a few batch shapes in all)
+        width = 1 << (len(members) - 1).bit_length()
+        stacked = pad([built[t][0] for t in members + members[:1] * (width - len(members))], rows)
         for m in models:
             model = Model.of(m.effects, m.bearing)
             head, tail = m.theta[:6], m.theta[len(m.theta) - model.n:]
-            theta = np.tile(np.concatenate([head, np.zeros(loads), tail]), (len(members), 1))
+            theta = np.tile(np.concatenate([head, np.zeros(loads), tail]), (width, 1))
             f, s, jac = (np.asarray(a) for a in measured_sets(theta, stacked, model))
             for b, t in enumerate(members):
                 prob, meta = built[t]
