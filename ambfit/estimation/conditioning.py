@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 
 from ambfit.data import Dataset
-from ambfit.estimation.core import K_REFERENCE, Model, build_problem, misfit, to_theta
+from ambfit.estimation.core import K_REFERENCE, Model, build_problem, noise_std, to_theta
 from ambfit.estimation.seeds import seed_loads_and_k
 from ambfit.physics.bearing import AXES, PAPER_BEARING, Bearing
 from ambfit.physics.model import ideal_force
@@ -211,7 +211,7 @@ def solution_space(data: Dataset | pd.DataFrame, axis: str = "v", *, gap=None, o
         th = seed_loads_and_k(to_theta(g_pair, x_pair, k_pair, loads), prob, bearing)
     else:
         th = to_theta(g_pair, x_pair, k_pair, loads)
-    s = np.asarray(misfit(jnp.asarray(th), prob, model)[1])
+    s = np.asarray(noise_std(jnp.asarray(th), prob, model))
     w = 1.0 / s**2
     gidx = np.asarray(prob.gidx)
     onehot = np.zeros((len(sub), max(prob.n_loads, 1)))
