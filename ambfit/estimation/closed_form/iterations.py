@@ -109,10 +109,9 @@ def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solutio
     if len(biases) != 2:
         raise ClosedFormError(f"Eq. 6 needs exactly two bias settings per iteration, found {biases.tolist()} A")
     n_pos = int(labels.max()) + 1                              # (labels number the positions 0, 1, ...)
-    at = np.searchsorted(biases, bias)
+    cell = labels * 2 + np.searchsorted(biases, bias)          # (position, bias)
     position = _means(df[own].to_numpy(float), labels, n_pos)
-    count = np.zeros((n_pos, 2), dtype=int)
-    np.add.at(count, (labels, at), 1)
+    count = np.bincount(cell, minlength=2 * n_pos).reshape(n_pos, 2)
     if not count.all():
         p, b = np.argwhere(count == 0)[0]
         raise ClosedFormError(f"position {position[p]:.4g} µm has no reading at bias {biases[b]:g} A: each position "
@@ -129,7 +128,6 @@ def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solutio
             found = sorted(df["load_id"][labels == p].dropna().unique().tolist())
             raise ClosedFormError(f"position {position[p]:.4g} µm: the two biases carry different loads {found}; "
                                   "Eq. 5 needs the same load")
-    cell = labels * 2 + at                                      # (position, bias)
     it = _means(df["i_top_A"].to_numpy(float), cell, 2 * n_pos).reshape(n_pos, 2)
     ib = _means(df["i_bottom_A"].to_numpy(float), cell, 2 * n_pos).reshape(n_pos, 2)
     loads = (_means(df["load_N"].to_numpy(float), cell, 2 * n_pos).reshape(n_pos, 2) if "load_N" in df.columns
@@ -146,9 +144,8 @@ def solve_rows(df: pd.DataFrame, *, bearing: Bearing = PAPER_BEARING) -> Solutio
 def _means(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
     """Each group's mean of ``values``, missing values left out (NaN for a group with none), as pandas' mean."""
     known = ~np.isnan(values)
-    total, count = np.zeros(n), np.zeros(n)
-    np.add.at(total, group[known], values[known])
-    np.add.at(count, group[known], 1.0)
+    total = np.bincount(group[known], weights=values[known], minlength=n)
+    count = np.bincount(group[known], minlength=n)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0, total / count, np.nan)
 
