@@ -164,7 +164,7 @@ def _discriminations(models: list, tables: list) -> list[float]:
     from jax import tree_util
 
     from ambfit.data import zero_based
-    from ambfit.estimation.batches import load_bucket, pad, row_bucket
+    from ambfit.estimation.batches import load_bucket, pad, placed_columns, row_bucket
     from ambfit.estimation.core import Model, build_problem, free_mask, measured_sets
 
     built = [build_problem(zero_based(data), **noise) for data, noise in tables]
@@ -188,7 +188,7 @@ def _discriminations(models: list, tables: list) -> list[float]:
                 prob, meta = built[t]
                 n = len(np.asarray(prob.mask))
                 # the table's own columns (the head, its loads, the effects) that it estimates
-                cols = np.r_[0:6 + len(meta.load_groups), 6 + loads:6 + loads + model.n][free_mask(prob, meta, model)]
+                cols = placed_columns(6 + len(meta.load_groups), model.n, loads)[free_mask(prob, meta, model)]
                 # each model's Jacobian once: it is the refitted side of every pair it is in
                 preds[t].append((f[b, :n], s[b, :n], jac[b, :n][:, cols]))
     return [_least(p) for p in preds]

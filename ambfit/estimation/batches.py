@@ -135,14 +135,15 @@ def _buckets(thetas, probs, model: Model, size: int):
 def _columns(theta, model: Model, loads: int) -> np.ndarray:
     """Where a data set's theta sits in its bucket's, whose ``loads`` nuisance loads follow the head: the head and
     its own loads, then the effect entries after the padded loads."""
-    return _placed(len(theta) - model.n, model.n, loads)
+    return placed_columns(len(theta) - model.n, model.n, loads)
 
 
 @functools.lru_cache(maxsize=1024)
-def _placed(own: int, n: int, loads: int) -> np.ndarray:
-    """:func:`_columns` by sizes: ``own`` head and load entries, ``n`` effect entries, ``loads`` padded loads."""
+def placed_columns(own: int, n: int, loads: int) -> np.ndarray:
+    """Where a theta of ``own`` head and load entries and ``n`` effect entries sits in a bucket's theta, whose
+    ``loads`` nuisance loads follow the head (read-only: shared by every call with these sizes)."""
     cols = np.concatenate([np.arange(own), np.arange(6 + loads, 6 + loads + n)])
-    cols.flags.writeable = False           # (shared by every call with these sizes)
+    cols.flags.writeable = False
     return cols
 
 
