@@ -162,15 +162,16 @@ def main():
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     out = {"targets": TARGETS, "load_at_start": load, "protocols": {}}
-    for k, (name, (proto, noise, *effects)) in enumerate(protocols(spec).items()):
+    cases = protocols(spec)
+    for k, (name, (proto, noise, *effects)) in enumerate(cases.items()):
         out["protocols"][name] = study(spec, proto, noise, args.sets, seed=500_000 + 10_000 * k,
                                        effects=effects[0] if effects else ())
-    out["sources"] = {name: sources(spec, proto, noise) for name, (proto, noise, *effects) in protocols(spec).items()
+    out["sources"] = {name: sources(spec, proto, noise) for name, (proto, noise, *effects) in cases.items()
                       if not effects}
     # 36 cells at 1.5 standard errors: about five would cross it by chance alone.  A protocol of the ideal law with
     # a corrected bias beyond it is run again on four times the sets with fresh seeds.
     out["rechecked"] = {}
-    for k, (name, (proto, noise, *effects)) in enumerate(protocols(spec).items()):
+    for k, (name, (proto, noise, *effects)) in enumerate(cases.items()):
         r = out["protocols"][name]
         if not effects and any(abs(r["second-order"][n]["bias_se"]) > TARGETS["bias_se_max"] for n in core.HEAD_NAMES):
             out["rechecked"][name] = study(spec, proto, noise, 4 * args.sets, seed=2_000_000 + 100_000 * k)
