@@ -125,6 +125,25 @@ def test_padded_rows_and_loads_cannot_change_a_result(mixed, monkeypatch):
         _assert_same_fit(a, b)
 
 
+def test_an_effects_entries_follow_the_padded_loads(mixed, monkeypatch):
+    """With an effect fitted, a batch's theta holds the head, each data set's own loads, the padded loads and then
+    the effect's entries: a data set padded in rows and loads fits as alone, bias correction included."""
+    from ambfit.physics.effects import CurrentOffset
+
+    data, _ = mixed
+    reference = fit.fit_many(data[2:3], (CurrentOffset(),), loss="linear")[0]
+    monkeypatch.setattr(batches, "row_bucket", lambda n: 2 * n)
+    monkeypatch.setattr(batches, "load_bucket", lambda m: m + 3)
+    padded = fit.fit_many([data[2], data[2]], (CurrentOffset(),), loss="linear")[0]
+    assert reference.model != "ideal" and "skipped" not in reference.bias_correction
+    assert padded.names == reference.names and padded.dof == reference.dof
+    # in standard errors (the bias sums of a padded batch and of a fit alone differ at the round-off of their
+    # differences: 2e-8 of an offset here, where the plain solves agree to 1e-8 relative)
+    assert np.max(np.abs(padded.values - reference.values) / reference.std) < 1e-6
+    subtracted = [np.array([r.bias_correction[n]["subtracted"] for n in r.names]) for r in (padded, reference)]
+    assert np.max(np.abs(subtracted[0] - subtracted[1]) / reference.std) < 1e-6
+
+
 def test_padded_rows_have_zero_residual_and_zero_jacobian(mixed):
     data, _ = mixed
     prob, _ = core.build_problem(data[2])
