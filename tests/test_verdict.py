@@ -59,6 +59,21 @@ def test_judge_thresholds_follow_the_standard_error_of_a_mean_of_squares():
     assert not Judge(n=N, ideal_score=1.0 + SE).explains(at)          # the ideal law at the floor too
 
 
+def test_below_the_floor_is_judged_against_each_readings_predictive_variance():
+    # exact on most readings (a correction that follows their noise), far off with a wide prediction on a few: the
+    # mean square is at the floor, the residuals relative to their predictive variance are far below it
+    judge = Judge(n=N, ideal_score=4.0)
+    z = 0.2 * NOISE
+    z[:40] = 4.4 * NOISE[:40] / np.std(NOISE[:40])
+    var = np.ones(N)
+    var[:40] = 40.0
+    leaky = Candidate("a", z, 1.0, fit=None, heldout_var=var)
+    assert leaky.score < judge.floor_of(leaky) and judge.below_floor(leaky)
+    assert not judge.at_floor(leaky) and not judge.explains(leaky)
+    honest = Candidate("b", NOISE, 1.0, fit=None, heldout_var=np.full(N, 1.05))
+    assert not judge.below_floor(honest)
+
+
 def test_clearly_better_is_a_paired_comparison_that_charges_a_wide_prediction():
     judge = Judge(n=N, ideal_score=4.0)
     a, b = law("a", 0.02), law("b", 0.30)

@@ -7,7 +7,8 @@ prediction's variance, :func:`ambfit.diagnosis.heldout.predictive_variance`).  W
 score's standard error is ``sqrt(2 / n)`` (a mean of ``n`` squared standard normals), scaled by its level.  A model
 
 - is *at the floor* when its score is within ``Rules.floor_se`` of those standard errors of its floor (and not
-  below the noise's: a held-out score far *below* 1 is no model of the force, it predicts the readings' own noise);
+  below the noise's: held-out residuals far *smaller* than their predictive variance, on the readings a model
+  predicts confidently, are no model of the force, it predicts the readings' own noise);
 - *explains* the data when it is at the floor where the ideal law is not;
 - is *clearly better* than another when, reading by reading, its predictions are better by more than
   ``Rules.margin_se`` standard errors of their paired difference (minus twice the log predictive density,
@@ -37,6 +38,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+CONFIDENT = 2.0
+"""A held-out prediction is confident when its variance is at most this many noise variances (its parameters'
+uncertainty adds at most as much as the noise): the readings on which :meth:`Judge.below_floor` looks for a model
+that predicts their noise."""
 
 OCCAM = ("all", "siblings", "none")
 """Which more flexible models need to be ahead of the simplest explanation to rival it (:attr:`Rules.occam`)."""
@@ -176,10 +182,22 @@ class Judge:
         return 1.0 - self.rules.floor_se * self.se()
 
     def at_floor(self, model) -> bool:
-        return self.below <= model.score <= self.floor_of(model)
+        return model.score <= self.floor_of(model) and not self.below_floor(model)
 
     def below_floor(self, model) -> bool:
-        return model.score < self.below
+        """Whether ``model`` predicts the held-out readings better than their noise allows: on the readings it
+        predicts confidently (variance at most :data:`CONFIDENT` noise variances), its residuals' mean square
+        relative to that variance is below the floor's lower limit for so many readings (a model exact on most
+        readings, while a few far off carry its mean square up to the floor, predicts their noise too; one whose
+        predictions are all vague is judged by :meth:`floor_of`)."""
+        z2 = np.asarray(model.heldout_z) ** 2
+        var = getattr(model, "heldout_var", None)
+        var = np.ones_like(z2) if var is None else np.asarray(var)
+        sure = var <= CONFIDENT
+        n = int(np.sum(sure))
+        if n < 2:
+            return False
+        return float(np.mean(z2[sure] / var[sure])) < 1.0 - self.rules.floor_se * np.sqrt(2.0 / n)
 
     def explains(self, model) -> bool:
         return self.at_floor(model) and self.ideal_score > self.floor
