@@ -10,7 +10,7 @@ from ambfit.estimation.basis import FAMILY_GROUPS, Basis
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.physics import effects as E
 from ambfit.physics.bearing import PAPER_BEARING
-from ambfit.rig import laws, protocol, zoo_magnetic
+from ambfit.rig import laws, protocol, zoo_hysteresis, zoo_magnetic, zoo_measurement
 
 
 @pytest.fixture(scope="module")
@@ -36,6 +36,9 @@ CASES = [
     # scaled by this axis' mean current squared: powers of order one, a constant part, a current scale
     (zoo_magnetic.PositionCoupling(coef=np.array([[0.0, 0.0, 0.08], [0.0, 0.0, -0.08]]), power=np.array([2.0, 2.0])),
      "cross_coupling", [E.CrossCoupling()]),
+    # a lag that fades over a few readings (no play of any width): the current against its own recent course
+    (zoo_hysteresis.MemoryHysteresis(lag=np.asarray(0.015), scale=np.asarray(0.06), memory=np.asarray(0.7)),
+     "hysteresis", [E.Hysteresis()]),
 ]
 
 
@@ -51,6 +54,28 @@ def test_a_familys_signature_expresses_a_law_the_library_lacks(design, law, fami
     after = float(np.mean((res.residuals + d.row_correction)[kept] ** 2))
     assert before > 1.5 and after < 1.25, (family, before, after)
     assert max(d.log_bayes.values()) > 10
+
+
+def test_a_sensor_ripple_is_followed_by_the_position_splines_not_the_polynomials():
+    """A probe's ripple of 1 µm over 30 and 45 µm beside a gentle bend, read at the many set-points of an
+    improvised protocol (a serpentine's few positions are fitted by any curve): the polynomials of order four
+    leave most of it, the splines of the reading reach the noise."""
+    from ambfit.rig import zoo
+
+    law = zoo_measurement.SensorCharacteristic(coef=np.array([[0.0, 0.02, 0.0], [0.0, -0.02, 0.0]]),
+                                               amp=np.array([[1e-6, 0.0], [0.0, 1e-6]]),
+                                               wavelength=np.array([[30e-6, 30e-6], [45e-6, 45e-6]]),
+                                               phase=np.array([[0.5, 0.0], [0.0, 2.0]]))
+    data = _simulate(zoo.random_protocol(np.random.default_rng(0)), law)
+    res = ambfit.fit(data, throw=False)
+    kept = res.fitted_rows
+
+    def left(groups):
+        return float(np.mean((res.residuals + fit_discrepancy(res, data, groups=groups).row_correction)[kept] ** 2))
+
+    assert float(np.mean(res.residuals[kept] ** 2)) > 5.0
+    assert left(("position_sensor",)) > 5.0
+    assert left(FAMILY_GROUPS["position_gain"]) < 1.25
 
 
 def test_the_drift_basis_follows_the_readings_clock(design):
@@ -80,7 +105,7 @@ def test_memory_hysteresis_is_named_by_its_signature(design):
     data = _simulate(design, laws.MinorLoopHysteresis, seed=11)
     d = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert d.verdict == "hysteresis", d.summary()
-    assert d.law.groups == ("hysteresis", "memory") and d.grade.by == "signature"
+    assert d.law.groups == FAMILY_GROUPS["hysteresis"] and d.grade.by == "signature"
     assert d.law.law.shrink < 0.5 < d.law.shrink == d.shrink
 
 

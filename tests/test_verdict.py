@@ -18,6 +18,7 @@ from ambfit.diagnosis import text
 from ambfit.diagnosis.heldout import Candidate
 from ambfit.diagnosis.signatures import Signature
 from ambfit.diagnosis.verdict import Judge, Rules, Verdict, decide, needs_pairs, needs_signatures
+from ambfit.estimation.basis import FAMILY_GROUPS
 
 N = 800
 NOISE = np.random.default_rng(0).standard_normal(N)
@@ -183,11 +184,11 @@ def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_res
 def test_a_clear_signature_names_its_family_when_no_law_explains():
     start = ideal(10.0)
     laws = [law("hysteresis", 5.0, start=start), law("saturation", 4.0, start=start)]
-    hyst = widened("hysteresis", 0.0, 5.0, groups=("hysteresis", "memory"), start=start)
+    hyst = widened("hysteresis", 0.0, 5.0, groups=FAMILY_GROUPS["hysteresis"], start=start)
     sat = widened("saturation", 2.0, 4.0, start=start)
     v = decide(Rules(), start, laws + [sat, hyst])
     assert v.name == "hysteresis" and v.model is hyst and v.best is hyst and v.law is hyst.law
-    assert v.grade.by == "signature" and v.grade.model == "hysteresis widened by its hysteresis+memory signature"
+    assert v.grade.by == "signature" and v.grade.model == f"hysteresis widened by its {'+'.join(FAMILY_GROUPS['hysteresis'])} signature"
     # one the data do not clearly want is no candidate: nothing reaches the floor
     unclear = dataclasses.replace(hyst, log_bayes={"hysteresis": 5.0})
     v = decide(Rules(), start, laws + [unclear])
@@ -211,7 +212,7 @@ def test_families_sharing_a_signature_cannot_be_told_apart_by_it():
     v = decide(Rules(), start, [top.law, other.law, top, other])
     assert v.kind == "undecided" and set(v.candidates) == {"current_gain", "current_offset"}
     # a signature of its own, the other's far off: named
-    hyst = widened("hysteresis", 0.0, 3.0, groups=("hysteresis", "memory"), start=start)
+    hyst = widened("hysteresis", 0.0, 3.0, groups=FAMILY_GROUPS["hysteresis"], start=start)
     assert decide(Rules(), start, [hyst.law, leakage.law, hyst, widened("leakage", 1.0, 0.5, start=start)]
                   ).name == "hysteresis"
 

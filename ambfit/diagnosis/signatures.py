@@ -99,7 +99,8 @@ class Signature:
 
 
 def widened(law: Candidate, df, groups, noise) -> Signature:
-    """``law`` widened by the discrepancy ``groups``: fitted on the rows each fold's fit used, scored on the fold."""
+    """``law`` widened by the discrepancy ``groups``: fitted on each fold's other rows (the law's outliers among
+    them), scored on the fold."""
     from ambfit.data import load_groups
     from ambfit.diagnosis.heldout import heldout_residuals
     from ambfit.estimation.discrepancy import fit_discrepancy
@@ -107,14 +108,20 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
     zs, vs, folds_ = [], [], []
     loads = load_groups(df).to_numpy()
     for test, f in law.folds:
-        d = fit_discrepancy(f, df, groups=groups, **noise)          # on the rows the fold's fit used
+        d = fit_discrepancy(f, df, groups=groups, mask=_trained(f, ~test), **noise)
         zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
                                     loads))
         # the law's parameters and the correction's coefficients both widen the prediction
         vs.append(1.0 + predictive_variance(f, test) + d.row_variance[test])
         folds_.append((test, f, d))
-    full = fit_discrepancy(law.fit, df, groups=groups, **noise)
+    full = fit_discrepancy(law.fit, df, groups=groups, mask=_trained(law.fit, np.ones(len(df), bool)), **noise)
     var = np.concatenate(vs)
     return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
                      folds=tuple(folds_), full=full, heldout_var=var)
 
+
+def _trained(fit, rows: np.ndarray) -> np.ndarray:
+    """The rows a widening is fitted on: ``rows`` with a finite residual under ``fit``, the law's own outliers
+    included (where a law other than the library's departs from it most, its fit sees outliers: the widening is
+    what would explain them)."""
+    return rows & np.isfinite(np.asarray(fit.residuals)[:len(rows)])

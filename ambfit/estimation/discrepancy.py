@@ -13,7 +13,9 @@ in the fit's weighted metric.  The physical parameters therefore stay the physic
 correction carries only what the law cannot express.  What an unconstrained correction would have done to
 them is reported (:attr:`Discrepancy.unconstrained_shift`): in the joint linear problem it moves the
 parameters by ``-A c`` (``A`` the projection coefficients, ``c`` the correction's coefficients), which is
-exactly how much of the correction the parameters could have absorbed.
+exactly how much of the correction the parameters could have absorbed.  Fitted on other rows than the fit used
+(``mask``: its outliers among them), the parameters are first refitted to those rows, linearised; the correction
+(:attr:`Discrepancy.row_correction`) carries that move too.
 
 The prior scale of the coefficients is chosen by maximising the marginal likelihood (type-II maximum
 likelihood) over a grid; the coefficients' posterior gives the correction's standard error.
@@ -60,7 +62,8 @@ class Discrepancy:
         coefficients the data determine.
     row_correction, row_correction_n : array[n]
         The correction on every row of the data it was fitted on (held-out rows too), in standardized units
-        and in newtons.
+        and in newtons; with the parameters' refit when fitted on other rows than the fit used (:meth:`correction`
+        at other readings carries the basis' part alone).
     row_noise_n : array[n]
         Each of those rows' force noise std [N] (the unit of the standardized correction).
     row_variance : array[n]
@@ -186,17 +189,29 @@ class _Evidence:
 def _scales(x, y, group, n_groups, noise_known):
     """Each group's prior sd by coordinate ascent of the marginal likelihood over ``TAU_GRID`` and 0, and each
     group's log Bayes factor (with it against without it, the others at their scales).  Each step evaluates the
-    whole grid of one group from one factorization (:meth:`_Evidence.along`)."""
+    whole grid of one group from one factorization (:meth:`_Evidence.along`).
+
+    The marginal likelihood of several groups has several maxima (two groups that carry the same structure: either
+    takes it), so the ascent starts from every group at one common scale and from each group alone, and the
+    highest maximum is kept."""
     evidence = _Evidence(x, y, noise_known)
     grid = np.concatenate([[0.0], TAU_GRID])
     common = evidence.common(TAU_GRID)
-    j = int(np.argmax(common))
-    best, tau = common[j], np.full(n_groups, TAU_GRID[j])
-    for _ in range(2):
+    starts = [np.full(n_groups, TAU_GRID[int(np.argmax(common))])]
+    if n_groups > 1:
         for g in range(n_groups):
-            vals = evidence.along(tau[group], group == g, grid)
-            j = int(np.argmax(vals))
-            tau[g], best = grid[j], vals[j]
+            alone = evidence.along(np.zeros(len(group)), group == g, TAU_GRID)
+            starts.append(np.where(np.arange(n_groups) == g, TAU_GRID[int(np.argmax(alone))], 0.0))
+    best, tau = -np.inf, None
+    for start in starts:
+        t, value = start.copy(), -np.inf
+        for _ in range(2):
+            for g in range(n_groups):
+                vals = evidence.along(t[group], group == g, grid)
+                j = int(np.argmax(vals))
+                t[g], value = grid[j], vals[j]
+        if value > best + 1e-9:              # ties keep the first start (the common scale)
+            best, tau = value, t
     without = np.array([evidence.along(tau[group], group == g, [0.0])[0] for g in range(n_groups)])
     return tau, best - without
 
@@ -228,9 +243,15 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
         w = np.asarray(result.weights, dtype=float)
     else:
         w = np.ones(n)
-    z = np.asarray(result.residuals)[:n]
-    b = basis.matrix(prob.readings, df) / s[:, None]
     sw = np.sqrt(w)[:, None]
+    z = np.asarray(result.residuals)[:n]
+    refit = np.zeros(n)
+    if np.any((w > 0) & ~result.fitted_rows[:n]):
+        # rows the fit did not use: its parameters refitted to these rows, linearised, first (on its own rows they
+        # are at their minimum); what the correction adds is orthogonal to them there too
+        refit = jac @ np.linalg.lstsq(sw * jac, -(sw[:, 0] * z), rcond=None)[0]
+        z = z + refit
+    b = basis.matrix(prob.readings, df) / s[:, None]
     # the basis' regression on the parameters' columns (weighted), and what is left: orthogonal to them
     a = np.linalg.lstsq(sw * jac, sw * b, rcond=None)[0]
     b_perp = b - jac @ a
@@ -249,7 +270,7 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
         resid = y - x @ coef
         sigma2 = float(resid @ resid) / max(len(y) - neff, 1.0)
     cov = sigma2 * inner * np.outer(tau, tau)
-    row = b_perp @ coef
+    row = b_perp @ coef + refit
     scale, _ = si_scale(prob, model)
     names = list(result.names)
     phys = [j for j, nm in enumerate(names) if not nm.startswith("load[")]
