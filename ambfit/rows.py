@@ -70,28 +70,6 @@ def play_states(df: pd.DataFrame, column: str, widths) -> np.ndarray:
     return out
 
 
-def fading_states(df: pd.DataFrame, column: str, retain, scale) -> np.ndarray:
-    """How far each reading's coil current sits from fading memories of its course: array[n, s],
-    ``tanh((i - q) / scale)`` with ``q = retain q_prev + (1 - retain) i`` (``retain`` and ``scale`` [A] per state).
-
-    The memory ``q`` follows the current through each run's readings in file order (:func:`runs`), from the run's
-    first current: after a run of rising steps the current sits above its memory, after falling ones below, and
-    the memory forgets at ``retain`` per reading (a fading-memory model of hysteresis, the magnetic after-effect:
-    Mayergoyz, *Mathematical Models of Hysteresis*, 1991, ch. 1).
-    """
-    retain, scale = np.asarray(retain, dtype=float), np.asarray(scale, dtype=float)
-    out = np.zeros((len(df), len(retain)))
-    if len(df) == 0:
-        return out
-    order, first = runs(df)
-    i = df[column].to_numpy(float)[order]
-    q = np.zeros(len(retain))
-    for r, (now, new) in enumerate(zip(i, first)):       # a recursion: each output needs the one before
-        q = np.full(len(retain), now) if new else retain * q + (1.0 - retain) * now
-        out[order[r]] = np.tanh((now - q) / scale)
-    return out
-
-
 def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """The other axis' ``(i_top_A, i_bottom_A)`` read at the same moment as each row (NaN where none).
 

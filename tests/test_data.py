@@ -227,16 +227,6 @@ def test_play_states_follow_the_play_operator():
     np.testing.assert_allclose(s[:, 1], R.approach_direction(df, "i_top_A", threshold=1e-9))
 
 
-def test_fading_states_follow_an_exponentially_fading_memory():
-    # retention 0.5, scale 0.1 A: the memory starts at the run's first current and moves half way each reading;
-    # experiment b starts a memory of its own; a retention of 0 forgets at once (state 0)
-    df = pd.DataFrame({"axis": ["v"] * 5, "experiment": ["a"] * 4 + ["b"], "i_top_A": [1.0, 1.2, 1.2, 0.8, 0.3]})
-    s = R.fading_states(df, "i_top_A", [0.5, 0.0], [0.1, 0.1])
-    q = [1.0, 1.1, 1.15, 0.975, 0.3]
-    np.testing.assert_allclose(s[:, 0], np.tanh((df["i_top_A"].to_numpy() - q) / 0.1), rtol=1e-12)
-    np.testing.assert_array_equal(s[:, 1], 0.0)
-
-
 def test_a_spreadsheet_export_is_read_and_said(tmp_path):
     # a German Excel's "CSV": semicolons, decimal commas, a blank row of separators; the same numbers as the
     # contract's file, and what was taken in stride said as notes

@@ -10,7 +10,7 @@ from ambfit.estimation.basis import FAMILY_GROUPS, Basis
 from ambfit.estimation.discrepancy import fit_discrepancy
 from ambfit.physics import effects as E
 from ambfit.physics.bearing import PAPER_BEARING
-from ambfit.rig import laws, protocol, zoo_hysteresis, zoo_magnetic, zoo_measurement
+from ambfit.rig import laws, protocol, zoo_magnetic, zoo_measurement
 
 
 @pytest.fixture(scope="module")
@@ -36,9 +36,6 @@ CASES = [
     # scaled by this axis' mean current squared: powers of order one, a constant part, a current scale
     (zoo_magnetic.PositionCoupling(coef=np.array([[0.0, 0.0, 0.08], [0.0, 0.0, -0.08]]), power=np.array([2.0, 2.0])),
      "cross_coupling", [E.CrossCoupling()]),
-    # a lag that fades over a few readings (no play of any width): the current against its own recent course
-    (zoo_hysteresis.MemoryHysteresis(lag=np.asarray(0.015), scale=np.asarray(0.06), memory=np.asarray(0.7)),
-     "hysteresis", [E.Hysteresis()]),
 ]
 
 

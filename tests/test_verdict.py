@@ -71,8 +71,13 @@ def test_below_the_floor_is_judged_against_each_readings_predictive_variance():
     leaky = Candidate("a", z, 1.0, fit=None, heldout_var=var)
     assert leaky.score < judge.floor_of(leaky) and judge.below_floor(leaky)
     assert not judge.at_floor(leaky) and not judge.explains(leaky)
+    # with no reading counted confident, its score alone is judged: at the floor
+    assert not Judge(n=N, ideal_score=4.0, rules=Rules(confident_var=0.5)).below_floor(leaky)
     honest = Candidate("b", NOISE, 1.0, fit=None, heldout_var=np.full(N, 1.05))
     assert not judge.below_floor(honest)
+    # vague everywhere and exact all the same: below the floor by its score alone
+    vague = Candidate("c", 0.2 * NOISE, 1.0, fit=None, heldout_var=np.full(N, 2.5))
+    assert judge.below_floor(vague) and not judge.explains(vague)
 
 
 def test_clearly_better_is_a_paired_comparison_that_charges_a_wide_prediction():
@@ -298,7 +303,7 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
         "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs",
-        "pair_verdict"}
+        "pair_verdict", "confident_var"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 

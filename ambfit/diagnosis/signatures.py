@@ -100,7 +100,7 @@ class Signature:
 
 def widened(law: Candidate, df, groups, noise) -> Signature:
     """``law`` widened by the discrepancy ``groups``: fitted on each fold's other rows (the law's outliers among
-    them), scored on the fold."""
+    them, its parameters refitted to them), scored on the fold; and on the rows the law's fit of every row used."""
     from ambfit.data import load_groups
     from ambfit.diagnosis.heldout import heldout_residuals
     from ambfit.estimation.discrepancy import fit_discrepancy
@@ -114,7 +114,8 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
         # the law's parameters and the correction's coefficients both widen the prediction
         vs.append(1.0 + predictive_variance(f, test) + d.row_variance[test])
         folds_.append((test, f, d))
-    full = fit_discrepancy(law.fit, df, groups=groups, mask=_trained(law.fit, np.ones(len(df), bool)), **noise)
+    # on the rows the law's fit used: its saved correction is its law's parameters and these coefficients alone
+    full = fit_discrepancy(law.fit, df, groups=groups, **noise)
     var = np.concatenate(vs)
     return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
                      folds=tuple(folds_), full=full, heldout_var=var)

@@ -39,11 +39,6 @@ import dataclasses
 
 import numpy as np
 
-CONFIDENT = 2.0
-"""A held-out prediction is confident when its variance is at most this many noise variances (its parameters'
-uncertainty adds at most as much as the noise): the readings on which :meth:`Judge.below_floor` looks for a model
-that predicts their noise."""
-
 OCCAM = ("all", "siblings", "none")
 """Which more flexible models need to be ahead of the simplest explanation to rival it (:attr:`Rules.occam`)."""
 
@@ -72,6 +67,12 @@ class Rules:
         alone would hide (the FEM development bearing's circuit leaves 0.63 and is named; on the law zoo's pairs a
         widened hysteresis law that left 1.05 beside a current offset, and a widened leakage law that left 1.49
         beside saturation and a current offset, were named alone at 2).
+    confident_var : float
+        A held-out prediction is confident when its variance is at most this many noise variances (its parameters'
+        uncertainty adds at most as much as the noise): the readings on which :meth:`Judge.below_floor` looks for a
+        model that predicts their noise (a law zoo case, seed 7373 draw 276: a saturation law widened by its shape
+        group with a mean square of 0.93 held out and 0.07 relative to its variance, over a median variance of
+        1.1).
     spread_max : float
         A model's floor counts the width its parameters' uncertainty adds to its held-out predictions up to this
         share of the noise variance: a model whose predictions are wider still (a flexible correction extrapolated
@@ -132,6 +133,7 @@ class Rules:
     graded_shrink: float = 0.9
     graded_remainder: float = 1.0
     spread_max: float = 1.0
+    confident_var: float = 2.0
     log_bayes_clear: float = 10.0
     structure_alpha: float = 0.01
     circuit_dchi2: float = 3.0
@@ -185,19 +187,19 @@ class Judge:
         return model.score <= self.floor_of(model) and not self.below_floor(model)
 
     def below_floor(self, model) -> bool:
-        """Whether ``model`` predicts the held-out readings better than their noise allows: on the readings it
-        predicts confidently (variance at most :data:`CONFIDENT` noise variances), its residuals' mean square
-        relative to that variance is below the floor's lower limit for so many readings (a model exact on most
-        readings, while a few far off carry its mean square up to the floor, predicts their noise too; one whose
-        predictions are all vague is judged by :meth:`floor_of`)."""
+        """Whether ``model`` predicts the held-out readings better than their noise allows: its score is below
+        :attr:`below`, or, on the readings it predicts confidently (variance at most ``Rules.confident_var``
+        noise variances), its residuals' mean square relative to that variance is below the floor's lower limit for so
+        many readings (a model exact on most readings, while a few far off carry its mean square up to the floor,
+        predicts their noise too)."""
+        if model.score < self.below:
+            return True
         z2 = np.asarray(model.heldout_z) ** 2
         var = getattr(model, "heldout_var", None)
         var = np.ones_like(z2) if var is None else np.asarray(var)
-        sure = var <= CONFIDENT
+        sure = var <= self.rules.confident_var
         n = int(np.sum(sure))
-        if n < 2:
-            return False
-        return float(np.mean(z2[sure] / var[sure])) < 1.0 - self.rules.floor_se * np.sqrt(2.0 / n)
+        return n > 1 and float(np.mean(z2[sure] / var[sure])) < 1.0 - self.rules.floor_se * np.sqrt(2.0 / n)
 
     def explains(self, model) -> bool:
         return self.at_floor(model) and self.ideal_score > self.floor
@@ -372,8 +374,8 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
     structured : bool
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
 
-    A widened law whose signature is clear and whose score is below the floor sets every widened law aside: the
-    verdict is decided by the laws and pairs alone (nothing explaining, ``unexplained``; a little above the floor
+    A widened law whose signature is clear and below the floor (:meth:`Judge.below_floor`) sets every widened law
+    aside: the verdict is decided by the laws and pairs alone (nothing explaining, ``unexplained``; a little above the floor
     with no law clearly better, ``none``) and lists those below the floor in ``unjudged``.
     """
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)

@@ -18,9 +18,6 @@ coupling           the same times the other axis' mean squared current; powers o
 control            the other axis' signed control current times this axis' current stiffness
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
-fading             each coil's current against fading memories of its recent course (an exponentially
-                   weighted mean over a few readings), saturated at several scales, and each coil's constant
-                   magnetising offset (a minor loop off the anhysteretic curve)
 drift              each coil's ``b^2``, ``b^2 xi`` times smooth functions of time: powers and settling curves
                    (and of temperature when read: powers and the temperature lagged through first-order lags)
 current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
@@ -54,13 +51,13 @@ GROUPS = ("shape", "coupling", "hysteresis")
 (saturation, iron, fringing, leakage); what depends on the other axis (its currents and position: coupling through
 the stator); what depends on the direction from which each coil current was approached (hysteresis).  Each group
 has its own prior scale."""
-SIGNATURE_GROUPS = ("control", "memory", "fading", "drift", "current_sensor", "position_sensor", "position_spline")
+SIGNATURE_GROUPS = ("control", "memory", "drift", "current_sensor", "position_sensor", "position_spline")
 """Further groups, each the signature of one family (see the module docstring)."""
 ALL_GROUPS = GROUPS + SIGNATURE_GROUPS
 
 FAMILY_GROUPS = {
     "saturation": ("shape",), "iron_reluctance": ("shape",), "fringing": ("shape",), "leakage": ("shape",),
-    "cross_coupling": ("coupling", "control"), "hysteresis": ("hysteresis", "memory", "fading"),
+    "cross_coupling": ("coupling", "control"), "hysteresis": ("hysteresis", "memory"),
     "thermal_drift": ("drift",), "current_offset": ("current_sensor",),
     "current_gain": ("current_sensor",), "position_gain": ("position_sensor", "position_spline"),
 }
@@ -84,14 +81,6 @@ PLAY_WIDTHS = (0.005, 0.01, 0.02, 0.035, 0.05, 0.07, 0.1, 0.15)
 library's narrow play to the perturbation's span, about geometric; the narrowest limit is the hysteresis group's
 direction).  A play's state is not linear in its width: a law between two widths is expressed by their mix."""
 
-FADE = (0.25, 0.45, 0.6, 0.7, 0.8, 0.87, 0.93)
-"""Retention per reading of the fading group's memories, ``q = r q_prev + (1 - r) i``: a memory of about 0.7, 2
-and 6 readings (magnetic after-effect and eddy currents that decay over a few set-points)."""
-
-FADE_SCALES = (0.01, 0.03, 0.1)
-"""Scales, as fractions of ``I_max``, at which the fading group saturates a coil's distance from its memory,
-``tanh((i - q) / scale)`` (30-300 mA on the paper's rig: a lag that is full after a step of about the scale)."""
-
 SPLINE_INTERVALS = 24
 """Most knot intervals of the position_spline group's cubic B-splines over the position readings' span: a ripple of
 15 µm spans four of them over the paper's +-38 µm."""
@@ -110,8 +99,8 @@ _MATRICES = Recent(8)
 class Basis:
     """The discrepancy's basis functions, fixed by the bearing description and, for drift, the span of the data's
     clock and thermometer (``t_ref`` [s], ``temp_ref``, ``temp_span`` [°C]), for the position splines the span of
-    the position readings (``u_lo``, ``u_hi``, in units of :data:`X_SCALE` of the gap) and their set-points
-(``u_intervals``, :data:`POSITION_CLUSTER`); not by the fit."""
+    the position readings (``u_lo``, ``u_hi``, in units of :data:`X_SCALE` of the gap) and how many set-points
+    they have (``u_intervals``, :data:`POSITION_CLUSTER`); not by the fit."""
 
     i_ref: float
     g_ref: float
@@ -143,11 +132,14 @@ class Basis:
             if temp.size:
                 scales |= {"temp_ref": float(temp.min()), "temp_span": float(np.ptp(temp)) or 1.0}
         if readings is not None and "position_spline" in groups:
-            x = np.sort(np.asarray(readings.x, dtype=float))
-            x = x[np.isfinite(x)]
-            if x.size and np.ptp(x) > 0:
-                points = 1 + int(np.sum(np.diff(x) > POSITION_CLUSTER))
-                scales |= {"u_lo": float(x[0] / (X_SCALE * g_ref)), "u_hi": float(x[-1] / (X_SCALE * g_ref)),
+            x, axis = np.asarray(readings.x, dtype=float), np.asarray(readings.axis)
+            known = np.isfinite(x)
+            if known.any() and np.ptp(x[known]) > 0:
+                # each axis' set-points: its readings more than POSITION_CLUSTER apart; the splines serve both axes
+                points = min(1 + int(np.sum(np.diff(np.sort(x[known & (axis == a)])) > POSITION_CLUSTER))
+                             for a in np.unique(axis[known]))
+                scales |= {"u_lo": float(x[known].min() / (X_SCALE * g_ref)),
+                           "u_hi": float(x[known].max() / (X_SCALE * g_ref)),
                            "u_intervals": int(np.clip(points // 3, 1, SPLINE_INTERVALS))}
         return cls(i_ref=i_ref, g_ref=g_ref, cos_alpha=float(bearing.cos_alpha), sin_alpha=float(bearing.sin_alpha),
                    f_ref=float(bearing.force_constant() * (i_ref / g_ref) ** 2), groups=tuple(groups), **scales)
@@ -189,12 +181,6 @@ class Basis:
                 cols += [("memory", f"play {w:g} I_max {coil} b{extra}", v)
                          for coil, s, b, x in (("top", st, bt, xi), ("bottom", sb, bb, -xi))
                          for extra, v in (("", s * b), ("^2", s * b**2), (" xi", s * b * x))]
-        if "fading" in self.groups:
-            for coil, states, b, x in (("top", f["fade_top"], bt, xi), ("bottom", f["fade_bottom"], bb, -xi)):
-                cols += [("fading", f"{coil} offset b / (1 - xi)", b / (1.0 - x))]
-                # a lag of the magnetising current moves a horseshoe's force by 2 F lag / i, b / (1 -+ xi) per ampere
-                cols += [("fading", f"fade {r:g} scale {sc:g} I_max {coil} b / (1 - xi)", states[:, j] * b / (1.0 - x))
-                         for j, (r, sc) in enumerate(_fade_pairs())]
         if "drift" in self.groups:
             clocks = ([(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)]
                       + [(f"1 - exp(-t / {s:g} t_run)", -np.expm1(-f["tau"] / s)) for s in SETTLE]
@@ -235,15 +221,6 @@ class Basis:
                                                                for j, s in enumerate(SETTLE)}
         if "position_spline" in self.groups:
             f["u_spline"] = _splines(f["u"], self.u_lo, self.u_hi, self.u_intervals)
-        if "fading" in self.groups:
-            from ambfit.rows import fading_states
-
-            if frame is None:
-                raise ValueError("the discrepancy's 'fading' group needs the table of the readings (their order)")
-            pairs = _fade_pairs()
-            retain, scale = np.array([r for r, _ in pairs]), np.array([sc for _, sc in pairs]) * self.i_ref
-            f |= {"fade_top": fading_states(frame, "i_top_A", retain, scale),
-                  "fade_bottom": fading_states(frame, "i_bottom_A", retain, scale)}
         if "memory" in self.groups:
             from ambfit.rows import play_states
 
@@ -261,9 +238,7 @@ class Basis:
                                             "theta")}
                             | {f"theta_lag{j}": z for j in range(len(SETTLE))}
                             | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS))),
-                               "fade_top": np.zeros((1, len(FADE) * len(FADE_SCALES))),
-                               "fade_bottom": np.zeros((1, len(FADE) * len(FADE_SCALES)))}
-                            | {"u_spline": np.zeros((1, self.u_intervals + 3))})
+                               "u_spline": np.zeros((1, self.u_intervals + 3))})
         return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
 
     def to_json(self) -> dict:
@@ -272,9 +247,8 @@ class Basis:
     @classmethod
     def from_json(cls, record: dict) -> Basis:
         """The basis of a saved discrepancy; one saved with other constants (:data:`P_MAX`, :data:`Q_MAX`,
-        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`, :data:`FADE`, :data:`FADE_SCALES`,
-        :data:`POSITION_CLUSTER`) would compute other columns under the same
-        coefficients, and is refused."""
+        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`) would compute other columns
+        under the same coefficients, and is refused."""
         if "p_max" in record:
             record = {"shape_p_min": 0} | record       # saved before the shape group left out b^0
         for key, value in _constants().items():
@@ -282,7 +256,7 @@ class Basis:
                 raise ValueError(f"the discrepancy's basis was saved with {key} = {record[key]}, this ambfit's is "
                                  f"{value}: its coefficients belong to other columns; fit the discrepancy again")
         kw = {f.name: record[f.name] for f in dataclasses.fields(cls) if f.name in record}
-        return cls(**kw | {"groups": tuple(kw["groups"])})
+        return cls(**kw | {"groups": tuple(kw["groups"]), "u_intervals": int(kw.get("u_intervals", SPLINE_INTERVALS))})
 
     def matrix(self, readings, frame=None) -> np.ndarray:
         """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis.
@@ -310,13 +284,7 @@ class Basis:
 def _constants() -> dict:
     """The module's constants that shape the columns, as a saved basis records them."""
     return {"p_max": P_MAX, "q_max": Q_MAX, "shape_p_min": SHAPE_P_MIN, "x_scale": X_SCALE, "settle": list(SETTLE),
-            "play_widths": list(PLAY_WIDTHS), "fade": list(FADE), "fade_scales": list(FADE_SCALES),
-            "position_cluster": POSITION_CLUSTER}
-
-
-def _fade_pairs() -> list[tuple[float, float]]:
-    """``(retention, scale)`` of each fading state, in column order."""
-    return [(r, sc) for r in FADE for sc in FADE_SCALES]
+            "play_widths": list(PLAY_WIDTHS)}
 
 
 def _splines(u: np.ndarray, lo: float, hi: float, intervals: int) -> np.ndarray:

@@ -210,19 +210,30 @@ def _scales(x, y, group, n_groups, noise_known):
                 vals = evidence.along(t[group], group == g, grid)
                 j = int(np.argmax(vals))
                 t[g], value = grid[j], vals[j]
-        if value > best + 1e-9:              # ties keep the first start (the common scale)
+        if tau is None or value > best + 1e-9:      # ties keep the first start (the common scale)
             best, tau = value, t
     without = np.array([evidence.along(tau[group], group == g, [0.0])[0] for g in range(n_groups)])
     return tau, best - without
+
+
+def _refit(jac: np.ndarray, z: np.ndarray, sw: np.ndarray, result: FitResult) -> np.ndarray:
+    """The step of the (scaled) parameters that minimises ``|sw (z + jac step)|^2`` plus the effect parameters'
+    priors ``|q + step|^2`` (``q ~ N(0, 1)``, the fit's own: :func:`ambfit.estimation.core.with_priors`)."""
+    names = list(result.names)[:jac.shape[1]]
+    effect = np.array(["." in name for name in names])
+    q = np.asarray(result.theta, dtype=float)[:jac.shape[1]][effect]
+    a = np.vstack([sw[:, None] * jac, np.eye(jac.shape[1])[effect]])
+    return np.linalg.lstsq(a, -np.concatenate([sw * z, q]), rcond=None)[0]
 
 
 def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
                     sigma_x: float | None = None, mask=None, groups=GROUPS) -> Discrepancy:
     """The discrepancy of ``result``'s model on ``data`` (the rows the fit used, or ``mask``'s rows).
 
-    ``sigma_i``, ``sigma_x`` must be those the fit was given; ``mask`` (1 fitted, 0 held out) those of a
-    held-out fit; ``groups`` the basis groups to use (:data:`GROUPS`).  The fit itself is not changed: see
-    the module docstring for why it need not be.
+    ``sigma_i``, ``sigma_x`` must be those the fit was given; ``mask`` (1 fitted, 0 held out): the rows to fit
+    the correction on, by default those the fit used (its weights); ``groups`` the basis groups to use
+    (:data:`GROUPS`).  On the fit's own rows its parameters are not changed: see the module docstring for why they
+    need not be; on others they are refitted, linearised, and the refit is part of :attr:`Discrepancy.row_correction`.
     """
     df = zero_based(data.frame if isinstance(data, Dataset) else data)
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x)
@@ -246,10 +257,13 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     sw = np.sqrt(w)[:, None]
     z = np.asarray(result.residuals)[:n]
     refit = np.zeros(n)
-    if np.any((w > 0) & ~result.fitted_rows[:n]):
-        # rows the fit did not use: its parameters refitted to these rows, linearised, first (on its own rows they
-        # are at their minimum); what the correction adds is orthogonal to them there too
-        refit = jac @ np.linalg.lstsq(sw * jac, -(sw[:, 0] * z), rcond=None)[0]
+    own = np.ones(n) if result.weights is None else np.asarray(result.weights, dtype=float)[:n]
+    if not np.allclose(w, own):
+        # other rows or weights than the fit's: its parameters refitted to them, linearised, first (with the effect
+        # parameters' priors, as the fit had them; at the fit's own they are at their minimum); what the
+        # correction adds is orthogonal to them there too
+        z = np.where(w > 0, z, 0.0)
+        refit = jac @ _refit(jac, z, sw[:, 0], result)
         z = z + refit
     b = basis.matrix(prob.readings, df) / s[:, None]
     # the basis' regression on the parameters' columns (weighted), and what is left: orthogonal to them

@@ -78,7 +78,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
 
     ``base`` is the fit of all rows with the same model (its estimate starts each refit).  With
     ``discrepancy``, each refit also gets the model-discrepancy term (:mod:`ambfit.estimation.discrepancy`)
-    fitted on the same rows (a tuple of groups: those of :mod:`ambfit.estimation.basis`, a family's signature;
+    fitted on the rows it saw, the outliers among them, its parameters refitted to those (a tuple of groups: those
+    of :mod:`ambfit.estimation.basis`, a family's signature;
     True: the default groups), and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
     refits already made with the same model, start and settings, as ``(held-out rows mask, FitResult,
     Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose left-out rows are exactly one of
@@ -137,7 +138,10 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
             from ambfit.estimation.discrepancy import fit_discrepancy
 
             if d is None:
+                # on every row the refit could see, its outliers too, as a diagnosis' widened folds are fitted
+                seen = ~out & np.isfinite(np.asarray(res.residuals)[:len(df)])
                 d = fit_discrepancy(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"),
+                                    mask=seen.astype(float),
                                     **({"groups": discrepancy} if isinstance(discrepancy, tuple) else {}))
             rd = (predicted[out] + d.row_correction_n[out] - load) / load
             entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
