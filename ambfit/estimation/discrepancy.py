@@ -192,26 +192,27 @@ def _scales(x, y, group, n_groups, noise_known):
     whole grid of one group from one factorization (:meth:`_Evidence.along`).
 
     The marginal likelihood of several groups has several maxima (two groups that carry the same structure: either
-    takes it), so the ascent starts from every group at one common scale and from each group alone, and the
-    highest maximum is kept."""
+    takes it).  The ascent starts from every group at one common scale; a group that alone reaches a higher
+    marginal likelihood than that ascent's maximum starts an ascent of its own, and the highest maximum is kept."""
     evidence = _Evidence(x, y, noise_known)
     grid = np.concatenate([[0.0], TAU_GRID])
-    common = evidence.common(TAU_GRID)
-    starts = [np.full(n_groups, TAU_GRID[int(np.argmax(common))])]
-    if n_groups > 1:
-        for g in range(n_groups):
-            alone = evidence.along(np.zeros(len(group)), group == g, TAU_GRID)
-            starts.append(np.where(np.arange(n_groups) == g, TAU_GRID[int(np.argmax(alone))], 0.0))
-    best, tau = -np.inf, None
-    for start in starts:
-        t, value = start.copy(), -np.inf
+
+    def ascend(t):
+        value = -np.inf
         for _ in range(2):
             for g in range(n_groups):
                 vals = evidence.along(t[group], group == g, grid)
                 j = int(np.argmax(vals))
                 t[g], value = grid[j], vals[j]
-        if tau is None or value > best + 1e-9:      # ties keep the first start (the common scale)
-            best, tau = value, t
+        return t, value
+
+    tau, best = ascend(np.full(n_groups, TAU_GRID[int(np.argmax(evidence.common(TAU_GRID)))]))
+    for g in range(n_groups if n_groups > 1 else 0):
+        alone = evidence.along(np.zeros(len(group)), group == g, TAU_GRID)
+        if np.max(alone) > best:
+            t, value = ascend(np.where(np.arange(n_groups) == g, TAU_GRID[int(np.argmax(alone))], 0.0))
+            if value > best:
+                tau, best = t, value
     without = np.array([evidence.along(tau[group], group == g, [0.0])[0] for g in range(n_groups)])
     return tau, best - without
 
