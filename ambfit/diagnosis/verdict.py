@@ -375,8 +375,8 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
 
     A widened law whose signature is clear and below the floor (:meth:`Judge.below_floor`) sets every widened law
-    aside: the verdict is decided by the laws and pairs alone (nothing explaining, ``unexplained``; a little above the floor
-    with no law clearly better, ``none``) and lists those below the floor in ``unjudged``.
+    aside: the verdict is decided by the laws and pairs alone (nothing explaining, ``unexplained``; a little above
+    the floor with no law clearly better, ``none``) and lists those below the floor in ``unjudged``.
     """
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
     # a clear widened law below the floor predicts the readings' noise: its correction has learnt how the noise of
