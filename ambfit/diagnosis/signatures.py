@@ -103,12 +103,12 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
     them, its parameters refitted to them), scored on the fold; and on the rows the law's fit of every row used."""
     from ambfit.data import load_groups
     from ambfit.diagnosis.heldout import heldout_residuals
-    from ambfit.estimation.discrepancy import fit_discrepancy
+    from ambfit.estimation.discrepancy import fit_discrepancy, seen_rows
 
     zs, vs, folds_ = [], [], []
     loads = load_groups(df).to_numpy()
     for test, f in law.folds:
-        d = fit_discrepancy(f, df, groups=groups, mask=_trained(f, ~test), **noise)
+        d = fit_discrepancy(f, df, groups=groups, mask=seen_rows(f, ~test), **noise)
         zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
                                     loads))
         # the law's parameters and the correction's coefficients both widen the prediction
@@ -120,9 +120,3 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
     return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
                      folds=tuple(folds_), full=full, heldout_var=var)
 
-
-def _trained(fit, rows: np.ndarray) -> np.ndarray:
-    """The rows a widening is fitted on: ``rows`` with a finite residual under ``fit``, the law's own outliers
-    included (where a law other than the library's departs from it most, its fit sees outliers: the widening is
-    what would explain them)."""
-    return rows & np.isfinite(np.asarray(fit.residuals)[:len(rows)])

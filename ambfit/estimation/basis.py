@@ -193,11 +193,10 @@ class Basis:
             cols += [("current_sensor", f"{coil} b i^{r}", v * i**r)
                      for coil, v, i in (("top", bt / (1.0 - xi), f["it"]), ("bottom", bb / (1.0 + xi), f["ib"]))
                      for r in range(4)]
+        slope = bt**2 / (1.0 - xi) + bb**2 / (1.0 + xi)          # the force's slope in position, both horseshoes
         if "position_sensor" in self.groups:
-            slope = bt**2 / (1.0 - xi) + bb**2 / (1.0 + xi)
             cols += [("position_sensor", f"dF/dx u^{r}", slope * f["u"] ** r) for r in range(1, 5)]
         if "position_spline" in self.groups:
-            slope = bt**2 / (1.0 - xi) + bb**2 / (1.0 + xi)
             cols += [("position_spline", f"dF/dx B{k}(u)", slope * f["u_spline"][:, k])
                      for k in range(f["u_spline"].shape[1])]
         return cols

@@ -217,6 +217,13 @@ def _scales(x, y, group, n_groups, noise_known):
     return tau, best - without
 
 
+def seen_rows(fit: FitResult, rows: np.ndarray) -> np.ndarray:
+    """Of ``rows`` (bool), those with a finite residual under ``fit``, its outliers included: the rows a correction
+    of a fit made without them learns from (where a law other than the fit's departs from it most, the fit sees
+    outliers; the correction is what would explain them)."""
+    return rows & np.isfinite(np.asarray(fit.residuals)[:len(rows)])
+
+
 def _refit(jac: np.ndarray, z: np.ndarray, sw: np.ndarray, result: FitResult) -> np.ndarray:
     """The step of the (scaled) parameters that minimises ``|sw (z + jac step)|^2`` plus the effect parameters'
     priors ``|q + step|^2`` (``q ~ N(0, 1)``, the fit's own: :func:`ambfit.estimation.core.with_priors`)."""
@@ -249,16 +256,11 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     s = result.row_noise
     if s is None or np.shape(s) != (n,):
         s = np.asarray(noise_std(theta, prob, model))
-    if mask is not None:
-        w = np.asarray(mask, dtype=float) ** 2
-    elif result.weights is not None:
-        w = np.asarray(result.weights, dtype=float)
-    else:
-        w = np.ones(n)
+    own = np.ones(n) if result.weights is None else np.asarray(result.weights, dtype=float)[:n]
+    w = own if mask is None else np.asarray(mask, dtype=float) ** 2
     sw = np.sqrt(w)[:, None]
     z = np.asarray(result.residuals)[:n]
     refit = np.zeros(n)
-    own = np.ones(n) if result.weights is None else np.asarray(result.weights, dtype=float)[:n]
     if not np.allclose(w, own):
         # other rows or weights than the fit's: its parameters refitted to them, linearised, first (with the effect
         # parameters' priors, as the fit had them; at the fit's own they are at their minimum); what the

@@ -135,13 +135,12 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
                  "converged": bool(res.converged)}
         rd = None
         if discrepancy:
-            from ambfit.estimation.discrepancy import fit_discrepancy
+            from ambfit.estimation.discrepancy import fit_discrepancy, seen_rows
 
             if d is None:
                 # on every row the refit could see, its outliers too, as a diagnosis' widened folds are fitted
-                seen = ~out & np.isfinite(np.asarray(res.residuals)[:len(df)])
                 d = fit_discrepancy(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"),
-                                    mask=seen.astype(float),
+                                    mask=seen_rows(res, ~out).astype(float),
                                     **({"groups": discrepancy} if isinstance(discrepancy, tuple) else {}))
             rd = (predicted[out] + d.row_correction_n[out] - load) / load
             entry |= {"rms_rel_discrepancy": float(np.sqrt(np.mean(rd**2))), "mean_rel_discrepancy": float(np.mean(rd))}
