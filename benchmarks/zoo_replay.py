@@ -43,8 +43,9 @@ def _light(model):
                      heldout_var=None if model.heldout_var is None else np.asarray(model.heldout_var))
 
 
-def one_draw(job: tuple, into: str) -> dict:
-    """Draw case ``job = (item, seed)``, diagnose it up to the decision, store the scores in ``into``."""
+def one_draw(job: tuple, into: str, folds: str = "regions") -> dict:
+    """Draw case ``job = (item, seed)``, diagnose it up to the decision (held out on ``folds``), store the scores in
+    ``into``."""
     import jax
 
     import ambfit
@@ -66,7 +67,7 @@ def one_draw(job: tuple, into: str) -> dict:
     attribution.decide, attribution.needs_pairs = record, every_pair
     error = None
     try:
-        ambfit.diagnose(data, check_force=False, discrepancy=False)
+        ambfit.diagnose(data, check_force=False, discrepancy=False, folds=folds)
     except ambfit.FitError as exc:
         error = str(exc).splitlines()[0]
     finally:
@@ -153,6 +154,7 @@ def main():
     c.add_argument("--first", type=int, default=0)
     c.add_argument("--workers", type=int, default=None)
     c.add_argument("--into", type=Path, required=True)
+    c.add_argument("--folds", default="regions", help="the diagnosis' held-out folds: regions or time")
     r = sub.add_parser("replay")
     r.add_argument("into", type=Path, nargs="+")
     r.add_argument("--rule", action="append", default=[], help="a Rules field=value")
@@ -172,7 +174,7 @@ def main():
         jobs = [(i, seeds[i]) for i in range(args.first, args.first + args.draws)
                 if not (args.into / f"{i:04d}.pkl").exists()]
         with Engine(workers=args.workers) as engine:
-            engine.map(partial(one_draw, into=str(args.into)), jobs, chunk_size=1, what="draws")
+            engine.map(partial(one_draw, into=str(args.into), folds=args.folds), jobs, chunk_size=1, what="draws")
         return
     from ambfit.diagnosis.verdict import Rules
 
