@@ -2,22 +2,23 @@
 (a refactor, a faster route) must leave every key, string, flag and number of ``Diagnosis.to_json()`` as it was.
 
 The cases cover the ways a verdict is reached: the bundled data (``none``, the protocol's blind spot), a library
-law, a pair, laws of families the library does not write (a coupling through the other axis' currents named by
-its signature, an exponential drift in time that its signature's settling curves reach (the case is named for the
-verdict it had before they were there), a non-linear position sensor too weak to single out), iron reluctance that saturation explains alike
-(``undecided``, with the protocol that would separate them), and the FEM development data (the magnetic circuit,
-its pieces as families).  Inputs are stored as they were simulated, so
-only the diagnosis is compared.  Keys must come in the same order, and strings, flags and integers must be equal.
-Numbers must agree to a millionth: a number to 1e-6 of itself or 1e-9 absolute, an array (a covariance, the
-coefficients of a correction) to 1e-6 of its largest entry.  Why not closer: the references were made on one
-machine, and another processor's vector instructions round the last bits differently, which flat directions of a
-fit amplify.  Measured between an Intel machine and an AMD EPYC one, every verdict, string and flag the same: a
-parameter the data do not constrain (a position-sensor gain error of 2e-8, zero within its standard error) moved
-4e-4 of itself (1e-11 absolute), log Bayes factors of zero moved 2e-10 nats, covariances of 1e-30 changed sign,
-and the largest relative move of a number that is not zero was 1.2e-7 (a saturation sharpness).  On the machine that made them the records
-were byte-identical before and after the refactor of issue 30; issue 31 (undecided verdicts, predictive
-variance, paired comparisons) changed them on purpose and regenerated them, and again when the discrepancy's shape
-group lost its columns of the gap alone (every verdict stayed; its numbers moved) and the record gained its rules.
+law, a pair, laws of families the library does not write (a coupling through the other axis' currents named by its
+signature, an exponential drift in time that its signature's settling curves reach (the case is named for the
+verdict it had before they were there), a non-linear position sensor too weak to single out), iron reluctance that
+saturation explains alike (``undecided``, with the protocol that would separate them), and the FEM development data
+(the magnetic circuit, its pieces as families). Inputs are stored as they were simulated, so only the diagnosis is
+compared. Keys must come in the same order, and strings, flags and integers must be equal. Numbers must agree to a
+millionth: a number to 1e-6 of itself or 1e-9 absolute, an array (a covariance, the coefficients of a correction) to
+1e-6 of its largest entry. Why not closer: the references were made on one machine, and another processor's vector
+instructions round the last bits differently, which flat directions of a fit amplify. Measured between an Intel
+machine and an AMD EPYC one, every verdict, string and flag the same: a parameter the data do not constrain (a
+position-sensor gain error of 2e-8, zero within its standard error) moved 4e-4 of itself (1e-11 absolute), log Bayes
+factors of zero moved 2e-10 nats, covariances of 1e-30 changed sign, and the largest relative move of a number that
+is not zero was 1.2e-7 (a saturation sharpness). On the machine that made them the records were byte-identical
+before and after the refactor of issue 30; issue 31 (undecided verdicts, predictive variance, paired comparisons)
+changed them on purpose and regenerated them, and again when the discrepancy's shape group lost its columns of the
+gap alone (every verdict stayed; its numbers moved), when the record gained its rules, and when a signature's log
+Bayes factor came to count its law's outliers (every verdict stayed).
 
 When a change is *meant* to change the diagnosis, regenerate the references and say so in the commit:
 

@@ -135,3 +135,21 @@ def test_the_lagged_temperature_is_a_first_order_lag_in_time_order():
     held = _lagged(tau, gap, 0.1)
     assert held[0] == held[3] and held[5] > held[0]
     assert np.all(_lagged(tau, np.full(6, np.nan), 0.1) == 0.0)
+
+
+def test_a_signature_is_wanted_where_its_law_saw_outliers():
+    """A play hysteresis (the law zoo's study seed 3131, draw 142: a rich protocol, the play's widths growing with
+    the current) that the library's hysteresis law fits on most readings and sets aside as outliers where the loop
+    is widest.  On the rows the law's fit kept, its signature is not clearly wanted; on every reading the folds'
+    corrections learn from (the outliers too) it is, and the widened law names the family at the floor.  Judging
+    the signature on the kept rows alone left it out and the verdict `unexplained`."""
+    from ambfit.diagnosis.verdict import Rules
+    from ambfit.rig import zoo
+
+    _, data = zoo.draw(np.random.default_rng(np.random.SeedSequence(3131).spawn(143)[142]))
+    d = ambfit.diagnose(data, check_force=False, discrepancy=False)
+    sig = next(s for s in d.signatures if s.family == "hysteresis")
+    kept = fit_discrepancy(sig.law.fit, data, groups=sig.groups)
+    assert not sig.law.fit.fitted_rows.all()
+    assert max(kept.log_bayes.values()) < Rules().log_bayes_clear < sig.log_bayes_max, (kept.log_bayes, sig.log_bayes)
+    assert d.verdict == "hysteresis" and d.grade.by == "signature" and d.grade.at_floor, d.summary()

@@ -29,7 +29,8 @@ class Signature:
     groups : tuple of str
         The discrepancy groups of the family's signature.
     log_bayes : dict
-        Each group's log Bayes factor on the law's residuals of every row.
+        Each group's log Bayes factor on the law's residuals of every row with one, the law's outliers among them
+        (the rows the folds' corrections learn from).
     heldout_z : array
         Held-out standardized residuals of the widened law.
     folds : tuple
@@ -116,7 +117,12 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
         folds_.append((test, f, d))
     # on the rows the law's fit used: its saved correction is its law's parameters and these coefficients alone
     full = fit_discrepancy(law.fit, df, groups=groups, **noise)
+    # how much the data want the signature, on the rows the folds' corrections learn from: the law's outliers too
+    # (a play hysteresis the law's fit set aside as outliers is wanted there, and only there)
+    seen = seen_rows(law.fit, np.ones(len(df), bool))
+    wanted = full if np.array_equal(seen, law.fit.fitted_rows[:len(df)]) else fit_discrepancy(
+        law.fit, df, groups=groups, mask=seen, **noise)
     var = np.concatenate(vs)
-    return Signature(law=law, groups=tuple(groups), log_bayes=full.log_bayes, heldout_z=np.concatenate(zs),
+    return Signature(law=law, groups=tuple(groups), log_bayes=wanted.log_bayes, heldout_z=np.concatenate(zs),
                      folds=tuple(folds_), full=full, heldout_var=var)
 
