@@ -7,18 +7,16 @@ signature, an exponential drift in time that its signature's settling curves rea
 verdict it had before they were there), a non-linear position sensor too weak to single out), iron reluctance that
 saturation explains alike (``undecided``, with the protocol that would separate them), and the FEM development data
 (the magnetic circuit, its pieces as families). Inputs are stored as they were simulated, so only the diagnosis is
-compared. Keys must come in the same order, and strings, flags and integers must be equal. Numbers must agree to a
-millionth: a number to 1e-6 of itself or 1e-9 absolute, an array (a covariance, the coefficients of a correction) to
-1e-6 of its largest entry. Why not closer: the references were made on one machine, and another processor's vector
-instructions round the last bits differently, which flat directions of a fit amplify. Measured between an Intel
-machine and an AMD EPYC one, every verdict, string and flag the same: a parameter the data do not constrain (a
-position-sensor gain error of 2e-8, zero within its standard error) moved 4e-4 of itself (1e-11 absolute), log Bayes
-factors of zero moved 2e-10 nats, covariances of 1e-30 changed sign, and the largest relative move of a number that
-is not zero was 1.2e-7 (a saturation sharpness). On the machine that made them the records were byte-identical
-before and after the refactor of issue 30; issue 31 (undecided verdicts, predictive variance, paired comparisons)
-changed them on purpose and regenerated them, and again when the discrepancy's shape group lost its columns of the
-gap alone (every verdict stayed; its numbers moved), when the record gained its rules, and when a signature's log
-Bayes factor came to count its law's outliers (every verdict stayed).
+compared. Keys must come in the same order, lists must have the same shapes, and strings, flags and integers must be
+equal. Numbers must agree to a millionth of themselves (:data:`RTOL`) or, when that is a rounding's, to 1e-13 in SI
+units and 1e-9 for numbers without a unit (log Bayes factors, shrinks, relative gains); a covariance's entries to a
+millionth of their parameters' standard deviations, any other matrix's to a millionth of their row's scale. Why not
+closer: the references were made on one machine, and another processor's vector instructions round the last bits
+differently, which the flat directions of a fit amplify. Measured between an Intel machine and an AMD EPYC one,
+every verdict, string and flag the same: a sensor gain error the data do not constrain (2e-8, zero within its
+standard error) moved 4e-4 of itself (1e-11), log Bayes factors of zero moved 2e-10 nats, covariances of 1e-30
+changed sign, a projection's row of 1e-22 entries moved by its own size, and the largest relative move of a number
+that is not a rounding's zero was 1.2e-7 (a saturation sharpness).
 
 When a change is *meant* to change the diagnosis, regenerate the references and say so in the commit:
 
@@ -64,21 +62,56 @@ def diagnosis_of(case: str, tmp: Path) -> dict:
     return ambfit.diagnose(ambfit.read_csv(data), **kw).to_json()
 
 
-RTOL, ATOL = 1e-6, 1e-9      # see the module's docstring for why
+RTOL = 1e-6
+"""Numbers agree to this share of themselves; a matrix's entries to this share of their row's scale."""
+ATOL = 1e-13
+"""...or to this, absolutely: numbers in SI units (a gap of 5e-4 m, a variance of 1e-14 m^2) stay tested."""
+ATOL_PURE = 1e-9
+"""...or to this for the numbers without a unit whose value is a rounding's zero: log Bayes factors [nats], shrinks,
+an unconstrained relative sensor gain, a fit's distance from its minimum."""
+PURE = ("log_bayes", "shrink", "gain_error", "edm")
 
 
-def _floats(value) -> list[float] | None:
-    """The numbers of a (nested) list of floats, flattened; ``None`` for anything else."""
-    if isinstance(value, float):
-        return [value]
-    if isinstance(value, list) and value:
-        parts = [_floats(v) for v in value]
-        return None if any(p is None for p in parts) else [x for p in parts for x in p]
-    return None
+def _close(got: float, want: float, path: str) -> bool:
+    if math.isnan(got) or math.isnan(want):
+        return math.isnan(got) and math.isnan(want)
+    atol = ATOL_PURE if any(p in path for p in PURE) else ATOL
+    return math.isclose(got, want, rel_tol=RTOL, abs_tol=atol)
+
+
+def _matrix(value) -> list[list[float]] | None:
+    """``value`` as a rectangular list of rows of floats (a covariance, a projection); ``None`` for anything else."""
+    if not (isinstance(value, list) and len(value) > 1 and all(isinstance(r, list) and r for r in value)):
+        return None
+    if len({len(r) for r in value}) != 1 or not all(isinstance(x, float) for r in value for x in r):
+        return None
+    return value
+
+
+ROUNDING = 1e-10
+"""A matrix row whose entries are all below this share of the matrix' largest is a rounding's zero."""
+
+
+def _matrix_differences(got, want, path: str) -> list[str]:
+    """A matrix's entries to :data:`RTOL` of their scale: a covariance's ``sqrt(c_ii c_jj)`` (each parameter in its
+    own unit), any other matrix's row's largest entry (a projection: one parameter's unit per row; a row of
+    rounding's zeros (:data:`ROUNDING`) counts at that level)."""
+    covariance = path.endswith("covariance") and len(want) == len(want[0])
+    top = max((abs(x) for r in want for x in r if math.isfinite(x)), default=0.0)
+    for i, (gr, wr) in enumerate(zip(got, want)):
+        if not isinstance(gr, list) or len(gr) != len(wr) or not all(isinstance(x, float) for x in gr):
+            return [f"{path}[{i}]: {gr!r:.80} != {wr!r:.80}"]
+        row = max(max((abs(x) for x in wr if math.isfinite(x)), default=0.0), ROUNDING * top)
+        for j, (a, b) in enumerate(zip(gr, wr)):
+            scale = math.sqrt(abs(want[i][i] * want[j][j])) if covariance else row
+            if not ((math.isnan(a) and math.isnan(b)) or a == b or abs(a - b) <= RTOL * scale):
+                return [f"{path}[{i}][{j}]: {a!r} != {b!r}"]
+    return []
 
 
 def differences(got, want, path="") -> list[str]:
-    """Where ``got`` differs from ``want``: key order, types, strings and flags exactly, numbers to a millionth."""
+    """Where ``got`` differs from ``want``: key order, types, shapes, strings and flags exactly, numbers to a
+    millionth (:data:`RTOL`, a matrix's entries of their scale)."""
     if isinstance(want, dict):
         if not isinstance(got, dict) or list(got) != list(want):
             return [f"{path}: keys {list(got) if isinstance(got, dict) else type(got).__name__} != {list(want)}"]
@@ -86,16 +119,11 @@ def differences(got, want, path="") -> list[str]:
     if isinstance(want, list):
         if not isinstance(got, list) or len(got) != len(want):
             return [f"{path}: {got!r:.80} != {want!r:.80}"]
-        w, g = _floats(want), _floats(got)
-        if w is not None and len(w) > 1 and g is not None and len(g) == len(w):
-            scale = max((abs(x) for x in w if math.isfinite(x)), default=0.0)
-            bad = [i for i, (a, b) in enumerate(zip(g, w)) if not (
-                (math.isnan(a) and math.isnan(b)) or a == b or abs(a - b) <= max(RTOL * scale, ATOL))]
-            return [f"{path}: entry {bad[0]} of {len(w)}: {g[bad[0]]!r} != {w[bad[0]]!r}"] if bad else []
+        if _matrix(want) is not None:
+            return _matrix_differences(got, want, path)
         return [d for i, (g, w) in enumerate(zip(got, want)) for d in differences(g, w, f"{path}[{i}]")]
     if isinstance(want, float) and isinstance(got, float):
-        same = (math.isnan(got) and math.isnan(want)) or math.isclose(got, want, rel_tol=RTOL, abs_tol=ATOL)
-        return [] if same else [f"{path}: {got!r} != {want!r}"]
+        return [] if _close(got, want, path) else [f"{path}: {got!r} != {want!r}"]
     return [] if type(got) is type(want) and got == want else [f"{path}: {got!r:.80} != {want!r:.80}"]
 
 
@@ -114,10 +142,22 @@ def test_the_comparison_sees_a_changed_number_a_reordered_key_and_a_changed_word
     assert not differences(json.loads(json.dumps(ref)), ref)
     assert differences({"a": 1.0 + 1e-5, "b": {"c": [1, "x", True]}}, ref)
     assert not differences({"a": 1.0 + 1e-7, "b": {"c": [1, "x", True]}}, ref)
-    matrix = {"m": [[1.0, 1e-30], [1e-30, 2.0]]}
-    assert not differences({"m": [[1.0, -1e-30], [-1e-30, 2.0]]}, matrix)    # a rounding's sign at 1e-30
-    assert differences({"m": [[1.0, 1e-5], [1e-30, 2.0]]}, matrix)
-    assert differences({"m": [[1.0, 1e-30], [1e-30, 2.0 + 1e-5]]}, matrix)
+    # a parameter vector of mixed units: each number on its own (a gap of 5e-4 m beside a permeability of 2500)
+    assert differences({"values": [1e-3, 2500.0]}, {"values": [5e-4, 2500.0]})
+    assert differences({"g": 5e-4 * (1 + 1e-5)}, {"g": 5e-4}) and differences({"s": 2e-12}, {"s": 1e-12})
+    assert not differences({"log_bayes": 2e-10}, {"log_bayes": -1e-10})       # a rounding's zero, in nats
+    # a covariance: each entry to its parameters' standard deviations, a variance of 1e-20 m^2 beside one of 1e6
+    cov = {"covariance": [[1e-20, 1e-30], [1e-30, 1e6]]}
+    assert not differences({"covariance": [[1e-20, -1e-30], [-1e-30, 1e6]]}, cov)   # a rounding's sign
+    assert differences({"covariance": [[1.01e-20, 1e-30], [1e-30, 1e6]]}, cov)
+    assert differences({"covariance": [[1e-20, 1e-8], [1e-8, 1e6]]}, cov)           # a correlation of 0.1
+    # any other matrix row by row (a projection: one unit per row), a row of rounding's zeros at that level
+    proj = {"projection": [[1e-3, 2e-3], [1e-7, 3e-7], [1e-22, -2e-22]]}
+    assert differences({"projection": [[1e-3, 2e-3], [1.1e-7, 3e-7], [1e-22, -2e-22]]}, proj)
+    assert not differences({"projection": [[1e-3, 2e-3], [1e-7, 3e-7], [3e-22, 2e-22]]}, proj)
+    # shapes count: the same numbers nested otherwise are different
+    assert differences({"m": [[1.0, 2.0], [3.0, 4.0]]}, {"m": [[1.0], [2.0, 3.0, 4.0]]})
+    assert differences({"m": [1.0, [2.0, 3.0]]}, {"m": [[1.0, 2.0], 3.0]})
     assert differences({"b": {"c": [1, "x", True]}, "a": 1.0}, ref)
     assert differences({"a": 1.0, "b": {"c": [1, "y", True]}}, ref)
     assert differences({"a": 1.0, "b": {"c": [1, "x", 1]}}, ref)
