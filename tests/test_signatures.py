@@ -141,8 +141,7 @@ def test_a_signature_is_wanted_where_its_law_saw_outliers():
     """A play hysteresis (the law zoo's study seed 3131, draw 142: a rich protocol, the play's widths growing with
     the current) that the library's hysteresis law fits on most readings and sets aside as outliers where the loop
     is widest.  On the rows the law's fit kept, its signature is not clearly wanted; on every reading the folds'
-    corrections learn from (the outliers too) it is, and the widened law names the family at the floor.  Judging
-    the signature on the kept rows alone left it out and the verdict `unexplained`."""
+    corrections learn from (the outliers too) it is, and the widened law names the family at the floor."""
     from ambfit.diagnosis.verdict import Rules
     from ambfit.rig import zoo
 
@@ -153,3 +152,17 @@ def test_a_signature_is_wanted_where_its_law_saw_outliers():
     assert not sig.law.fit.fitted_rows.all()
     assert max(kept.log_bayes.values()) < Rules().log_bayes_clear < sig.log_bayes_max, (kept.log_bayes, sig.log_bayes)
     assert d.verdict == "hysteresis" and d.grade.by == "signature" and d.grade.at_floor, d.summary()
+
+
+@pytest.mark.parametrize("proto", ["serpentine", "rich"])
+def test_glitches_in_clean_data_leave_it_on_the_floor(proto):
+    """Three position readings 17 noise units off and one current 17 off, in data of the ideal law: the signatures
+    are now asked about the law's outliers too, where a glitch is one; the verdict must stay ``none``."""
+    design = protocol.serpentine(seed=4) if proto == "serpentine" else protocol.rich()
+    df = rig.simulate(rig.PAPER_RIG, design, [], seed=11).data
+    rng = np.random.default_rng(11)
+    rows = rng.choice(len(df), 3, replace=False)
+    df.loc[rows, "v_um"] += rng.choice([-1.0, 1.0], 3) * 17 * df.loc[rows, "v_std_um"]
+    df.loc[rows[:1], "i_top_A"] += 17 * df.loc[rows[:1], "i_top_std_A"]
+    d = ambfit.diagnose(df, check_force=False, discrepancy=False)
+    assert d.verdict == "none", d.summary()

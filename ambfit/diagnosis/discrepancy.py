@@ -76,7 +76,8 @@ def ceiling(df, ideal: Candidate, verdict: Candidate | None, before: float, nois
 
     host = verdict if verdict is not None and verdict.fit.effects else ideal
     models = [ideal] if host is ideal else [ideal, host]
-    done = (each or _Each(1))(lambda task: task(), [functools.partial(widened, c, df, GROUPS, noise) for c in models])
+    done = (each or _Each(1))(lambda task: task(), [functools.partial(widened, c, df, GROUPS, noise, wanted=False)
+                                                   for c in models])
     wide = {c.effect: w for c, w in zip(models, done)}
     z_in = ideal.fit.residuals
     kept = ideal.fit.fitted_rows

@@ -29,14 +29,15 @@ class Signature:
     groups : tuple of str
         The discrepancy groups of the family's signature.
     log_bayes : dict
-        Each group's log Bayes factor on the law's residuals of every row with one, the law's outliers among them
-        (the rows the folds' corrections learn from).
+        Each group's log Bayes factor on the law's residuals of every reading with a finite one, the law's outliers
+        among them (the rows the folds' corrections learn from; the law's parameters refitted to them, linearised).
     heldout_z : array
         Held-out standardized residuals of the widened law.
     folds : tuple
         ``(held-out mask, fit, discrepancy)`` per fold.
     full : Discrepancy
-        The signature fitted on every row of the law's fit.
+        The signature fitted on the rows the law's fit of every row used (its outliers left out): the saved
+        correction, whose coefficients with the law's parameters reproduce it (``largest_terms`` of the record).
     heldout_var : array or None
         Each held-out reading's predictive variance (the law's parameters and the correction's coefficients).
     """
@@ -99,9 +100,14 @@ class Signature:
                 "largest_terms": self.full.largest(3)}
 
 
-def widened(law: Candidate, df, groups, noise) -> Signature:
-    """``law`` widened by the discrepancy ``groups``: fitted on each fold's other rows (the law's outliers among
-    them, its parameters refitted to them), scored on the fold; and on the rows the law's fit of every row used."""
+def widened(law: Candidate, df, groups, noise, *, wanted: bool = True) -> Signature:
+    """``law`` widened by the discrepancy ``groups``: fitted on each fold's other rows (every reading with a finite
+    residual, the law's outliers among them, its parameters refitted to them, linearised), scored on the fold; and
+    on the rows the law's fit of every row used (``full``, the saved correction).
+
+    ``log_bayes`` (how much the data want the signature) is measured on the rows the folds' corrections learn from,
+    the outliers too, so that it asks of the signature what the held-out test does; ``wanted=False`` skips that
+    extra fit for a caller that does not read it (the discrepancy's ceiling) and reports ``full``'s."""
     from ambfit.data import load_groups
     from ambfit.diagnosis.heldout import heldout_residuals
     from ambfit.estimation.discrepancy import fit_discrepancy, seen_rows
@@ -117,12 +123,15 @@ def widened(law: Candidate, df, groups, noise) -> Signature:
         folds_.append((test, f, d))
     # on the rows the law's fit used: its saved correction is its law's parameters and these coefficients alone
     full = fit_discrepancy(law.fit, df, groups=groups, **noise)
-    # how much the data want the signature, on the rows the folds' corrections learn from: the law's outliers too
-    # (a play hysteresis the law's fit set aside as outliers is wanted there, and only there)
-    seen = seen_rows(law.fit, np.ones(len(df), bool))
-    wanted = full if np.array_equal(seen, law.fit.fitted_rows[:len(df)]) else fit_discrepancy(
-        law.fit, df, groups=groups, mask=seen, **noise)
+    n = len(df)
+    seen = seen_rows(law.fit, np.ones(n, bool)).astype(float)
+    own = np.ones(n) if law.fit.weights is None else np.asarray(law.fit.weights, dtype=float)[:n]
+    if wanted and not np.allclose(seen, own):
+        # the law's outliers are where another law departs from it most (a play hysteresis' widest loops)
+        log_bayes = fit_discrepancy(law.fit, df, groups=groups, mask=seen, **noise).log_bayes
+    else:
+        log_bayes = full.log_bayes
     var = np.concatenate(vs)
-    return Signature(law=law, groups=tuple(groups), log_bayes=wanted.log_bayes, heldout_z=np.concatenate(zs),
+    return Signature(law=law, groups=tuple(groups), log_bayes=log_bayes, heldout_z=np.concatenate(zs),
                      folds=tuple(folds_), full=full, heldout_var=var)
 

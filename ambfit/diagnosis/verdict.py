@@ -80,10 +80,12 @@ class Rules:
         (laws and widened laws that fit widen them by 0.01-0.13 on the law zoo's cases; a widened drift law
         extrapolated in time by 12).
     log_bayes_clear : float
-        A signature is clearly in the residuals when the marginal likelihood wants one of its discrepancy groups
-        by more than this (log Bayes factor; above 5 is 'very strong' on Kass and Raftery's 1995 scale; the FEM
-        bearing, with no hysteresis, gives its direction group 3.3); a widened law whose signature is not clear
-        is no candidate.
+        A signature is clearly in a law's residuals when the marginal likelihood wants one of its discrepancy
+        groups by more than this (log Bayes factor on every reading the law's fit gives a residual, its outliers
+        among them: the rows the widened law's folds learn from; above 5 is 'very strong' on Kass and Raftery's
+        1995 scale; on the FEM bearing, with no hysteresis, the ceiling's correction of everything the magnetic
+        circuit leaves wants its direction group by 3.3); a widened law whose signature is not clear is no
+        candidate.
     structure_alpha : float
         False-alarm probability of the search for structured regions (:func:`ambfit.diagnosis.residuals.where`).
     circuit_dchi2 : float
@@ -234,7 +236,8 @@ class Judge:
         return abs(a.score - ref) < self.rules.margin_se * self.se(ref)
 
     def clear(self, signature) -> bool:
-        """Whether the data clearly want ``signature``'s discrepancy groups."""
+        """Whether the data clearly want ``signature``'s discrepancy groups (:attr:`~ambfit.diagnosis.signatures.Signature.log_bayes`:
+        on the rows its folds learn from)."""
         return signature.log_bayes_max > self.rules.log_bayes_clear
 
     def grade(self, model) -> Grade:
