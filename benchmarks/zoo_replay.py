@@ -73,7 +73,7 @@ def one_draw(job: tuple, into: str, folds: str = "regions") -> dict:
     finally:
         attribution.decide, attribution.needs_pairs = real
         jax.clear_caches()
-    out = {"index": item, "kind": case.kind, "truth": case.truth, "label": case.label,
+    out = {"index": item, "folds": folds, "kind": case.kind, "truth": case.truth, "label": case.label,
            "laws": case.describe()["laws"], "protocol": case.protocol_kind, "rows": len(data), "error": error, **seen}
     Path(into, f"{item:04d}.pkl").write_bytes(pickle.dumps(out))
     return {"index": item, "error": error}
@@ -154,7 +154,7 @@ def main():
     c.add_argument("--first", type=int, default=0)
     c.add_argument("--workers", type=int, default=None)
     c.add_argument("--into", type=Path, required=True)
-    c.add_argument("--folds", default="regions", help="the diagnosis' held-out folds: regions or time")
+    c.add_argument("--folds", default="regions", choices=("regions", "time"), help="the diagnosis' held-out folds")
     r = sub.add_parser("replay")
     r.add_argument("into", type=Path, nargs="+")
     r.add_argument("--rule", action="append", default=[], help="a Rules field=value")
@@ -173,6 +173,9 @@ def main():
         seeds = np.random.SeedSequence(args.seed).spawn(args.first + args.draws)
         jobs = [(i, seeds[i]) for i in range(args.first, args.first + args.draws)
                 if not (args.into / f"{i:04d}.pkl").exists()]
+        mixed = {d.get("folds", "regions") for d in load(args.into)} - {args.folds}
+        if mixed:
+            sys.exit(f"{args.into} holds scores of other folds ({', '.join(sorted(mixed))}): collect into a new folder")
         with Engine(workers=args.workers) as engine:
             engine.map(partial(one_draw, into=str(args.into), folds=args.folds), jobs, chunk_size=1, what="draws")
         return
