@@ -236,8 +236,8 @@ class Judge:
         return abs(a.score - ref) < self.rules.margin_se * self.se(ref)
 
     def clear(self, signature) -> bool:
-        """Whether the data clearly want ``signature``'s discrepancy groups (:attr:`~ambfit.diagnosis.signatures.Signature.log_bayes`:
-        on the rows its folds learn from)."""
+        """Whether the data clearly want ``signature``'s discrepancy groups (its ``log_bayes``, on the rows its folds
+        learn from)."""
         return signature.log_bayes_max > self.rules.log_bayes_clear
 
     def grade(self, model) -> Grade:
