@@ -166,3 +166,29 @@ def test_glitches_in_clean_data_leave_it_on_the_floor(proto):
     df.loc[rows[:1], "i_top_A"] += 17 * df.loc[rows[:1], "i_top_std_A"]
     d = ambfit.diagnose(df, check_force=False, discrepancy=False)
     assert d.verdict == "none", d.summary()
+
+
+def test_the_signature_is_wanted_on_the_folds_rows_and_only_refitted_when_they_differ(design):
+    """Without outliers the folds learn from the fit's own rows and the saved correction's log Bayes factor is the
+    signature's; with rows the fit set aside, the factor is that of a correction on them too."""
+    import dataclasses
+
+    from ambfit.diagnosis.scoring import Scorer
+    from ambfit.diagnosis.signatures import widened
+    from ambfit.diagnosis.threads import _Each
+    from ambfit.estimation.discrepancy import seen_rows
+
+    data = _simulate(design, laws.MinorLoopHysteresis, seed=11)
+    with _Each(2) as each:
+        law, = Scorer(data, ambfit.fit(data), bearing=PAPER_BEARING, noise={}, max_steps=60, each=each).laws(
+            [(E.Hysteresis(),)])
+    groups = FAMILY_GROUPS["hysteresis"]
+    kept = widened(dataclasses.replace(law, fit=dataclasses.replace(law.fit, weights=None)), data, groups, {})
+    assert kept.log_bayes == kept.full.log_bayes
+    weights = np.ones(len(data))
+    weights[: len(data) // 10] = 0.0                       # a tenth of the rows set aside as the fit's outliers
+    cut = dataclasses.replace(law, fit=dataclasses.replace(law.fit, weights=weights))
+    sig = widened(cut, data, groups, {})
+    seen = fit_discrepancy(cut.fit, data, groups=groups, mask=seen_rows(cut.fit, np.ones(len(data), bool)))
+    assert sig.log_bayes == seen.log_bayes != sig.full.log_bayes
+    assert widened(cut, data, groups, {}, wanted=False).log_bayes == sig.full.log_bayes
