@@ -79,13 +79,10 @@ def _close(got: float, want: float, path: str) -> bool:
     return math.isclose(got, want, rel_tol=RTOL, abs_tol=atol)
 
 
-def _matrix(value) -> list[list[float]] | None:
-    """``value`` as a rectangular list of rows of floats (a covariance, a projection); ``None`` for anything else."""
-    if not (isinstance(value, list) and len(value) > 1 and all(isinstance(r, list) and r for r in value)):
-        return None
-    if len({len(r) for r in value}) != 1 or not all(isinstance(x, float) for r in value for x in r):
-        return None
-    return value
+def _is_matrix(value) -> bool:
+    """Whether ``value`` is a rectangular list of rows of floats (a covariance, a projection)."""
+    return (isinstance(value, list) and len(value) > 1 and all(isinstance(r, list) and r for r in value)
+            and len({len(r) for r in value}) == 1 and all(isinstance(x, float) for r in value for x in r))
 
 
 ROUNDING = 1e-10
@@ -119,7 +116,7 @@ def differences(got, want, path="") -> list[str]:
     if isinstance(want, list):
         if not isinstance(got, list) or len(got) != len(want):
             return [f"{path}: {got!r:.80} != {want!r:.80}"]
-        if _matrix(want) is not None:
+        if _is_matrix(want):
             return _matrix_differences(got, want, path)
         return [d for i, (g, w) in enumerate(zip(got, want)) for d in differences(g, w, f"{path}[{i}]")]
     if isinstance(want, float) and isinstance(got, float):

@@ -117,7 +117,7 @@ def predictive_variance(fitted: FitResult, rows: np.ndarray) -> np.ndarray:
     jac = fitted.jacobian_rows
     if jac is None or not np.any(rows):
         return np.zeros(int(np.sum(rows)))
-    mask = np.ones(len(jac)) if fitted.weights is None else np.asarray(fitted.weights, dtype=float)
+    mask = fitted.row_weights[:len(jac)]
     prior = np.array([1.0 if "." in name else 0.0 for name in fitted.names[:jac.shape[1]]])
     return leverage(jac[None], (mask**2)[None], prior)[0][rows]
 

@@ -125,8 +125,7 @@ def widened(law: Candidate, df, groups, noise, *, wanted: bool = True) -> Signat
     full = fit_discrepancy(law.fit, df, groups=groups, **noise)
     n = len(df)
     seen = seen_rows(law.fit, np.ones(n, bool)).astype(float)
-    own = np.ones(n) if law.fit.weights is None else np.asarray(law.fit.weights, dtype=float)[:n]
-    if wanted and not np.allclose(seen, own):
+    if wanted and not np.allclose(seen, law.fit.row_weights[:n]):
         # the law's outliers are where another law departs from it most (a play hysteresis' widest loops)
         log_bayes = fit_discrepancy(law.fit, df, groups=groups, mask=seen, **noise).log_bayes
     else:

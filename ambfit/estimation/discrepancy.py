@@ -256,7 +256,7 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     s = result.row_noise
     if s is None or np.shape(s) != (n,):
         s = np.asarray(noise_std(theta, prob, model))
-    own = np.ones(n) if result.weights is None else np.asarray(result.weights, dtype=float)[:n]
+    own = result.row_weights[:n]
     w = own if mask is None else np.asarray(mask, dtype=float) ** 2
     sw = np.sqrt(w)[:, None]
     z = np.asarray(result.residuals)[:n]

@@ -139,11 +139,16 @@ class FitResult:
         return {n: si_unit(n) for n in self.names}
 
     @property
+    def row_weights(self) -> np.ndarray:
+        """Each row's weight in the fit: 1 for every row when no weights were recorded."""
+        if self.weights is None:
+            return np.ones(len(self.residuals))
+        return np.asarray(self.weights, dtype=float)
+
+    @property
     def fitted_rows(self) -> np.ndarray:
         """Which rows the fit used (bool per row): weight above 0; every row when no weights were recorded."""
-        if self.weights is None:
-            return np.ones(len(self.residuals), bool)
-        return np.asarray(self.weights) > 0
+        return self.row_weights > 0
 
     @property
     def reduced_chi2(self) -> float:
