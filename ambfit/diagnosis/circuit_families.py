@@ -91,7 +91,9 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     threshold = significance * np.sqrt(2.0 * max(full.dof, 1))
     names = {"saturation": "saturation", "iron": "iron_reluctance", "fringing": "fringing", "leakage": "leakage",
              "coupling": "cross_coupling"}
-    held = force_noise(full, data, **noise)
+    # the noise the full fit's solve measured at its estimate (it was fitted to these rows, no noise held)
+    held = full.row_noise if full.row_noise is not None and len(full.row_noise) == len(data) \
+        else force_noise(full, data, **noise)
     # the same rows as the full fit, none dropped by an outlier test: χ² must compare like with like
     keep = full.fitted_rows.astype(float)
     off = {p: mec.without(p) for p in MagneticCircuit.PIECES}

@@ -127,9 +127,9 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
             res = fit(df, effects, bearing=bearing, mask=(~out & keep).astype(float), start_from=base,
                       max_steps=max_steps, throw=False, **(fit_kw | {"alpha": 0.0}))
         load = df.loc[out, "load_N"].to_numpy(float)
-        predicted = predict(res, df, rows=rows)
+        predicted, noise_n = _at_known_loads(res, df, rows, fit_kw)
         r = (predicted[out] - load) / load          # all rows: the other axis' currents pair by time_s
-        floor = force_noise(res, df, sigma_i=fit_kw.get("sigma_i"), sigma_x=fit_kw.get("sigma_x"))[out] / load
+        floor = noise_n[out] / load
         entry = {"axis": ax, "load_N": float(load[0]), "rows": int(out.sum()),
                  "rms_rel": float(np.sqrt(np.mean(r**2))), "mean_rel": float(np.mean(r)),
                  "converged": bool(res.converged)}
@@ -159,6 +159,17 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     if discrepancy:
         out["discrepancy"] = {"model": f"{base.model}+discrepancy", **_figures(rel_d, noise)}
     return out
+
+
+def _at_known_loads(res: FitResult, df, rows, fit_kw: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The force [N] ``res`` gives each row of ``df`` with a known load, and its noise std [N] (other rows: any
+    number).  As its solve measured them at its estimate, ``F = load + s z``, when it was fitted to these rows
+    without held noise; else predicted and propagated anew (each a compiled program of its own)."""
+    z, s = res.residuals, res.row_noise
+    if "held_noise" not in fit_kw and s is not None and np.shape(s) == np.shape(z) == (len(df),):
+        return df["load_N"].to_numpy(float) + s * z, s
+    return predict(res, df, rows=rows), force_noise(res, df, sigma_i=fit_kw.get("sigma_i"),
+                                                    sigma_x=fit_kw.get("sigma_x"))
 
 
 def _figures(rel: list, noise: float) -> dict:
