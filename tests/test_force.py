@@ -227,6 +227,11 @@ def test_the_circuit_families_decide_each_piece_as_refits_run_to_the_end_do():
             assert f.significant == (rise > threshold), piece
         else:                                                            # undecided is not called significant
             assert not f.significant and lo <= threshold < hi, piece
+    # the pieces' refits run two at a time (as a diagnosis runs them) give the same families
+    from ambfit.diagnosis.threads import _Each
+
+    with _Each(2) as each:
+        assert circuit_families(ds.frame, mec, fem, each=each) == sorted(fams.values(), key=lambda f: -f.delta_chi2)
 
 
 def test_a_force_check_reuses_a_refit_whose_left_out_rows_are_a_fold():

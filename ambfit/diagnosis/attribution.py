@@ -164,7 +164,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     families = None
     if verdict.name == "magnetic_circuit":
         # the circuit is physics, the verdict names its families: each piece's contribution, largest first
-        families = circuit_families(df, verdict_fit, bearing, significance=rules.circuit_dchi2, **noise)
+        families = circuit_families(df, verdict_fit, bearing, significance=rules.circuit_dchi2, each=each, **noise)
         verdict = verdict.with_families(dict.fromkeys(f.family for f in families if f.significant))
     separation = None
     if verdict.kind == "undecided":

@@ -68,7 +68,7 @@ significant nor not is ``undecided`` and left out of the verdict."""
 
 
 def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_steps: int = 200, step: int = 20,
-                     significance: float = 3.0, **noise) -> list[CircuitFamily]:
+                     significance: float = 3.0, each=None, **noise) -> list[CircuitFamily]:
     """What each piece of the magnetic circuit contributes, as contract families, largest first.
 
     Each piece is switched off in turn and the circuit refitted to the same rows with the full model's noise
@@ -82,7 +82,8 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     its piece's significance is decided (:data:`EDM_MARGIN`), at most ``max_steps`` steps in all.  A piece is
     significant when switching it off raises χ² by more than ``significance`` of χ²'s standard deviations
     ``sqrt(2 dof)`` (:attr:`ambfit.diagnosis.verdict.Rules.circuit_dchi2`).  Returns one :class:`CircuitFamily`
-    per piece, largest rise first.
+    per piece, largest rise first.  ``each(fn, items)``, if given, maps the pieces' refits (a diagnosis passes its
+    thread pool; default one after another, with the same results).
     """
     from ambfit.estimation.measure import force_noise
     from ambfit.physics.effects import MagneticCircuit
@@ -126,14 +127,22 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
             if _settled(f, threshold) or decided(piece):
                 return
 
-    for piece in MagneticCircuit.PIECES:
-        if piece == "saturation" and not bearing.b_curve:
-            continue                       # linear iron already: nothing to switch off
-        refine(piece)
+    def chain(pieces) -> None:
+        for piece in pieces:
+            refine(piece)
+
+    # the pieces' refits are independent but for ideal iron, which starts from (and is measured against) the
+    # linear-iron refit: one chain per piece, iron after saturation, run ``each`` at a time (the solves release the
+    # interpreter); the refits are the same run one after another
+    first = [p for p in MagneticCircuit.PIECES if p != "iron" and (p != "saturation" or bearing.b_curve)]
+    chains = [("saturation", "iron") if p == "saturation" else (p,) for p in first]
+    if not bearing.b_curve:
+        chains.insert(0, ("iron",))        # linear iron already: nothing to switch off but the iron itself
+    (each or (lambda fn, items: [fn(x) for x in items]))(chain, chains)
     if "saturation" in refits and not decided("iron") and not _settled(refits["saturation"], threshold):
         refine("saturation")               # the iron's part is measured from the linear-iron refit
     out = []
-    for piece, f in refits.items():
+    for piece, f in ((p, refits[p]) for p in MagneticCircuit.PIECES if p in refits):     # in a fixed order
         rise, lo, hi = bounds(piece)
         out.append(CircuitFamily(piece=piece, family=names[piece], delta_chi2=rise, delta_chi2_bounds=(lo, hi),
                                  significant=bool(lo > threshold), converged=_settled(f, threshold),
