@@ -16,8 +16,8 @@ from ambfit.data import Dataset, group_labels, joint_codes
 def runs(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """Each (experiment, axis) run of readings in file order: ``(order, first)``, the row numbers run by run and
     whether each of them starts its run (a coil's history is that of its run's readings)."""
-    exp = group_labels(df["experiment"]) if "experiment" in df.columns else pd.Series("", index=df.index)
-    code = df.groupby([exp, df["axis"]], sort=False, dropna=False).ngroup().to_numpy()
+    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(len(df))
+    code = joint_codes(exp, df["axis"].to_numpy(), own_missing=True)
     order = np.argsort(code, kind="stable")              # each run's rows together, in file order
     c = code[order]
     return order, np.r_[True, c[1:] != c[:-1]] if len(c) else np.zeros(0, bool)

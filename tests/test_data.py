@@ -156,11 +156,18 @@ def test_a_zero_current_read_through_its_noise_is_accepted(table, tmp_path):
 
 # --- the vectorised row-order functions against their definitions, row by row --------------------------------
 
+def _experiments(df):
+    """Each row's experiment as a label (a missing one is one label of its own)."""
+    if "experiment" not in df.columns:
+        return [""] * len(df)
+    return [None if pd.isna(e) else str(e) for e in df["experiment"]]
+
+
 def _direction_by_definition(df, column, threshold=2e-3):
     """approach_direction's docstring, one row at a time: within each experiment and axis, the sign of a change of
     at least ``threshold`` from the previous reading, else the previous direction; the first reading rises."""
     out, prev_row, prev_dir = np.zeros(len(df)), {}, {}
-    exp = df["experiment"].astype(str) if "experiment" in df.columns else [""] * len(df)
+    exp = _experiments(df)
     for j, (e, ax, i) in enumerate(zip(exp, df["axis"], df[column])):
         key = (e, ax)
         if key in prev_row and abs(i - prev_row[key]) >= threshold:
@@ -177,7 +184,7 @@ def _other_by_definition(df):
     it, ib = np.full(len(df), np.nan), np.full(len(df), np.nan)
     if "time_s" not in df.columns:
         return it, ib
-    exp = list(df["experiment"].astype(str)) if "experiment" in df.columns else [""] * len(df)
+    exp = _experiments(df)
     for j in range(len(df)):
         for k in range(len(df)):
             if exp[k] == exp[j] and df["time_s"].iloc[k] == df["time_s"].iloc[j] and \
@@ -188,13 +195,14 @@ def _other_by_definition(df):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(1, 30), st.integers(0, 2**31 - 1), st.booleans())
-def test_row_order_functions_follow_their_definitions(n, seed, with_experiment):
+@given(st.integers(1, 30), st.integers(0, 2**31 - 1), st.sampled_from([None, "text", "numbers", "missing"]))
+def test_row_order_functions_follow_their_definitions(n, seed, experiment):
     rng = np.random.default_rng(seed)
     df = pd.DataFrame({"axis": rng.choice(["v", "w"], n), "time_s": rng.choice([0.0, 0.5, 1.0, np.nan], n),
                        "i_top_A": np.round(rng.normal(1.5, 0.004, n), 4), "i_bottom_A": rng.normal(1.5, 0.1, n)})
-    if with_experiment:
-        df["experiment"] = rng.choice(["a", "b"], n)
+    if experiment is not None:
+        labels = {"text": ["a", "b"], "numbers": [1, 2], "missing": ["a", None]}[experiment]
+        df["experiment"] = pd.Series(rng.choice(np.array(labels, dtype=object), n))
     np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
     for got, want in zip(R.other_axis_currents(df), _other_by_definition(df)):
         np.testing.assert_array_equal(got, want)
