@@ -305,11 +305,15 @@ def mec_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     return jnp.where(is_v, f[..., 0], f[..., 1])
 
 
-@functools.partial(jax.jit, static_argnums=1)
-def _solve_rows(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw):
+def _rows(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw):
     """:func:`_solve_one`'s force over rows whose parameters differ row by row (every field shaped ``(n,)``)."""
     one = functools.partial(_solve_one, full=False)
     return jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0))(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw)
+
+
+_solve_rows = jax.jit(_rows, static_argnums=1)
+""":func:`_rows` compiled, for concrete inputs; traced inputs (a fit's compiled solve differentiating it) trace
+:func:`_rows` in place, which is cheaper than transforming a nested program."""
 
 
 def row_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i_top_other, i_bottom_other,
@@ -319,5 +323,6 @@ def row_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     n = axis.shape[0]
     rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
     is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
-    f = _solve_rows(rows, bearing, *inputs)
+    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((rows, inputs)))
+    f = (_rows if traced else _solve_rows)(rows, bearing, *inputs)
     return jnp.where(is_v, f[:, 0], f[:, 1])
