@@ -139,15 +139,17 @@ class Model(eqx.Module):
             lo, hi = (type(e).RANGES | e.ranges())[name]
             # a free field's value comes from q (build): one shape for every instance, so that a model of
             # fitted effects runs the compiled solve of the same model with default ones
+            value = getattr(e, name)
+            xp = _numpy_unless_traced(value)
             built[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), built[i],
-                                   jnp.broadcast_to(jnp.asarray(getattr(e, name), dtype=float), (2,)))
+                                   xp.array(xp.broadcast_to(xp.asarray(value, dtype=float), (2,))))
             signed = name in type(e).SIGNED
             c = 0.0 if signed else 0.5 * (lo + hi)
             wd = hi if signed else max(hi - lo, 1e-12)
             centre += [c] if shared else [c, c]
             width += [wd] if shared else [wd, wd]
-        return cls(tuple(built), tuple(fields), jnp.asarray(centre, dtype=float).reshape(-1),
-                   jnp.asarray(width, dtype=float).reshape(-1), bearing)
+        return cls(tuple(built), tuple(fields), np.asarray(centre, dtype=float).reshape(-1),
+                   np.asarray(width, dtype=float).reshape(-1), bearing)
 
     @property
     def n(self) -> int:
@@ -164,15 +166,22 @@ class Model(eqx.Module):
         return list(_names(self.fields, tuple(type(e).name for e in self.effects)))
 
     def build(self, q) -> tuple:
-        """Effects with their free fields set from the scaled vector ``q`` (value = centre + width * q)."""
-        vals = self.centre + self.width * q
+        """Effects with their free fields set from the scaled vector ``q`` (value = centre + width * q); in NumPy
+        when ``q`` is concrete (a fit's result: each eager JAX operation of a new shape compiles a program)."""
+        xp = _numpy_unless_traced(q, self.centre, self.width)
+        vals = xp.asarray(self.centre) + xp.asarray(self.width) * xp.asarray(q)
         effects = list(self.effects)
         j = 0
         for i, f, shared in self.fields:
-            v = jnp.broadcast_to(vals[j:j + 1], (2,)) if shared else vals[j:j + 2]
+            v = xp.array(xp.broadcast_to(vals[j:j + 1], (2,))) if shared else vals[j:j + 2]
             effects[i] = eqx.tree_at(lambda e, f=f: getattr(e, f), effects[i], v)
             j += 1 if shared else 2
         return tuple(effects)
+
+
+def _numpy_unless_traced(*values):
+    """``jax.numpy`` when any of ``values`` is traced, else NumPy."""
+    return jnp if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values)) else np
 
 
 @functools.lru_cache(maxsize=256)

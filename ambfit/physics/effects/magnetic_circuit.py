@@ -84,7 +84,9 @@ class MagneticCircuit(Effect):
         """The same circuit with one more piece (``PIECES``) switched off."""
         if piece not in self.PIECES:
             raise ValueError(f"unknown piece {piece!r}; pieces: {', '.join(self.PIECES)}")
-        return eqx.tree_at(lambda e: e.on, self, jnp.asarray(self.on).at[self.PIECES.index(piece)].set(0.0))
+        on = np.array(self.on, dtype=float)              # (in NumPy: an eager JAX update compiles a program)
+        on[self.PIECES.index(piece)] = 0.0
+        return eqx.tree_at(lambda e: e.on, self, on)
 
     def force(self, ctx, force):
         from ambfit.physics import circuit
