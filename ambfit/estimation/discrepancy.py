@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
@@ -247,7 +246,7 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
     prob, meta = build_problem(df, sigma_i=sigma_i, sigma_x=sigma_x)
     basis = Basis.of(result.bearing, groups, prob.readings)
     model = Model.of(result.effects, result.bearing)
-    theta = jnp.asarray(result.theta)
+    theta = np.asarray(result.theta, dtype=float)
     n = len(df)
     free = free_mask(prob, meta, model)
     rows = result.jacobian_rows

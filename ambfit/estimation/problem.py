@@ -213,9 +213,11 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x, groups=None) -> tuple[Problem, Me
     k_free = tuple(bool(known[ax == a].any()) for a in range(2))
     present = tuple(bool((ax == a).any()) for a in range(2))
     m = np.ones(len(df))
-    prob = Problem(readings=r, s_top=jnp.asarray(st), s_bottom=jnp.asarray(sb), s_x=jnp.asarray(sx),
-                   load=jnp.asarray(np.nan_to_num(load)), known=jnp.asarray(known), gidx=jnp.asarray(gidx),
-                   k_free=jnp.asarray(k_free), mask=jnp.asarray(m), s_held=jnp.zeros(len(df)))
+    # NumPy leaves, as the readings' (an eager JAX conversion of each new shape compiles a program; the solve
+    # converts its inputs at its call)
+    prob = Problem(readings=r, s_top=np.asarray(st, dtype=float), s_bottom=np.asarray(sb, dtype=float),
+                   s_x=np.asarray(sx, dtype=float), load=np.nan_to_num(load), known=known, gidx=np.asarray(gidx),
+                   k_free=np.asarray(k_free), mask=m, s_held=np.zeros(len(df)))
     return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
 
 

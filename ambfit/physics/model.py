@@ -142,11 +142,15 @@ class Readings(eqx.Module):
         cls, axis, i_top, i_bottom, x, y=None, bias=None, time=None, temperature=None,
         dir_top=None, dir_bottom=None, i_top_other=None, i_bottom_other=None,
     ) -> Readings:
-        """Readings from array-likes; optional fields default to 'unknown'."""
-        axis = jnp.asarray(axis, dtype=int)
+        """Readings from array-likes; optional fields default to 'unknown'.  NumPy arrays unless a value is traced
+        (in JAX, an eager conversion of each new shape compiles a program; a compiled fit converts its inputs)."""
+        given = (axis, i_top, i_bottom, x, y, bias, time, temperature, dir_top, dir_bottom, i_top_other,
+                 i_bottom_other)
+        xp = jnp if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(given)) else np
+        axis = xp.asarray(axis, dtype=int)
         n = axis.shape
         def arr(a, fill):
-            return jnp.full(n, fill, dtype=float) if a is None else jnp.asarray(a, dtype=float)
+            return xp.full(n, fill, dtype=float) if a is None else xp.asarray(a, dtype=float)
         i_top = arr(i_top, 0.0)
         return cls(
             axis=axis, i_top=i_top, i_bottom=arr(i_bottom, 0.0), x=arr(x, 0.0), y=arr(y, 0.0),

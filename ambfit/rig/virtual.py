@@ -338,10 +338,11 @@ def simulate(
     tt = np.asarray(time, dtype=float)
     temps = np.repeat(np.asarray(temp, dtype=float)[:, None], 2, axis=1)
 
+    # (NumPy inputs: the compiled solve converts them; an eager JAX conversion of each new shape compiles a program)
     m_end, (res, it, ib) = _solve_jit(
-        (jnp.asarray(g0), jnp.asarray(x0), jnp.asarray(k)),
-        (jnp.asarray(x_phys), jnp.asarray(y_phys), jnp.asarray(bias), jnp.asarray(tt), jnp.asarray(temps)),
-        jnp.asarray(load), effects, spec.bearing, spec.amplifier_limit, jnp.asarray(state.m, dtype=float),
+        (np.asarray(g0, dtype=float), np.asarray(x0, dtype=float), np.asarray(k, dtype=float)),
+        (np.asarray(x_phys, dtype=float), np.asarray(y_phys, dtype=float), bias, tt, temps),
+        np.asarray(load, dtype=float), effects, spec.bearing, spec.amplifier_limit, np.asarray(state.m, dtype=float),
     )
     res, it, ib = np.asarray(res), np.asarray(it), np.asarray(ib)
     worst = float(np.max(np.abs(res))) if n else 0.0
