@@ -15,9 +15,10 @@ step budget: the ideal law and each candidate).
 
 Then the hard cases (issue "Fast on a real bearing from the first run"), the data of
 ``tests/test_diagnosis_golden.py``: a magnetic-circuit verdict on the finite-element development data
-(``../shared/fem``, 672 readings), a law widened by its signature, a pair, an undecided verdict.  Each: a new
-process without and with the compilation cache, a first call in this process, a warm call, and the warm call by
-phase.
+(``../shared/fem``, 648 readings), a law widened by its signature, a pair, an undecided verdict.  Each: a new
+process without and with the compilation cache, a first call in this process, a warm call, the warm call by
+phase (the circuit families' refits on their own), and where a cold call's time goes (a new process without the
+cache: importing ambfit, then the diagnosis' compiling, tracing and the rest).
 
     .venv/bin/python benchmarks/diagnose_speed.py
 
@@ -88,7 +89,8 @@ def phases(data, **kw) -> dict:
     held-out refits, the residual structure)."""
     spent = collections.defaultdict(float)
     wrapped = {}
-    for name, label in (("force_checks", "force checks"), ("ceiling", "discrepancy")):
+    for name, label in (("force_checks", "force checks"), ("ceiling", "discrepancy"),
+                        ("circuit_families", "circuit families")):
         f = getattr(attribution, name)
         wrapped[name] = f
 
@@ -152,6 +154,47 @@ def fold_routes(data, n: int = 3) -> dict:
     return out
 
 
+_COLD = """
+import sys, time
+t0 = time.perf_counter()
+from ambfit.diagnosis import attribution
+imports = time.perf_counter() - t0
+sys.path.insert(0, {here!r})
+import json, diagnose_speed
+print(json.dumps(diagnose_speed._cold_breakdown({path!r}, {bearing!r}, imports)))
+"""
+
+
+def _cold_breakdown(path: str, bearing: str | None, imports_s: float) -> dict:
+    """One diagnosis of ``path`` in this (new) process: its seconds, and XLA's compiling and JAX's tracing within it;
+    ``imports_s`` the seconds importing ambfit took before."""
+    import jax
+
+    import ambfit
+
+    counter = _Compiles()
+    jax.config.update("jax_log_compiles", True)
+    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
+        lg = logging.getLogger(name)
+        lg.addHandler(counter)
+        lg.propagate = False
+    kw = {"bearing": ambfit.Bearing.from_toml(bearing)} if bearing else {}
+    data = read_csv(path)
+    t0 = time.perf_counter()
+    attribution.diagnose(data, **kw)
+    return {"imports_s": imports_s, "diagnose_s": time.perf_counter() - t0,
+            "compiling_s": sum(counter.seconds.values()), "tracing_s": sum(counter.tracing.values()),
+            "compilations": sum(counter.count.values())}
+
+
+def cold_breakdown(path: Path, bearing: Path | None) -> dict:
+    """:func:`_cold_breakdown` in a new process without the compilation cache, importing ambfit timed first."""
+    env = {**os.environ, "AMBFIT_JAX_CACHE": "off"}
+    code = _COLD.format(here=str(Path(__file__).parent), path=str(path), bearing=None if bearing is None else str(bearing))
+    done = subprocess.run([sys.executable, "-c", code], check=True, env=env, capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def hard_cases(tmp: Path) -> dict:
     """Each hard case (the golden diagnoses' data): cold without and with the compilation cache, first call in
     this process, warm (median of 3) and its phases."""
@@ -175,7 +218,8 @@ def hard_cases(tmp: Path) -> dict:
             plain.write_bytes(gzip.decompress(data_path.read_bytes()))
             data_path = plain
         kw = {"bearing": ambfit.Bearing.from_toml(bearing_path)} if bearing_path is not None else {}
-        rec = {"label": label, "cli_no_cache_s": cli_seconds(data_path, "off", bearing_path)}
+        rec = {"label": label, "cli_no_cache_s": cli_seconds(data_path, "off", bearing_path),
+               "cold": cold_breakdown(data_path, bearing_path)}
         cache = str(tmp / f"jax-cache-{case}")
         cli_seconds(data_path, cache, bearing_path)
         rec["cli_filled_cache_s"] = cli_seconds(data_path, cache, bearing_path)
@@ -224,7 +268,7 @@ def render(out: dict) -> list[str]:
           "the compilation cache, first in this process (after the cases above it: some programs are compiled "
           f"already) and warm; targets ≤ {TARGET_COLD_S:.0f} s cold, ≤ 2 s warm.", "",
           "| case | readings | verdict | new process, no cache [s] | with cache [s] | first in process [s] | warm [s] "
-          "| warm: fits / discrepancy / force checks [s] |", "|---|---|---|---|---|---|---|---|"]
+          "| warm: fits / circuit families / discrepancy / force checks [s] |", "|---|---|---|---|---|---|---|---|"]
     for case, h in out["hard_cases"].items():
         if "skipped" in h:
             md.append(f"| {h['label']} | – | skipped: {h['skipped']} | | | | | |")
@@ -232,8 +276,19 @@ def render(out: dict) -> list[str]:
         hw = h["warm"]
         md.append(f"| {h['label']} | {h['rows']} | {h['verdict']} | {h['cli_no_cache_s']:.1f} | "
                   f"{h['cli_filled_cache_s']:.1f} | {h['in_process_first_s']:.1f} | {hw['total_s']:.2f} | "
-                  f"{hw['fits of the ideal law and the candidates']:.2f} / {hw.get('discrepancy', 0.0):.2f} / "
-                  f"{hw.get('force checks', 0.0):.2f} |")
+                  f"{hw['fits of the ideal law and the candidates']:.2f} / {hw.get('circuit families', 0.0):.2f} / "
+                  f"{hw.get('discrepancy', 0.0):.2f} / {hw.get('force checks', 0.0):.2f} |")
+    cold = {case: h["cold"] for case, h in out["hard_cases"].items() if "cold" in h}
+    if cold:
+        md += ["", "Where a cold diagnosis' time goes: a new process without the compilation cache, importing ambfit "
+               "and then one diagnosis, its XLA compiling and JAX tracing measured within it (the rest runs the fits "
+               "and pays the first calls' dispatch).", "",
+               "| case | importing [s] | diagnosis [s] | compiling [s] | tracing [s] | the rest [s] | compilations |",
+               "|---|---|---|---|---|---|---|"]
+        for case, c in cold.items():
+            rest = c["diagnose_s"] - c["compiling_s"] - c["tracing_s"]
+            md.append(f"| {out['hard_cases'][case]['label']} | {c['imports_s']:.2f} | {c['diagnose_s']:.2f} | "
+                      f"{c['compiling_s']:.2f} | {c['tracing_s']:.2f} | {rest:.2f} | {c['compilations']} |")
     md += ["", "Rerun: `.venv/bin/python benchmarks/diagnose_speed.py`."]
     return md
 
