@@ -98,11 +98,8 @@ class Scorer:
         fit_all(0)
         first = refit(0, self.tests[0])
         queued = [[self.each.submit(refit, 0, test) for test in self.tests[1:]]]
-        # the models with the largest step budgets (a circuit of the whole bearing) first: their fits are the longest
-        # and hold up the verdict unless begun while the other thread works through the rest
-        order = sorted(range(1, len(effect_sets)), key=lambda k: -steps[k])
-        heads = {k: self.each.submit(fit_all_then_folds, k) for k in order}
-        queued += [heads[k].result() for k in range(1, len(effect_sets))]
+        heads = [self.each.submit(fit_all_then_folds, k) for k in range(1, len(effect_sets))]
+        queued += [h.result() for h in heads]
         out = []
         for k, effects in enumerate(effect_sets):
             fitted = [first] + [f.result() for f in queued[0]] if k == 0 else [f.result() for f in queued[k]]
