@@ -235,6 +235,9 @@ def test_row_parameters_give_the_shared_parameters_forces_and_derivatives():
         return fn(REAL.replace(gap=gap, iron_h_scale=iron), FEM_BEARING, axis, *cols, 0.0, 0.0)
 
     np.testing.assert_allclose(force(row_axis_force, REAL.gap, 1.2), force(mec_axis_force, REAL.gap, 1.2), rtol=1e-12)
+    # traced (a fit's compiled solve: the rows solved in place) and concrete (their compiled program) alike
+    traced = jax.jit(lambda g: force(row_axis_force, g, 1.2))(REAL.gap)
+    np.testing.assert_allclose(traced, force(row_axis_force, REAL.gap, 1.2), rtol=1e-12)
     ja = jax.jacfwd(lambda g, i: force(row_axis_force, g, i), argnums=(0, 1))(REAL.gap, 1.2)
     jb = jax.jacfwd(lambda g, i: force(mec_axis_force, g, i), argnums=(0, 1))(REAL.gap, 1.2)
     for a, b in zip(ja, jb):

@@ -415,6 +415,22 @@ def test_a_table_owned_by_its_caller_is_hashed_once_and_a_changed_table_is_seen(
     assert float(changed.i_top[0]) == 1.70
 
 
+def test_a_built_problem_holds_its_own_copy_of_the_table():
+    # Problems are kept by the table's content; one built from a table later changed in place must still hold
+    # the values it was built from, and a table with the original values must get them back
+    table = TWO_ROWS.copy()
+    built, _ = core.build_problem(table)
+    kept = {name: np.array(getattr(built, name)) for name in ("i_top", "s_x")}
+    table.loc[0, "i_top_A"] = 1.90
+    table.loc[1, "w_std_um"] = 0.5
+    for name, values in kept.items():
+        np.testing.assert_array_equal(np.asarray(getattr(built, name)), values)
+    again, _ = core.build_problem(TWO_ROWS.copy())
+    np.testing.assert_array_equal(np.asarray(again.i_top), kept["i_top"])
+    with pytest.raises(ValueError):
+        np.asarray(again.i_top)[0] = 0.0          # the kept problem's arrays cannot be written through
+
+
 def test_the_written_out_levenberg_marquardt_takes_optimistix_steps():
     """The solve's iteration is optimistix's LevenbergMarquardt written out (one place evaluates the model).  One
     round with the weights held and our extra EDM stop off gives optimistix's iterates from a far start (150 µm off

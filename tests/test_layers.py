@@ -1,13 +1,12 @@
 """ambfit's modules import downwards only (STYLE.md section 6), and no two of them import each other.
 
-Layers, bottom to top: helpers with no ambfit imports (``_recent``, ``_jaxcache``, ``_output``), ``physics``, the
-low-level infrastructure (``checks``, ``data``, ``engine``, ``workers``), ``rig``, ``estimation``, ``diagnosis``,
-``studies``, ``faces``.  A
-module may import from its own layer and the layers below it.  Every import counts, wherever it stands: at module
-level, inside a function, or under ``TYPE_CHECKING`` (a dependency that static analysers and readers follow all the
-same).  Within the estimation layer the closed form and the least-squares core lie below the fit pipeline and
-must not reach it, through any chain of imports.  The source is read with :mod:`ast`, not imported, so the check is
-cheap and sees every import.
+Layers, bottom to top: helpers with no ambfit imports (``_recent``, ``_jaxcache``, ``_output``, ``_arrays``),
+``physics``, the low-level infrastructure (``checks``, ``data``, ``engine``, ``workers``), ``rig``, ``estimation``,
+``diagnosis``, ``studies``, ``faces``.  A module may import from its own layer and the layers below it.  Every import
+counts, wherever it stands: at module level, inside a function, or under ``TYPE_CHECKING`` (a dependency that static
+analysers and readers follow all the same).  Within the estimation layer the closed form and the least-squares core
+lie below the fit pipeline and must not reach it, through any chain of imports.  The source is read with :mod:`ast`,
+not imported, so the check is cheap and sees every import.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "ambfit"
 
 LAYERS = (
-    ("helpers", ("ambfit._recent", "ambfit._jaxcache", "ambfit._output")),
+    ("helpers", ("ambfit._recent", "ambfit._jaxcache", "ambfit._output", "ambfit._arrays")),
     ("physics", ("ambfit.physics",)),
     ("infrastructure", ("ambfit.checks", "ambfit.data", "ambfit.rows", "ambfit.engine", "ambfit.workers")),
     ("rig", ("ambfit.rig",)),

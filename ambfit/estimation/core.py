@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ambfit._arrays import numpy_unless_traced
 from ambfit._recent import Recent
 from ambfit.estimation.problem import Meta, Problem, build_problem  # noqa: F401  (build_problem: the core's entry)
 from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
@@ -140,7 +141,7 @@ class Model(eqx.Module):
             # a free field's value comes from q (build): one shape for every instance, so that a model of
             # fitted effects runs the compiled solve of the same model with default ones
             value = getattr(e, name)
-            xp = _numpy_unless_traced(value)
+            xp = numpy_unless_traced(value)
             built[i] = eqx.tree_at(lambda ef, f=name: getattr(ef, f), built[i],
                                    xp.array(xp.broadcast_to(xp.asarray(value, dtype=float), (2,))))
             signed = name in type(e).SIGNED
@@ -168,7 +169,7 @@ class Model(eqx.Module):
     def build(self, q) -> tuple:
         """Effects with their free fields set from the scaled vector ``q`` (value = centre + width * q); in NumPy
         when ``q`` is concrete (a fit's result: each eager JAX operation of a new shape compiles a program)."""
-        xp = _numpy_unless_traced(q, self.centre, self.width)
+        xp = numpy_unless_traced(q, self.centre, self.width)
         vals = xp.asarray(self.centre) + xp.asarray(self.width) * xp.asarray(q)
         effects = list(self.effects)
         j = 0
@@ -177,11 +178,6 @@ class Model(eqx.Module):
             effects[i] = eqx.tree_at(lambda e, f=f: getattr(e, f), effects[i], v)
             j += 1 if shared else 2
         return tuple(effects)
-
-
-def _numpy_unless_traced(*values):
-    """``jax.numpy`` when any of ``values`` is traced, else NumPy."""
-    return jnp if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values)) else np
 
 
 @functools.lru_cache(maxsize=256)

@@ -15,10 +15,10 @@ import hashlib
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from ambfit._arrays import Array
 from ambfit._recent import Recent
 from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
@@ -36,15 +36,15 @@ class Problem(eqx.Module):
     """
 
     readings: Readings
-    s_top: jnp.ndarray
-    s_bottom: jnp.ndarray
-    s_x: jnp.ndarray
-    load: jnp.ndarray
-    known: jnp.ndarray
-    gidx: jnp.ndarray
-    k_free: jnp.ndarray
-    mask: jnp.ndarray
-    s_held: jnp.ndarray
+    s_top: Array
+    s_bottom: Array
+    s_x: Array
+    load: Array
+    known: Array
+    gidx: Array
+    k_free: Array
+    mask: Array
+    s_held: Array
 
     ax = property(lambda self: self.readings.axis)
     x = property(lambda self: self.readings.x)
@@ -67,6 +67,13 @@ class Problem(eqx.Module):
     def with_readings(self, i_top, i_bottom, x) -> Problem:
         """The same problem with other current and position readings (bootstrap, design)."""
         return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))
+
+
+def _read_only(a):
+    """``a`` made read-only (a NumPy array; others as they are)."""
+    if isinstance(a, np.ndarray):
+        a.flags.writeable = False
+    return a
 
 
 def _leaf(values):
@@ -213,11 +220,11 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x, groups=None) -> tuple[Problem, Me
     k_free = tuple(bool(known[ax == a].any()) for a in range(2))
     present = tuple(bool((ax == a).any()) for a in range(2))
     m = np.ones(len(df))
-    # NumPy leaves, as the readings' (an eager JAX conversion of each new shape compiles a program; the solve
-    # converts its inputs at its call)
-    prob = Problem(readings=r, s_top=np.asarray(st, dtype=float), s_bottom=np.asarray(sb, dtype=float),
-                   s_x=np.asarray(sx, dtype=float), load=np.nan_to_num(load), known=known, gidx=np.asarray(gidx),
-                   k_free=np.asarray(k_free), mask=m, s_held=np.zeros(len(df)))
+    # NumPy leaves of its own (ambfit._arrays), read-only: the problem is kept by the table's content
+    prob = Problem(readings=r, s_top=np.array(st, dtype=float), s_bottom=np.array(sb, dtype=float),
+                   s_x=np.array(sx, dtype=float), load=np.nan_to_num(load), known=known, gidx=np.array(gidx),
+                   k_free=np.array(k_free), mask=m, s_held=np.zeros(len(df)))
+    prob = jax.tree.map(_read_only, prob)
     return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
 
 

@@ -37,6 +37,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from ambfit.physics.stages import Effect
 
+from ambfit._arrays import Array, numpy_unless_traced
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 from ambfit.physics.stages import Context, _set
 
@@ -124,33 +125,34 @@ class Readings(eqx.Module):
         there is none.  Only effects coupling the axes through the stator need them.
     """
 
-    axis: jnp.ndarray
-    i_top: jnp.ndarray
-    i_bottom: jnp.ndarray
-    x: jnp.ndarray
-    y: jnp.ndarray
-    bias: jnp.ndarray
-    time: jnp.ndarray
-    temperature: jnp.ndarray
-    dir_top: jnp.ndarray
-    dir_bottom: jnp.ndarray
-    i_top_other: jnp.ndarray | None = None
-    i_bottom_other: jnp.ndarray | None = None
+    axis: Array
+    i_top: Array
+    i_bottom: Array
+    x: Array
+    y: Array
+    bias: Array
+    time: Array
+    temperature: Array
+    dir_top: Array
+    dir_bottom: Array
+    i_top_other: Array | None = None
+    i_bottom_other: Array | None = None
 
     @classmethod
     def build(
         cls, axis, i_top, i_bottom, x, y=None, bias=None, time=None, temperature=None,
         dir_top=None, dir_bottom=None, i_top_other=None, i_bottom_other=None,
     ) -> Readings:
-        """Readings from array-likes; optional fields default to 'unknown'.  NumPy arrays unless a value is traced
-        (in JAX, an eager conversion of each new shape compiles a program; a compiled fit converts its inputs)."""
+        """Readings from array-likes; optional fields default to 'unknown'.  NumPy arrays of their own (copies, not
+        views of the caller's table) unless a value is traced: in JAX, an eager conversion of each new shape compiles
+        a program, and a compiled fit converts its inputs."""
         given = (axis, i_top, i_bottom, x, y, bias, time, temperature, dir_top, dir_bottom, i_top_other,
                  i_bottom_other)
-        xp = jnp if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(given)) else np
-        axis = xp.asarray(axis, dtype=int)
+        xp = numpy_unless_traced(*given)
+        axis = xp.array(axis, dtype=int)
         n = axis.shape
         def arr(a, fill):
-            return xp.full(n, fill, dtype=float) if a is None else xp.asarray(a, dtype=float)
+            return xp.full(n, fill, dtype=float) if a is None else xp.array(a, dtype=float)
         i_top = arr(i_top, 0.0)
         return cls(
             axis=axis, i_top=i_top, i_bottom=arr(i_bottom, 0.0), x=arr(x, 0.0), y=arr(y, 0.0),

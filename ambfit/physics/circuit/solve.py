@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ambfit._arrays import traced
 from ambfit.physics.bearing import MU_0, Bearing
 from ambfit.physics.circuit.iron import MU_R_MAX, _iron_h, bh_curve
 from ambfit.physics.circuit.network import (
@@ -323,6 +324,5 @@ def row_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     n = axis.shape[0]
     rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
     is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
-    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((rows, inputs)))
-    f = (_rows if traced else _solve_rows)(rows, bearing, *inputs)
+    f = (_rows if traced(rows, inputs) else _solve_rows)(rows, bearing, *inputs)
     return jnp.where(is_v, f[:, 0], f[:, 1])

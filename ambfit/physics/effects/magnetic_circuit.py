@@ -8,6 +8,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ambfit._arrays import traced
 from ambfit.physics.stages import Effect, _ax
 
 
@@ -84,8 +85,11 @@ class MagneticCircuit(Effect):
         """The same circuit with one more piece (``PIECES``) switched off."""
         if piece not in self.PIECES:
             raise ValueError(f"unknown piece {piece!r}; pieces: {', '.join(self.PIECES)}")
-        on = np.array(self.on, dtype=float)              # (in NumPy: an eager JAX update compiles a program)
-        on[self.PIECES.index(piece)] = 0.0
+        j = self.PIECES.index(piece)
+        if traced(self.on):
+            return eqx.tree_at(lambda e: e.on, self, jnp.asarray(self.on).at[j].set(0.0))
+        on = np.array(self.on, dtype=float)              # (see ambfit._arrays)
+        on[j] = 0.0
         return eqx.tree_at(lambda e: e.on, self, on)
 
     def force(self, ctx, force):
