@@ -234,6 +234,32 @@ def test_the_circuit_families_decide_each_piece_as_refits_run_to_the_end_do():
         assert circuit_families(ds.frame, mec, fem, each=each) == sorted(fams.values(), key=lambda f: -f.delta_chi2)
 
 
+@pytest.mark.parametrize("loss", ["linear", "cauchy"])
+def test_a_force_check_reads_a_refits_force_and_noise_as_predicting_them_gives(loss):
+    # A left-out load's forces and noise floor come from the refit's own solve (F = load + s z) unless the refit
+    # held its noise: the same numbers as predicting the force and propagating the noise anew
+    from ambfit.estimation.measure import _at_known_loads, force_noise
+
+    df = read_csv(FEM_SLICE).frame
+    fem = ambfit.Bearing.from_toml(FEM_BEARING)
+    known = df["load_N"].notna().to_numpy() & (df["load_N"].abs() > 0).to_numpy()
+    out = known & (df["load_N"] == df.loc[known, "load_N"].iloc[0]).to_numpy()
+    res = ambfit.fit(df, [Saturation()], bearing=fem, mask=(~out).astype(float), loss=loss, throw=False,
+                     debias="none")
+    rows = readings(df)
+    force, noise = _at_known_loads(res, df, rows, {})
+    np.testing.assert_allclose(force[known], predict(res, df, rows=rows)[known], rtol=1e-10)
+    np.testing.assert_allclose(noise, force_noise(res, df), rtol=1e-10)
+    # a refit with its noise held: the noise floor is the propagated one, not the held
+    held = 2.0 * noise
+    res_held = ambfit.fit(df, [Saturation()], bearing=fem, mask=(~out).astype(float), loss=loss, throw=False,
+                          debias="none", held_noise=held)
+    force, noise = _at_known_loads(res_held, df, rows, {"held_noise": held})
+    np.testing.assert_allclose(force[known], predict(res_held, df, rows=rows)[known], rtol=1e-10)
+    np.testing.assert_allclose(noise, force_noise(res_held, df), rtol=1e-10)
+    assert not np.allclose(noise, held)
+
+
 def test_a_force_check_reuses_a_refit_whose_left_out_rows_are_a_fold():
     # A diagnosis has already refitted each model with each fold held out; where a fold is exactly one known
     # load's rows (the FEM's load ids are per axis), the force check takes that refit instead of repeating it.

@@ -82,7 +82,8 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     its piece's significance is decided (:data:`EDM_MARGIN`), at most ``max_steps`` steps in all.  A piece is
     significant when switching it off raises χ² by more than ``significance`` of χ²'s standard deviations
     ``sqrt(2 dof)`` (:attr:`ambfit.diagnosis.verdict.Rules.circuit_dchi2`).  Returns one :class:`CircuitFamily`
-    per piece, largest rise first.  ``each(fn, items)``, if given, maps the pieces' refits (a diagnosis passes its
+    per piece, largest rise first.  ``full`` is the circuit's fit of ``data``'s rows in their order, its noise not
+    held (the refits hold the noise its solve measured).  ``each(fn, items)``, if given, maps the pieces' refits (a diagnosis passes its
     thread pool; default one after another, with the same results).
     """
     from ambfit.estimation.measure import force_noise
@@ -92,7 +93,7 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     threshold = significance * np.sqrt(2.0 * max(full.dof, 1))
     names = {"saturation": "saturation", "iron": "iron_reluctance", "fringing": "fringing", "leakage": "leakage",
              "coupling": "cross_coupling"}
-    # the noise the full fit's solve measured at its estimate (it was fitted to these rows, no noise held)
+    # the noise the full fit's solve measured at its estimate (see the docstring), else propagated anew
     held = full.row_noise if full.row_noise is not None and len(full.row_noise) == len(data) \
         else force_noise(full, data, **noise)
     # the same rows as the full fit, none dropped by an outlier test: χ² must compare like with like

@@ -81,9 +81,9 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     fitted on the rows it saw, the outliers among them, its parameters refitted to those (a tuple of groups: those
     of :mod:`ambfit.estimation.basis`, a family's signature;
     True: the default groups), and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
-    refits already made with the same model, start and settings, as ``(held-out rows mask, FitResult,
-    Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose left-out rows are exactly one of
-    these masks reuses that refit instead of repeating it.  ``each(fn, items)``, if given, maps the left-out loads
+    refits of ``data``'s rows (in their order) already made with the same model, start and settings, as
+    ``(held-out rows mask, FitResult, Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose
+    left-out rows are exactly one of these masks reuses that refit instead of repeating it.  ``each(fn, items)``, if given, maps the left-out loads
     (a diagnosis passes its thread pool; default one after another).
 
     Besides the contract's per-reading figures, ``rms_rel_mean`` is the RMS over the left-out loads of the
@@ -163,10 +163,11 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
 
 def _at_known_loads(res: FitResult, df, rows, fit_kw: dict) -> tuple[np.ndarray, np.ndarray]:
     """The force [N] ``res`` gives each row of ``df`` with a known load, and its noise std [N] (other rows: any
-    number).  As its solve measured them at its estimate, ``F = load + s z``, when it was fitted to these rows
-    without held noise; else predicted and propagated anew (each a compiled program of its own)."""
+    number); ``res`` is a fit of ``df``'s rows in their order, with ``fit_kw``.  As its solve measured them at its
+    estimate, ``F = load + s z``, unless it held its noise (then predicted and propagated anew, each a compiled
+    program of its own)."""
     z, s = res.residuals, res.row_noise
-    if "held_noise" not in fit_kw and s is not None and np.shape(s) == np.shape(z) == (len(df),):
+    if fit_kw.get("held_noise") is None and s is not None and np.shape(s) == np.shape(z) == (len(df),):
         return df["load_N"].to_numpy(float) + s * z, s
     return predict(res, df, rows=rows), force_noise(res, df, sigma_i=fit_kw.get("sigma_i"),
                                                     sigma_x=fit_kw.get("sigma_x"))
