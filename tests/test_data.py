@@ -195,14 +195,18 @@ def _other_by_definition(df):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(1, 30), st.integers(0, 2**31 - 1), st.sampled_from([None, "text", "numbers", "missing"]))
+@given(st.integers(1, 30), st.integers(0, 2**31 - 1),
+       st.sampled_from([None, "text", "numbers", "integers", "missing"]))
 def test_row_order_functions_follow_their_definitions(n, seed, experiment):
     rng = np.random.default_rng(seed)
     df = pd.DataFrame({"axis": rng.choice(["v", "w"], n), "time_s": rng.choice([0.0, 0.5, 1.0, np.nan], n),
                        "i_top_A": np.round(rng.normal(1.5, 0.004, n), 4), "i_bottom_A": rng.normal(1.5, 0.1, n)})
     if experiment is not None:
-        labels = {"text": ["a", "b"], "numbers": [1, 2], "missing": ["a", None]}[experiment]
-        df["experiment"] = pd.Series(rng.choice(np.array(labels, dtype=object), n))
+        if experiment == "integers":                 # an integer column (a study's joined table numbers them)
+            df["experiment"] = rng.integers(0, 3, n).astype(np.int64)
+        else:
+            labels = {"text": ["a", "b"], "numbers": [1, 2], "missing": ["a", None]}[experiment]
+            df["experiment"] = pd.Series(rng.choice(np.array(labels, dtype=object), n))
     np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
     for got, want in zip(R.other_axis_currents(df), _other_by_definition(df)):
         np.testing.assert_array_equal(got, want)
