@@ -15,7 +15,7 @@ step budget: the ideal law and each candidate).
 
 Then the hard cases (issue "Fast on a real bearing from the first run"), the data of
 ``tests/test_diagnosis_golden.py``: a magnetic-circuit verdict on the finite-element development data
-(``../shared/fem``, 648 readings), a law widened by its signature, a pair, an undecided verdict.  Each: a new
+(``../shared/fem``), a law widened by its signature, a pair, an undecided verdict.  Each: a new
 process without and with the compilation cache, a first call in this process, a warm call, the warm call by
 phase (the circuit families' refits on their own), and where a cold call's time goes (a new process without the
 cache: importing ambfit, then the diagnosis' compiling, tracing and the rest).
@@ -85,8 +85,8 @@ def cli_seconds(path: Path, cache: str, bearing: Path | None = None) -> float:
 
 def phases(data, **kw) -> dict:
     """Seconds of one warm diagnosis by phase, as wall-clock spans of the main thread (the fits run two at a time
-    in worker threads): the force checks, the discrepancy, and the rest (the ideal fit, every candidate's fits and
-    held-out refits, the residual structure)."""
+    in worker threads): the force checks, the discrepancy, the magnetic circuit's families, and the rest (the ideal
+    fit, every candidate's fits and held-out refits, the residual structure)."""
     spent = collections.defaultdict(float)
     wrapped = {}
     for name, label in (("force_checks", "force checks"), ("ceiling", "discrepancy"),
@@ -166,20 +166,21 @@ print(json.dumps(diagnose_speed._cold_breakdown({path!r}, {bearing!r}, imports))
 
 
 def _cold_breakdown(path: str, bearing: str | None, imports_s: float) -> dict:
-    """One diagnosis of ``path`` in this (new) process: its seconds, and XLA's compiling and JAX's tracing within it;
-    ``imports_s`` the seconds importing ambfit took before."""
+    """One diagnosis of ``path`` in this (new) process: its seconds, and the seconds of XLA's compiling and JAX's
+    tracing within it (summed over the threads that did them); ``imports_s`` the seconds importing ambfit took
+    before."""
     import jax
 
     import ambfit
 
+    kw = {"bearing": ambfit.Bearing.from_toml(bearing)} if bearing else {}
+    data = read_csv(path)
     counter = _Compiles()
     jax.config.update("jax_log_compiles", True)
     for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
         lg = logging.getLogger(name)
         lg.addHandler(counter)
         lg.propagate = False
-    kw = {"bearing": ambfit.Bearing.from_toml(bearing)} if bearing else {}
-    data = read_csv(path)
     t0 = time.perf_counter()
     attribution.diagnose(data, **kw)
     return {"imports_s": imports_s, "diagnose_s": time.perf_counter() - t0,
@@ -196,8 +197,8 @@ def cold_breakdown(path: Path, bearing: Path | None) -> dict:
 
 
 def hard_cases(tmp: Path) -> dict:
-    """Each hard case (the golden diagnoses' data): cold without and with the compilation cache, first call in
-    this process, warm (median of 3) and its phases."""
+    """Each hard case (the golden diagnoses' data): cold without and with the compilation cache, a cold run's
+    breakdown (:func:`cold_breakdown`), first call in this process, warm (median of 3) and its phases."""
     import gzip
 
     import ambfit
@@ -281,8 +282,9 @@ def render(out: dict) -> list[str]:
     cold = {case: h["cold"] for case, h in out["hard_cases"].items() if "cold" in h}
     if cold:
         md += ["", "Where a cold diagnosis' time goes: a new process without the compilation cache, importing ambfit "
-               "and then one diagnosis, its XLA compiling and JAX tracing measured within it (the rest runs the fits "
-               "and pays the first calls' dispatch).", "",
+               "and then one diagnosis, its XLA compiling and JAX tracing measured within it (seconds summed over the "
+               "threads: the fits run two at a time; the rest runs the fits and pays the first calls' dispatch).",
+               "",
                "| case | importing [s] | diagnosis [s] | compiling [s] | tracing [s] | the rest [s] | compilations |",
                "|---|---|---|---|---|---|---|"]
         for case, c in cold.items():
