@@ -1,5 +1,5 @@
 """``python -m ambfit``: the command line (same as the ``ambfit`` script)."""
 
-from ambfit.faces.cli import main
+from ambfit.faces.cli import entry
 
-main()
+entry()

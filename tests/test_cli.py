@@ -159,6 +159,22 @@ def test_installed_entry_point_identifies_the_default_data(tmp_path):
     assert abs(js["params"]["v0_um"]["value"] - 33.3) < 4 * js["params"]["v0_um"]["std"]
 
 
+@pytest.mark.parametrize("how", ["script", "module"])
+def test_the_command_ends_with_its_exit_code_and_its_output_written(tmp_path, how):
+    # the installed script and python -m ambfit end the process at once (no interpreter teardown): the exit code,
+    # the messages, the tables and the files must all be there
+    start = [str(Path(sys.executable).with_name("ambfit"))] if how == "script" else [sys.executable, "-m", "ambfit"]
+    missing = subprocess.run([*start, "identify", str(tmp_path / "none.csv")], capture_output=True, text=True,
+                             timeout=120)
+    assert missing.returncode == 2 and "none.csv" in missing.stderr and "Traceback" not in missing.stderr
+    out = tmp_path / "o.json"
+    done = subprocess.run([*start, "identify", str(ROOT / "data" / "paper_table2.csv"), "--json", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "least squares, paper_table2.csv" in done.stdout and "uncertainty" in done.stdout
+    assert set(json.loads(out.read_text())["params"]) >= {"g_v0_um", "v0_um", "g_w0_um", "w0_um"}
+
+
 def test_origin_search_failure_is_a_message_not_a_traceback():
     # biases too close for the noise: Eq. 6's radicand goes negative at some iteration
     r = runner.invoke(app, ["origin-search", "--biases-a", "1.4,1.401", "--current-noise-ma", "5", "--iterations", "5"])

@@ -23,8 +23,37 @@ import os
 from ambfit.faces.cli.app import INTERRUPTED, StreamError, app, err, escape, plain
 
 
+def entry():  # pragma: no cover - entry point
+    """The ``ambfit`` command (and ``python -m ambfit``): :func:`main`, then the process ends at once
+    (:func:`_end`)."""
+    try:
+        main()
+    except SystemExit as exc:
+        _end(exc.code)
+    _end(0)
+
+
+def _end(code) -> None:  # pragma: no cover - entry point
+    """End the process with ``code`` (a ``SystemExit``'s) once the output is flushed and the exit handlers have run,
+    without the interpreter's teardown: freeing JAX's compiled programs and XLA's client object by object takes
+    longer than many commands' own work, and nothing of it is needed at exit.  Every command has closed its thread
+    pools and worker processes by then (only daemon threads remain)."""
+    import atexit
+    import sys
+
+    if isinstance(code, str):              # (what SystemExit does with a message)
+        print(code, file=sys.stderr)
+        code = 1
+    code = 0 if code is None else int(code)
+    _quiet_stdout()
+    atexit._run_exitfuncs()                # (temporary folders, logging, worker pools: as a normal exit runs them)
+    _quiet_stdout()
+    os._exit(code)
+
+
 def main():  # pragma: no cover - entry point
-    """Run the command line; an unexpected error (a bug) ends in one line and exit 3, its traceback in a file."""
+    """Run the command line; an unexpected error (a bug) ends in one line and exit 3, its traceback in a file.
+    Ends in ``SystemExit`` (the process lives on: a caller in Python, a test)."""
     _plain_where_needed()
     problem = _jax_cannot_start()
     if problem:
