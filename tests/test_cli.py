@@ -175,6 +175,21 @@ def test_the_command_ends_with_its_exit_code_and_its_output_written(tmp_path, ho
     assert set(json.loads(out.read_text())["params"]) >= {"g_v0_um", "v0_um", "g_w0_um", "w0_um"}
 
 
+def test_a_profiler_and_a_closed_output_still_get_a_normal_end(tmp_path):
+    # the quick end gives way to Python's own where something runs after it (a profiler writes its statistics),
+    # and a command whose standard output is closed still ends as it went
+    data = str(ROOT / "data" / "paper_table2.csv")
+    stats = tmp_path / "p.prof"
+    r = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(stats), "-m", "ambfit", "identify", data,
+                        "--method", "closed-form"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and stats.exists(), r.stderr
+    exe = Path(sys.executable).with_name("ambfit")
+    out = tmp_path / "o.json"
+    r = subprocess.run(["bash", "-c", f"'{exe}' identify '{data}' --method closed-form --json '{out}' >&-"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "Traceback" not in r.stderr and out.exists(), r.stderr
+
+
 def test_origin_search_failure_is_a_message_not_a_traceback():
     # biases too close for the noise: Eq. 6's radicand goes negative at some iteration
     r = runner.invoke(app, ["origin-search", "--biases-a", "1.4,1.401", "--current-noise-ma", "5", "--iterations", "5"])

@@ -77,8 +77,9 @@ def _read_only(a):
 
 
 def _leaf(values):
-    """A float row field: traced values as they are, others as a NumPy array (the solve converts at its call)."""
-    return values if isinstance(values, jax.core.Tracer) else np.asarray(values, dtype=float)
+    """A float row field: traced values as they are, others as a read-only NumPy array of the problem's own (the
+    solve converts at its call)."""
+    return values if isinstance(values, jax.core.Tracer) else _read_only(np.array(values, dtype=float))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -29,26 +29,31 @@ def entry():  # pragma: no cover - entry point
     try:
         main()
     except SystemExit as exc:
-        _end(exc.code)
-    _end(0)
+        _end(exc)
+    _end(SystemExit(0))
 
 
-def _end(code) -> None:  # pragma: no cover - entry point
-    """End the process with ``code`` (a ``SystemExit``'s) once the output is flushed and the exit handlers have run,
-    without the interpreter's teardown: freeing JAX's compiled programs and XLA's client object by object takes
-    longer than many commands' own work, and nothing of it is needed at exit.  Every command has closed its thread
-    pools and worker processes by then (only daemon threads remain)."""
+def _end(exc: SystemExit) -> None:  # pragma: no cover - entry point
+    """End the process as ``exc`` would once the output is flushed and the exit handlers have run, but without the
+    interpreter's teardown (its modules and objects freed one by one, JAX's and XLA's among them), which takes
+    longer than many commands' own work and is not needed at exit.  ``exc`` is raised as it is when something still
+    needs the teardown or runs after it: a thread that is not a daemon (a normal exit waits for it), a profiler or
+    debugger, ``python -i``, or ``AMBFIT_FAST_EXIT=0``."""
     import atexit
     import sys
+    import threading
 
-    if isinstance(code, str):              # (what SystemExit does with a message)
-        print(code, file=sys.stderr)
-        code = 1
-    code = 0 if code is None else int(code)
+    code = exc.code
+    others = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    watched = sys.gettrace() is not None or sys.getprofile() is not None or bool(sys.flags.inspect) or \
+        any(sys.monitoring.get_tool(i) is not None for i in range(6))
+    if others or watched or os.environ.get("AMBFIT_FAST_EXIT", "1") == "0" or not (code is None or
+                                                                                  isinstance(code, int)):
+        raise exc                          # (a message, or another object: Python prints it and exits 1)
     _quiet_stdout()
-    atexit._run_exitfuncs()                # (temporary folders, logging, worker pools: as a normal exit runs them)
+    atexit._run_exitfuncs()                # (temporary folders, logging, JAX's own clean-up: as a normal exit)
     _quiet_stdout()
-    os._exit(code)
+    os._exit(int(code or 0))
 
 
 def main():  # pragma: no cover - entry point
@@ -91,6 +96,8 @@ def _quiet_stdout() -> None:
     import sys
 
     for stream in (sys.stdout, sys.stderr):
+        if stream is None:                 # (no stream at all: pythonw, or a closed descriptor)
+            continue
         try:
             stream.flush()
         except (OSError, ValueError):
@@ -187,4 +194,4 @@ def _log_traceback() -> str:
     return path
 
 
-__all__ = ["app", "main"]
+__all__ = ["app", "entry", "main"]
