@@ -16,6 +16,13 @@ Array = np.ndarray | jax.Array
 """A NumPy array (built from concrete values) or a JAX one (traced, or a compiled program's output)."""
 
 
+def frozen(a, dtype=None) -> np.ndarray:
+    """A read-only NumPy copy of ``a`` (of ``dtype``): values, not buffers to write into."""
+    a = np.array(a, dtype=dtype)
+    a.flags.writeable = False
+    return a
+
+
 def traced(*values) -> bool:
     """Whether any leaf of ``values`` is a JAX tracer."""
     return any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))

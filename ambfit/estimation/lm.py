@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ambfit._arrays import traced
 from ambfit._recent import Recent
 from ambfit.estimation.core import EDM_MAX, IDEAL, Model, Problem, measured, weighted
 
@@ -304,7 +305,7 @@ def solve(theta0, prob: Problem, model: Model = IDEAL, max_steps: int = FIRST_ST
     models, index = _members(model)
     pad = max(m.n for m in models) - model.n
     settings = (max_steps, reweightings, edm_round, rtol)
-    if isinstance(theta0, jax.core.Tracer) or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prob)):
+    if traced(theta0, prob):
         if pad:
             theta0 = jnp.concatenate([jnp.asarray(theta0), jnp.zeros(pad)])
         sol = _solve_in(theta0, prob, models, jnp.asarray(index), *_settings(jnp, *settings))

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 import pandas as pd
 
-from ambfit._arrays import Array
+from ambfit._arrays import Array, frozen, traced
 from ambfit._recent import Recent
 from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
@@ -69,17 +69,10 @@ class Problem(eqx.Module):
         return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))
 
 
-def _read_only(a):
-    """``a`` made read-only (a NumPy array; others as they are)."""
-    if isinstance(a, np.ndarray):
-        a.flags.writeable = False
-    return a
-
-
 def _leaf(values):
     """A float row field: traced values as they are, others as a read-only NumPy array of the problem's own (the
     solve converts at its call)."""
-    return values if isinstance(values, jax.core.Tracer) else _read_only(np.array(values, dtype=float))
+    return values if traced(values) else frozen(values, dtype=float)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,11 +214,10 @@ def _build(df: pd.DataFrame, sigma_i, sigma_x, groups=None) -> tuple[Problem, Me
     k_free = tuple(bool(known[ax == a].any()) for a in range(2))
     present = tuple(bool((ax == a).any()) for a in range(2))
     m = np.ones(len(df))
-    # NumPy leaves of its own (ambfit._arrays), read-only: the problem is kept by the table's content
-    prob = Problem(readings=r, s_top=np.array(st, dtype=float), s_bottom=np.array(sb, dtype=float),
-                   s_x=np.array(sx, dtype=float), load=np.nan_to_num(load), known=known, gidx=np.array(gidx),
-                   k_free=np.array(k_free), mask=m, s_held=np.zeros(len(df)))
-    prob = jax.tree.map(_read_only, prob)
+    # read-only NumPy leaves of its own, as its readings' (ambfit._arrays): the problem is kept by the table's content
+    prob = Problem(readings=r, s_top=frozen(st, float), s_bottom=frozen(sb, float), s_x=frozen(sx, float),
+                   load=frozen(np.nan_to_num(load)), known=frozen(known), gidx=frozen(gidx), k_free=frozen(k_free),
+                   mask=frozen(m), s_held=frozen(np.zeros(len(df))))
     return prob, Meta(load_groups=unknown, k_free=k_free, axes_present=present, noise_source=source, n_rows=len(df))
 
 

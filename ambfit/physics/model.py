@@ -28,7 +28,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -37,16 +36,9 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from ambfit.physics.stages import Effect
 
-from ambfit._arrays import Array, numpy_unless_traced
+from ambfit._arrays import Array, frozen, numpy_unless_traced, traced
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 from ambfit.physics.stages import Context, _set
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """A read-only copy of ``a``: parameters are values, not buffers to write into."""
-    a = np.array(a)
-    a.flags.writeable = False
-    return a
 
 
 class BearingParams(eqx.Module):
@@ -79,9 +71,9 @@ class BearingParams(eqx.Module):
         """Build from scalars (same for both axes) or pairs ``(v, w)``, SI units (NumPy arrays from concrete values,
         which every JAX function takes without an eager dispatch per field; JAX arrays from traced ones)."""
         values = (g0, x0, k)
-        if any(isinstance(a, jax.core.Tracer) for v in values for a in jax.tree.leaves(v)):
+        if traced(*values):
             return cls(*(jnp.broadcast_to(jnp.asarray(a, dtype=float), (2,)) for a in values))
-        return cls(*(_frozen(np.broadcast_to(np.asarray(a, dtype=float), (2,))) for a in values))
+        return cls(*(frozen(np.broadcast_to(np.asarray(a, dtype=float), (2,))) for a in values))
 
     def as_dict_um(self) -> dict[str, float]:
         """Parameters with the contract's names and units (µm, N m^2/A^2)."""
@@ -143,16 +135,17 @@ class Readings(eqx.Module):
         cls, axis, i_top, i_bottom, x, y=None, bias=None, time=None, temperature=None,
         dir_top=None, dir_bottom=None, i_top_other=None, i_bottom_other=None,
     ) -> Readings:
-        """Readings from array-likes; optional fields default to 'unknown'.  NumPy arrays of their own (copies, not
-        views of the caller's table) unless a value is traced: in JAX, an eager conversion of each new shape compiles
-        a program, and a compiled fit converts its inputs."""
+        """Readings from array-likes; optional fields default to 'unknown'.  Read-only NumPy arrays of their own
+        (copies, not views of the caller's table) unless a value is traced: in JAX, an eager conversion of each new
+        shape compiles a program, and a compiled fit converts its inputs."""
         given = (axis, i_top, i_bottom, x, y, bias, time, temperature, dir_top, dir_bottom, i_top_other,
                  i_bottom_other)
         xp = numpy_unless_traced(*given)
-        axis = xp.array(axis, dtype=int)
+        own = frozen if xp is np else jnp.asarray
+        axis = own(axis, dtype=int)
         n = axis.shape
         def arr(a, fill):
-            return xp.full(n, fill, dtype=float) if a is None else xp.array(a, dtype=float)
+            return own(xp.full(n, fill) if a is None else a, dtype=float)
         i_top = arr(i_top, 0.0)
         return cls(
             axis=axis, i_top=i_top, i_bottom=arr(i_bottom, 0.0), x=arr(x, 0.0), y=arr(y, 0.0),
@@ -168,7 +161,7 @@ class Readings(eqx.Module):
 def _per_row(value, axis):
     """``value[axis]``, each row's entry of a per-axis pair: in JAX when either is traced (a pair of NumPy
     parameters closed over by a jitted function), else as the arrays are (NumPy needs no dispatch)."""
-    if isinstance(value, jax.core.Tracer) or isinstance(axis, jax.core.Tracer):
+    if traced(value, axis):
         return jnp.asarray(value)[axis]
     return value[axis]
 

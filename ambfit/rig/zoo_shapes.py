@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ambfit._arrays import numpy_unless_traced
 from ambfit.physics.stages import Effect
 
 KINDS = ("power", "step", "knee", "settle")
@@ -75,7 +76,7 @@ class Shape(eqx.Module):
 def numerics(*arrays):
     """numpy unless an argument is being traced by JAX: draws evaluate laws on numpy grids, and the rig senses
     whole protocols outside ``jit``, where op by op jax.numpy would compile each operation for each new length."""
-    return jnp if any(isinstance(a, jax.core.Tracer) for a in arrays) else np
+    return numpy_unless_traced(*arrays)
 
 
 def random_shape(rng: np.random.Generator, *, kinds=KINDS, terms=(1, 3), power=(1.0, 3.0), centre=(0.2, 1.2),
