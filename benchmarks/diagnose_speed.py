@@ -60,6 +60,19 @@ class _Compiles(logging.Handler):
         self.count = collections.Counter()
         self.tracing = collections.defaultdict(float)
 
+    @classmethod
+    def listening(cls) -> "_Compiles":
+        """A counter attached to JAX's loggers, with ``jax_log_compiles`` on."""
+        import jax
+
+        counter = cls()
+        jax.config.update("jax_log_compiles", True)
+        for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
+            lg = logging.getLogger(name)
+            lg.addHandler(counter)
+            lg.propagate = False
+        return counter
+
     def emit(self, record):
         msg = record.getMessage()
         if " in " not in msg:
@@ -169,18 +182,11 @@ def _cold_breakdown(path: str, bearing: str | None, imports_s: float) -> dict:
     """One diagnosis of ``path`` in this (new) process: its seconds, and the seconds of XLA's compiling and JAX's
     tracing within it (summed over the threads that did them); ``imports_s`` the seconds importing ambfit took
     before."""
-    import jax
-
     import ambfit
 
     kw = {"bearing": ambfit.Bearing.from_toml(bearing)} if bearing else {}
     data = read_csv(path)
-    counter = _Compiles()
-    jax.config.update("jax_log_compiles", True)
-    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
-        lg = logging.getLogger(name)
-        lg.addHandler(counter)
-        lg.propagate = False
+    counter = _Compiles.listening()
     t0 = time.perf_counter()
     attribution.diagnose(data, **kw)
     return {"imports_s": imports_s, "diagnose_s": time.perf_counter() - t0,
@@ -318,12 +324,7 @@ def main():
 
     import jax
 
-    counter = _Compiles()
-    jax.config.update("jax_log_compiles", True)
-    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax"):
-        lg = logging.getLogger(name)
-        lg.addHandler(counter)
-        lg.propagate = False
+    counter = _Compiles.listening()
     t0 = time.perf_counter()
     dg = attribution.diagnose(data)
     out["in_process_first_s"] = time.perf_counter() - t0

@@ -83,8 +83,8 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
     significant when switching it off raises χ² by more than ``significance`` of χ²'s standard deviations
     ``sqrt(2 dof)`` (:attr:`ambfit.diagnosis.verdict.Rules.circuit_dchi2`).  Returns one :class:`CircuitFamily`
     per piece, largest rise first.  ``full`` is the circuit's fit of ``data``'s rows in their order, its noise not
-    held (the refits hold the noise its solve measured).  ``each(fn, items)``, if given, maps the pieces' refits (a diagnosis passes its
-    thread pool; default one after another, with the same results).
+    held (the refits hold the noise its solve measured).  ``each(fn, items)``, if given, maps the pieces' refits
+    (a diagnosis passes its thread pool; default one after another, with the same results).
     """
     from ambfit.estimation.measure import force_noise
     from ambfit.physics.effects import MagneticCircuit

@@ -83,8 +83,8 @@ def force_check(data, effects=(), *, bearing=None, base: FitResult | None = None
     True: the default groups), and the figures of the model with it are under ``"discrepancy"``.  ``fitted`` holds
     refits of ``data``'s rows (in their order) already made with the same model, start and settings, as
     ``(held-out rows mask, FitResult, Discrepancy or None)`` (a diagnosis' cross-validation folds): a load whose
-    left-out rows are exactly one of these masks reuses that refit instead of repeating it.  ``each(fn, items)``, if given, maps the left-out loads
-    (a diagnosis passes its thread pool; default one after another).
+    left-out rows are exactly one of these masks reuses that refit instead of repeating it.  ``each(fn, items)``,
+    if given, maps the left-out loads (a diagnosis passes its thread pool; default one after another).
 
     Besides the contract's per-reading figures, ``rms_rel_mean`` is the RMS over the left-out loads of the
     mean relative error of each load's readings (a force measured by averaging its readings),
