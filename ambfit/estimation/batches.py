@@ -15,10 +15,9 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import numpy as np
-import optimistix as optx
 
 from ambfit.estimation.core import IDEAL, Model, Problem
-from ambfit.estimation.lm import EDM_ROUND, FIRST_STEPS, REWEIGHTINGS, RTOL, Solution, solve
+from ambfit.estimation.lm import EDM_ROUND, FIRST_STEPS, REWEIGHTINGS, RTOL, Solution, solve, succeeded
 
 ROW_BUCKET_MIN = 16
 """Shortest padded length; longer data sets are padded to the next power of two (16, 32, 64, 128, ... rows).
@@ -88,7 +87,7 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
     settings = dict(reweightings=reweightings, edm_round=edm_round, rtol=rtol)
     if len(probs) == 1:
         sol = solve(np.asarray(thetas[0], dtype=float), probs[0], model, max_steps, **settings)
-        return [sol._replace(result=_text(bool(sol.result == optx.RESULTS.successful), sol.result))]
+        return [sol._replace(result=_text(bool(succeeded(sol.result)), sol.result))]
     out: list = [None] * len(probs)
     for rows, loads, parts in _buckets(thetas, probs, model, size):
         order = [s for part, padded in parts for s in padded]
@@ -101,7 +100,7 @@ def _solve_batch(thetas: list[np.ndarray], probs: list[Problem], model: Model, m
             batch = slice(end - len(padded), end)
             sol = _vmapped(starts[batch], jax.tree.map(lambda a, batch=batch: a[batch], stacked), model,
                            np.asarray(max_steps), {k: np.asarray(v) for k, v in settings.items()})
-            ok = np.asarray(sol.result == optx.RESULTS.successful)
+            ok = succeeded(sol.result)
             theta, steps, edm, jac, jac_all, z, s_eff = (np.asarray(a) for a in (
                 sol.theta, sol.steps, sol.edm, sol.jac, sol.jac_all, sol.z, sol.s))
             for b, s in enumerate(part):

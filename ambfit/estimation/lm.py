@@ -26,7 +26,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ambfit._arrays import traced
 from ambfit._recent import Recent
@@ -55,6 +54,24 @@ RTOL = 1e-6
 Convergence is judged by ``EDM_MAX``; a tighter tolerance only adds steps rejected on round-off near the optimum."""
 
 
+class RESULTS(eqx.Enumeration):  # noqa: N801  (optimistix's name)
+    """A solve's outcome: the values of optimistix's ``RESULTS`` that the iteration written out here can reach,
+    with optimistix's messages.  Defined here so that a fit imports neither optimistix nor lineax, whose import
+    every command would wait for."""
+
+    successful = ""
+    nonlinear_max_steps_reached = (
+        "The maximum number of steps was reached in the nonlinear solver. The problem may not be solveable (e.g., a "
+        "root-find on a function that has no roots), or you may need to increase `max_steps`.")
+
+
+def succeeded(result) -> np.ndarray:
+    """Whether a concrete outcome (or each of a batch's) is ``successful``, read in NumPy: comparing two outcomes
+    would run a JAX operation."""
+    (value,), (ok,) = jax.tree.leaves(result), jax.tree.leaves(RESULTS.successful)
+    return np.asarray(value) == np.asarray(ok)
+
+
 class Solution(NamedTuple):
     """What a solve returns (a pytree: jit- and vmap-safe; leading batch axes under ``vmap``).
 
@@ -62,7 +79,7 @@ class Solution(NamedTuple):
     ----------
     theta : array[p]
         The scaled parameter vector at the solution (:mod:`ambfit.estimation.core`).
-    result : optimistix.RESULTS or str
+    result : RESULTS or str
         The last round's outcome: ``successful`` when the Cauchy test or :data:`EDM_ROUND` stopped it, else
         ``nonlinear_max_steps_reached``; :func:`ambfit.estimation.batches.solve_sets` gives it as text.
     steps : int
@@ -80,7 +97,7 @@ class Solution(NamedTuple):
     """
 
     theta: jnp.ndarray
-    result: optx.RESULTS | str
+    result: RESULTS | str
     steps: jnp.ndarray
     edm: jnp.ndarray
     jac: jnp.ndarray
@@ -106,7 +123,7 @@ class _State(NamedTuple):
     start: jnp.ndarray          # y_eval starts a round
     round: jnp.ndarray
     total: jnp.ndarray          # steps of all rounds
-    result: optx.RESULTS
+    result: RESULTS
     final: jnp.ndarray          # the solution's measurement is done
     at: tuple                   # the measurement at y: (F - L, s_eff, d(F - L)/d theta)
     have: jnp.ndarray           # ``at`` holds it (every point but the start was measured when accepted)
@@ -221,11 +238,11 @@ def _solve_in(theta0, prob, models, index, budget, reweightings, edm_round, rtol
         done = done | (accept & (distance(jac, r) < edm_round))
         steps = jnp.where(start, 1, c.steps + 1)
         over = done | (steps >= budget)
-        outcome = optx.RESULTS.where(done, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached)
+        outcome = RESULTS.where(done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
         return _State(y=y, r=r, jac=jac, s=s, step_size=step_size, steps=steps,
                       y_eval=jnp.where(over, y, y - _damped_step(jac, r, step_size)), start=over,
                       round=c.round + over.astype(int), total=c.total + jnp.where(final, 0, 1),
-                      result=optx.RESULTS.where(over & ~final, outcome, c.result),
+                      result=RESULTS.where(over & ~final, outcome, c.result),
                       # the loop ends at the solution's measurement (the accepted point's, kept in ``at``)
                       final=final, at=jax.tree.map(lambda new, old: jnp.where(accept, new, old), (f, s_now, jf), c.at),
                       have=c.have | accept)
@@ -234,7 +251,7 @@ def _solve_in(theta0, prob, models, index, budget, reweightings, edm_round, rtol
     m = blank[0].shape[0] + n
     init = _State(y=theta0, r=jnp.zeros(m), jac=jnp.zeros((m, p)), s=blank[1], step_size=jnp.asarray(1.0),
                   steps=jnp.asarray(0), y_eval=theta0, start=jnp.asarray(True), round=jnp.asarray(0),
-                  total=jnp.asarray(0), result=optx.RESULTS.successful, final=jnp.asarray(False), at=blank,
+                  total=jnp.asarray(0), result=RESULTS.successful, final=jnp.asarray(False), at=blank,
                   have=jnp.asarray(False))
     c = jax.lax.while_loop(lambda c: ~c.final, body, init)
     # the Jacobian with the noise held at the solution's: weighted as the fit weighs its rows, and every row at 1
