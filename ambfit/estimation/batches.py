@@ -204,9 +204,10 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
     """The second-order bias of each estimate (:func:`ambfit.estimation.debias.second_order_biases`): ``thetas``
     scaled, ``frees`` the estimated entries, ``covs`` their scaled covariance [free, free], ``shares`` each one's
     noise variance per kind of reading relative to its problem's (default 1).  A data set alone runs at its own
-    shape; several are padded to their solve's buckets and run ``BATCH`` at a time.  Returns each bias (scaled, over
-    the whole of its theta; 0 outside the free entries, not finite where it is not determined)."""
-    from ambfit.estimation.debias import MAX_ROWS, second_order_biases
+    shape (in its solve's program within :func:`ambfit.estimation.debias.by_solve`); several are padded to their
+    solve's buckets and run ``BATCH`` at a time.  Returns each bias (scaled, over the whole of its theta; 0 outside
+    the free entries, not finite where it is not determined)."""
+    from ambfit.estimation.debias import MAX_ROWS, bias_by_solve, second_order_biases
 
     probs, scales = list(probs), np.ones(len(probs))
     for s, prob in enumerate(probs):        # a long data set: an evenly spaced subset of its fitted rows
@@ -224,7 +225,8 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
     if len(probs) == 1:
         one = jax.tree.map(lambda a: np.asarray(a)[None], probs[0])
         return [second_order_biases(np.asarray(thetas[0])[None], one, model, np.asarray(frees[0])[None],
-                                    full(thetas[0], frees[0], covs[0])[None], shares[:1], scales[:1])[0]]
+                                    full(thetas[0], frees[0], covs[0])[None], shares[:1], scales[:1],
+                                    by_solve=bias_by_solve() and scales[0] == 1.0)[0]]
     out: list = [None] * len(probs)
     for rows, loads, parts in _buckets(thetas, probs, model, BATCH):
         width = 6 + loads + model.n

@@ -36,6 +36,8 @@ default: it costs ``n`` fits.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 
 import equinox as eqx
@@ -168,6 +170,40 @@ def _scores(prob: Problem, model: Model, free):
     return scores
 
 
+def _readings(prob: Problem, share, xp):
+    """The seven readings of every row at which :func:`_moments` differences the scores ([7, 3, rows]: the
+    measured, then each kind of reading (top current, bottom current, position) one noise std up, then down), the
+    steps ``h`` [3, rows] (1e-9 for a reading without noise) and the noise variances ``var`` [3, rows] scaled by
+    ``share``."""
+    r = prob.readings
+    sigma = xp.stack([xp.broadcast_to(xp.asarray(s, dtype=float), r.x.shape)
+                      for s in (prob.s_top, prob.s_bottom, prob.s_x)])              # [3, rows]
+    base = xp.stack((r.i_top, r.i_bottom, r.x))
+    h = xp.where(sigma > 0, sigma, 1e-9)
+    var = sigma**2 * xp.asarray(share, dtype=float)[:, None]
+    eye = xp.eye(3)[:, :, None]
+    return xp.concatenate([base[None], base[None] + eye * h[None], base[None] - eye * h[None]]), h, var
+
+
+def _combined(g, h, var, q: int, xp):
+    """:func:`_moments`' sums from the scores ``g`` [2q + 1, 7, rows, p] at the points (theta, then theta + u_j,
+    then theta - u_j) and the seven readings of :func:`_readings`."""
+    d1 = (g[:, 1:4] - g[:, 4:7]) / (2.0 * h[None, :, :, None])                     # [2q + 1, 3, rows, p]
+    d2 = g[0, 1:4] - 2.0 * g[0, 0][None] + g[0, 4:7]
+    up, down = slice(1, q + 1), slice(q + 1, 2 * q + 1)
+    a_u = (g[up, 0] - g[down, 0]).sum(axis=1) / 2.0     # (the rows' share: the priors' is added by the caller)
+    h_uu = (g[up, 0] + g[down, 0] - 2.0 * g[0, 0][None]).sum(axis=1)
+    t1 = xp.einsum("cn,cna->a", var / h**2, d2)
+    b = xp.einsum("cn,cna,cnb->ab", var, d1[0], d1[0])
+    cross = xp.einsum("cn,jcna,cnd->ajd", var, (d1[up] - d1[down]) / 2.0, d1[0])
+    return a_u, h_uu, t1, b, cross
+
+
+def _points(theta, steps, xp):
+    """theta, then theta + u_j, then theta - u_j for the columns ``u_j`` of ``steps`` [p, q]: [2q + 1, p]."""
+    return xp.concatenate([theta[None], theta[None] + steps.T, theta[None] - steps.T])
+
+
 def _moments(theta, steps, prob: Problem, model: Model, free, share):
     """What the second-order bias needs from the model, by differences along the columns ``u_j`` of ``steps``
     (scaled, [p, q]) and along the readings:
@@ -181,47 +217,67 @@ def _moments(theta, steps, prob: Problem, model: Model, free, share):
     weight); along theta: central differences of ``u_j``, each row's before the sum (``psi`` is a sum of large
     terms that cancel at the estimate).  All of it is one vmapped evaluation of the model, at the ``2q + 1``
     points and the seven readings of each row.  ``share[3]`` scales the noise variance of each kind of reading
-    (top current, bottom current, position) in the sums, not in the weights.
+    (top current, bottom current, position) in the sums, not in the weights.  :func:`_measured_moments` is the
+    same from the solve's own compiled program.
     """
     free = jnp.asarray(free, dtype=float)
-    r = prob.readings
-    n = r.x.shape[0]
-    sigma = jnp.stack([jnp.broadcast_to(jnp.asarray(s, dtype=float), r.x.shape)
-                       for s in (prob.s_top, prob.s_bottom, prob.s_x)])              # [3, rows]
-    base = jnp.stack((r.i_top, r.i_bottom, r.x))
-    h = jnp.where(sigma > 0, sigma, 1e-9)
-    var = sigma**2 * jnp.asarray(share, dtype=float)[:, None]
-    eye = jnp.eye(3)[:, :, None]
-    readings = jnp.concatenate([base[None], base[None] + eye * h[None], base[None] - eye * h[None]])   # [7, 3, rows]
+    n = prob.readings.x.shape[0]
+    readings, h, var = _readings(prob, share, jnp)
     # the seven readings of every row as one problem of 7 x rows rows (a row's force is its own): one evaluation
     # of the model per point, not one per reading
     tiled = jax.tree.map(lambda a: jnp.tile(a, (7,) + (1,) * (a.ndim - 1)) if a.ndim else a, prob)
     tiled = eqx.tree_at(lambda t: t.k_free, tiled, prob.k_free)        # (per axis, not per row)
     tiled = tiled.with_readings(*readings.transpose(1, 0, 2).reshape(3, 7 * n))
     scores = _scores(tiled, model, free)
-    q = steps.shape[1]
-    points = jnp.concatenate([theta[None], theta[None] + steps.T, theta[None] - steps.T])           # [2q + 1, p]
+    g = jax.vmap(lambda th: scores(th, tiled.readings).reshape(7, n, -1))(_points(theta, steps, jnp))
+    return _combined(g, h, var, steps.shape[1], jnp)
 
-    def at(th):
-        g = scores(th, tiled.readings).reshape(7, n, -1)                             # [7, rows, p]
-        return g[0], (g[1:4] - g[4:7]) / (2.0 * h[:, :, None]), (g[1:4] - 2.0 * g[0][None] + g[4:7])
 
-    g, d1, d2 = jax.vmap(at)(points)
-    up, down = slice(1, q + 1), slice(q + 1, 2 * q + 1)
-    a_u = (g[up] - g[down]).sum(axis=1) / 2.0           # (the rows' share: the priors' is added by the caller)
-    h_uu = (g[up] + g[down] - 2.0 * g[0][None]).sum(axis=1)
-    t1 = jnp.einsum("cn,cna->a", var / h**2, d2[0])
-    b = jnp.einsum("cn,cna,cnb->ab", var, d1[0], d1[0])
-    cross = jnp.einsum("cn,jcna,cnd->ajd", var, (d1[up] - d1[down]) / 2.0, d1[0])
-    return a_u, h_uu, t1, b, cross
+def _measured_moments(theta, steps, prob: Problem, model: Model, free, share):
+    """:func:`_moments` of one data set from :func:`ambfit.estimation.lm.measure`: the program its fit already
+    compiled for this problem's shape, called at each of the ``(2q + 1) x 7`` points and readings.  Costs those
+    calls (a fraction of a millisecond each) where :func:`_moments` costs a compilation of its own."""
+    free = np.asarray(free, dtype=float)
+    n = np.shape(prob.readings.x)[0]
+    readings, h, var = _readings(jax.tree.map(np.asarray, prob), share, np)
+    weight = np.asarray(prob.mask, dtype=float)
+
+    def scores(th, reading):
+        sol = measure(th, prob.with_readings(*reading), model)       # jac: mask d(F - L)/d theta / s; z: (F - L) / s
+        return (weight * np.asarray(sol.z))[:, None] * np.asarray(sol.jac)[:n] * free
+
+    g = np.stack([np.stack([scores(th, reading) for reading in readings])
+                  for th in _points(np.asarray(theta, dtype=float), np.asarray(steps), np)])
+    return _combined(g, h, var, np.shape(steps)[1], np)
 
 
 moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, None, 0, 0)))
 """:func:`_moments` of a batch of data sets (leading axis of theta, steps, problems, free masks and shares)."""
 
 
+_BY_SOLVE: contextvars.ContextVar[bool] = contextvars.ContextVar("ambfit_bias_by_solve", default=False)
+
+
+@contextlib.contextmanager
+def by_solve():
+    """Within this context a data set's second-order bias, computed alone, is evaluated with its solve's compiled
+    program (``second_order_biases(by_solve=True)``) instead of a program of its own: for a process that fits once
+    and ends (a command), where that program's compilation would cost more than the fit.  The biases agree to
+    about 1e-8 of themselves (the same differences, summed in another order)."""
+    token = _BY_SOLVE.set(True)
+    try:
+        yield
+    finally:
+        _BY_SOLVE.reset(token)
+
+
+def bias_by_solve() -> bool:
+    """Whether :func:`by_solve` is in effect."""
+    return _BY_SOLVE.get()
+
+
 def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(1.0, 1.0, 1.0),
-                        row_scale=1.0) -> np.ndarray:
+                        row_scale=1.0, *, by_solve: bool = False) -> np.ndarray:
     """Second-order bias of each of a batch of estimates (module docstring).
 
     Parameters
@@ -244,6 +300,10 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     row_scale : float or array[sets]
         Each problem's rows stand for this many times as many (an evenly spaced subset of a long data set's rows:
         the sums over rows scaled up, :data:`MAX_ROWS`).
+    by_solve : bool
+        Evaluate the model with the solve's compiled program, a set at a time (:func:`_measured_moments`): for a
+        data set or two whose fit compiled that program at their shape.  The default runs every set in one program
+        of its own (:func:`_moments`), compiled once per batch shape.
 
     Returns
     -------
@@ -285,8 +345,13 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     roots = roots[:, :, p - moving:]                                       # [sets, p, moving]
     share = np.broadcast_to(np.asarray(share, dtype=float), (sets, 3))
     rows = np.broadcast_to(np.asarray(row_scale, dtype=float), (sets,))
-    a_u, h_uu, t1, b, cross = (np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1))
-                               for a in moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share))
+    if by_solve:
+        parts = [_measured_moments(thetas[s], THETA_STEP * roots[s], jax.tree.map(lambda a, s=s: np.asarray(a)[s], probs),
+                                   model, free[s], share[s]) for s in range(sets)]
+        moments = [np.stack(m) for m in zip(*parts)]
+    else:
+        moments = moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share)
+    a_u, h_uu, t1, b, cross = (np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1)) for a in moments)
     if model.n:                 # the priors' share of A u_j: the steps' entries of q
         q = slice(p - model.n, p)
         a_u[:, :, q] += THETA_STEP * np.swapaxes(roots, 1, 2)[:, :, q] * free[:, None, q]

@@ -197,7 +197,10 @@ def identify(
         if workers is not None or scheduler is not None:
             note("one data set: nothing to spread over workers, it is fitted in this process (--workers and "
                  "--scheduler take several files or --by COLUMN)")
-        _identify_file(paths[0], opts, max_position_um, json_out, table)
+        from ambfit.estimation.debias import by_solve
+
+        with by_solve():    # one fit and the command ends: its bias costs no compilation of its own
+            _identify_file(paths[0], opts, max_position_um, json_out, table)
     else:
         _identify_groups(paths, unmatched, column, opts, max_position_um, pooled, json_out, table, workers,
                          scheduler)
