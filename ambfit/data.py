@@ -324,25 +324,30 @@ def duplicate_rows(df: pd.DataFrame) -> list[tuple[int, int]]:
     numbers = [c for c in NEAR if c in df.columns]
     values = df[numbers].apply(pd.to_numeric, errors="coerce").to_numpy(float)
     tol = np.array([NEAR[c] for c in numbers])
-    out = []
-    keys = df[labels].astype(str).agg("\x1f".join, axis=1) if labels else pd.Series("", index=df.index)
-    for positions in keys.groupby(keys.to_numpy(), sort=False).indices.values():
-        if len(positions) < 2:
-            continue
-        block = values[positions]
-        order = np.argsort(block[:, 0], kind="stable")           # by the first number: copies are neighbours
-        for a, i in enumerate(order):
-            for j in order[a + 1:]:
-                if not block[j, 0] - block[i, 0] <= tol[0]:
-                    break
-                same = (np.abs(block[j] - block[i]) <= tol) | (np.isnan(block[j]) & np.isnan(block[i]))
-                if same.all():
-                    first, later = sorted((positions[i], positions[j]))
-                    out.append((int(later) + 1, int(first) + 1))
-    earliest = {}                                # each repeat named once, against the earliest reading it repeats
-    for later, first in out:
-        earliest[later] = min(first, earliest.get(later, first))
-    return sorted(earliest.items())
+    if len(df) < 2 or not numbers:
+        return []
+    # labels compared as text, a missing one as "nan" (a group of its own)
+    group = (joint_codes(*(df[c].astype(str).to_numpy() for c in labels), own_missing=True) if labels
+             else np.zeros(len(df), int))
+    first = values[:, 0]
+    order = np.lexsort((first, group))       # by group, then by the first number (stable): copies are neighbours
+    later, earlier = [], []
+    for d in range(1, len(df)):
+        # each reading against the one d places on in that order, while any pair is still close in the first
+        # number (the order is ascending: further ones are further away; NaN is last and close to nothing)
+        i, j = order[:-d], order[d:]
+        near = (group[i] == group[j]) & (first[j] - first[i] <= tol[0])
+        if not near.any():
+            break
+        i, j = i[near], j[near]
+        same = ((np.abs(values[j] - values[i]) <= tol) | (np.isnan(values[j]) & np.isnan(values[i]))).all(axis=1)
+        later.append(np.maximum(i, j)[same])
+        earlier.append(np.minimum(i, j)[same])
+    if not later or not sum(map(len, later)):
+        return []
+    # each repeat named once, against the earliest reading it repeats
+    pairs = pd.Series(np.concatenate(earlier)).groupby(np.concatenate(later)).min()
+    return [(int(r) + 1, int(f) + 1) for r, f in pairs.items()]
 
 
 def file_rows(df: pd.DataFrame) -> np.ndarray:

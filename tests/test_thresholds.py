@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from ambfit.estimation import model_file
 from ambfit.estimation.closed_form import iterations as cf_iterations
@@ -171,6 +173,41 @@ def test_a_copied_reading_is_a_duplicate_even_when_nudged_and_a_new_one_is_not()
     relabelled = df.iloc[[3]].copy()
     relabelled["experiment"] = "E9"                             # the same numbers in another experiment
     assert duplicate_rows(pd.concat([df, relabelled], ignore_index=True)) == []
+
+
+def _duplicates_by_definition(df):
+    """Every pair of rows with the same labels (as text) and every number within NEAR (or both missing), the first
+    number present: each later row against the earliest it repeats."""
+    from ambfit.data import NEAR
+
+    labels = [c for c in ("axis", "load_id", "experiment", "iteration", "time_s") if c in df.columns]
+    numbers = [c for c in NEAR if c in df.columns]
+    key = [tuple(str(v) for v in row) for row in df[labels].itertuples(index=False)]
+    v = df[numbers].to_numpy(float)
+    tol = np.array([NEAR[c] for c in numbers])
+    found = {}
+    for j in range(len(df)):
+        for i in range(j):
+            close = (np.abs(v[j] - v[i]) <= tol) | (np.isnan(v[j]) & np.isnan(v[i]))
+            if key[i] == key[j] and close.all() and np.isfinite(v[i, 0]):
+                found.setdefault(j + 1, i + 1)
+    return sorted(found.items())
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["v", "w"]), st.sampled_from(["E1", "E2", None]), st.integers(1, 3),
+                          st.sampled_from([1.0, 1.0 + 4e-6, 1.0 + 1.2e-5, 1.0 + 2.1e-5, 1.5, float("nan")]),
+                          st.sampled_from([0.9, 0.9 + 8e-6, 0.9 + 3e-5]), st.sampled_from([2.0, 2.0004, 2.003]),
+                          st.sampled_from([0.0, float("nan")])), min_size=0, max_size=40))
+@example([("v", "E1", 1, 1.0, 0.9, 2.0, 0.0), ("v", "E1", 1, 1.0, 0.9 + 3e-5, 2.0, 0.0),
+          ("v", "E1", 1, 1.0 + 4e-6, 0.9, 2.0, 0.0)])         # a copy two places on, past another reading
+def test_duplicates_are_every_pair_within_the_tolerances(rows):
+    """The sorted search finds what the definition does: pairs within the tolerances (10 µA apart, chains of
+    readings each within 10 µA of the next but not of each other, missing labels and numbers)."""
+    from ambfit.data import duplicate_rows
+
+    df = pd.DataFrame(rows, columns=["axis", "experiment", "iteration", "i_top_A", "i_bottom_A", "v_um", "load_N"])
+    assert duplicate_rows(df) == _duplicates_by_definition(df)
 
 
 def test_the_outlier_bound_widens_when_the_noise_is_estimated_from_the_residuals():
