@@ -119,3 +119,24 @@ def test_a_table_with_an_empty_std_cell_is_built_as_alone_beside_complete_ones()
         assert meta == build_problem(frame)[1]
     assert "i_top_std_A has 1 empty cell(s)" in built[0][1].noise_source
     assert "no i_top_std_A column" in built[1][1].noise_source
+
+
+def test_a_table_fitted_once_is_built_alike_and_not_kept():
+    """Within ``fitted_once`` a table's problem is the one built outside it, but it is neither hashed nor kept for
+    the next build of the same content."""
+    from ambfit.estimation import problem
+
+    df = rig.simulate(rig.PAPER_RIG, protocol.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=11).data
+    df = df.assign(i_top_A=df["i_top_A"] * (1.0 + 1e-3))          # (content no earlier test built)
+    hashed = []
+    digest = problem._digest
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(problem, "_digest", lambda d: hashed.append(1) or digest(d))
+        with problem.fitted_once():
+            once, meta_once = build_problem(df)
+        assert not hashed
+        kept, meta = build_problem(df)          # built again: the first was not kept
+        assert hashed and build_problem(df)[0] is kept
+    for a, b in zip(jax.tree.leaves(once), jax.tree.leaves(kept)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert meta_once == meta and once is not kept

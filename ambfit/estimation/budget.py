@@ -251,6 +251,7 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
     """
     from ambfit.data import Dataset
     from ambfit.estimation.fit import _FAILURES, fit
+    from ambfit.estimation.problem import fitted_once
 
     frame = (data.frame if isinstance(data, Dataset) else data).reset_index(drop=True)
     bearing = bearing or res.bearing
@@ -268,7 +269,8 @@ def budget(data, res, *, refit: Callable | None = None, bearing: Bearing | None 
     failed = []
     for k, term in enumerate(found):
         try:
-            ends = [refit(term.record(frame, sign * term.u)) for sign in (1.0, -1.0)]
+            with fitted_once():         # each recorded copy is fitted once: no need to hash and keep its problem
+                ends = [refit(term.record(frame, sign * term.u)) for sign in (1.0, -1.0)]
         except _FAILURES:               # the readings so recorded cannot be fitted at all: the term is not propagated
             failed.append(term.name)
             continue

@@ -157,6 +157,20 @@ def owned(df: pd.DataFrame):
         _OWNED.reset(token)
 
 
+_ONCE: contextvars.ContextVar = contextvars.ContextVar("fitted_once", default=False)
+
+
+@contextlib.contextmanager
+def fitted_once():
+    """Within this block a table's problem is built without being hashed or kept: for tables made to be fitted
+    once (an uncertainty budget's recorded copies), where hashing a long table costs as much as building it."""
+    token = _ONCE.set(True)
+    try:
+        yield
+    finally:
+        _ONCE.reset(token)
+
+
 def _content_key(df: pd.DataFrame, sigma_i, sigma_x) -> tuple:
     held = _OWNED.get()
     digest = held[1] if held is not None and held[0] is df else _digest(df)
@@ -186,6 +200,9 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     ``mask``: 1 for rows to fit, 0 for rows held out (default all 1).
     """
     df = data.frame if isinstance(data, Dataset) else data
+    if _ONCE.get():
+        prob, meta = _build(df, sigma_i, sigma_x)
+        return (prob if mask is None else prob.with_mask(mask)), meta
     key = _content_key(df, sigma_i, sigma_x)
     hit = _BUILT.get(key)
     if hit is None:
