@@ -105,7 +105,8 @@ class Model(eqx.Module):
 
     ``fields`` lists ``(effect index, field name, shared)``; each free field is a ``(v, w)`` pair, or one
     value for both axes when the effect class sets ``SHARED`` (a property of the whole stator), with
-    prior centre and width from the effect's ``RANGES`` (zero-centred for signed parameters).
+    prior centre and width from the effect's ``RANGES`` (zero-centred for signed parameters).  ``n`` is the number
+    of free effect parameters (entries of ``q``), counted once from ``fields``.
     """
 
     effects: tuple
@@ -113,6 +114,7 @@ class Model(eqx.Module):
     centre: jnp.ndarray
     width: jnp.ndarray
     bearing: Bearing = eqx.field(static=True)
+    n: int = eqx.field(static=True)
 
     @classmethod
     def of(cls, effects: Sequence[Effect] = (), bearing: Bearing = PAPER_BEARING, fields: tuple | None = None) -> Model:
@@ -150,12 +152,7 @@ class Model(eqx.Module):
             centre += [c] if shared else [c, c]
             width += [wd] if shared else [wd, wd]
         return cls(tuple(built), tuple(fields), np.asarray(centre, dtype=float).reshape(-1),
-                   np.asarray(width, dtype=float).reshape(-1), bearing)
-
-    @property
-    def n(self) -> int:
-        """Number of free effect parameters (entries of ``q``)."""
-        return sum(1 if shared else 2 for _, _, shared in self.fields)
+                   np.asarray(width, dtype=float).reshape(-1), bearing, len(centre))
 
     @property
     def name(self) -> str:
