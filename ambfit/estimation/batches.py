@@ -224,9 +224,10 @@ def bias_sets(thetas: Sequence[np.ndarray], probs: Sequence[Problem], model: Mod
     shares = np.ones((len(probs), 3)) if shares is None else np.asarray(shares, dtype=float)
     if len(probs) == 1:
         one = jax.tree.map(lambda a: np.asarray(a)[None], probs[0])
+        whole = scales[0] == 1.0            # (a subset of a long data set's rows is not the shape its fit compiled)
         return [second_order_biases(np.asarray(thetas[0])[None], one, model, np.asarray(frees[0])[None],
                                     full(thetas[0], frees[0], covs[0])[None], shares[:1], scales[:1],
-                                    by_solve=bias_by_solve() and scales[0] == 1.0)[0]]
+                                    via_solve=bias_by_solve() and whole)[0]]
     out: list = [None] * len(probs)
     for rows, loads, parts in _buckets(thetas, probs, model, BATCH):
         width = 6 + loads + model.n

@@ -205,46 +205,84 @@ def _points(theta, steps, xp):
 
 
 def _moments(theta, steps, prob: Problem, model: Model, free, share):
-    """What the second-order bias needs from the model, by differences along the columns ``u_j`` of ``steps``
-    (scaled, [p, q]) and along the readings:
+    """What the second-order bias needs from the model but its mixed derivatives, by differences along the columns
+    ``u_j`` of ``steps`` (scaled, [p, q]) and along the readings:
 
     - ``a_u[j] = (psi(theta + u_j) - psi(theta - u_j)) / 2`` [q, p], i.e. ``A u_j`` (the rows' share);
     - ``h_uu[j] = psi(theta + u_j) + psi(theta - u_j) - 2 psi(theta)`` [q, p], i.e. ``psi_theta,theta[u_j, u_j]``;
     - at ``theta``, ``t1 = sum_k sigma_k^2 psi_mm,kk`` [p] and ``B = sum_k sigma_k^2 psi_m_k psi_m_k^T`` [p, p];
-    - ``cross[a, j, d] = sum_k sigma_k^2 (d psi_m_k,a / d u_j) psi_m_k,d`` [p, q, p].
+    - ``d1`` [3, rows, p], each row's score differentiated by each kind of its readings (top current, bottom
+      current, position), for :func:`_mixed` (the mixed term, along directions these fix).
 
     Along the readings: central differences of one noise std (a reading without noise gets a step of 1e-9 and no
     weight); along theta: central differences of ``u_j``, each row's before the sum (``psi`` is a sum of large
-    terms that cancel at the estimate).  All of it is one vmapped evaluation of the model, at the ``2q + 1``
-    points and the seven readings of each row.  ``share[3]`` scales the noise variance of each kind of reading
-    (top current, bottom current, position) in the sums, not in the weights.  :func:`_measured_moments` is the
-    same from the solve's own compiled program.
+    terms that cancel at the estimate).  One vmapped evaluation of the model at theta and the seven readings of
+    each row, one at the ``2q`` points off it.  ``share[3]`` scales the noise variance of each kind of reading in the
+    sums, not in the weights.  :func:`_measured_moments` gives these and the mixed term from the solve's own
+    compiled program.
     """
     free = jnp.asarray(free, dtype=float)
     n = prob.readings.x.shape[0]
     readings, h, var = _readings(prob, share, jnp)
     # the seven readings of every row as one problem of 7 x rows rows (a row's force is its own): one evaluation
-    # of the model per point, not one per reading
+    # of the model, not one per reading
     tiled = jax.tree.map(lambda a: jnp.tile(a, (7,) + (1,) * (a.ndim - 1)) if a.ndim else a, prob)
     tiled = eqx.tree_at(lambda t: t.k_free, tiled, prob.k_free)        # (per axis, not per row)
     tiled = tiled.with_readings(*readings.transpose(1, 0, 2).reshape(3, 7 * n))
-    scores = _scores(tiled, model, free)
-    g = jax.vmap(lambda th: scores(th, tiled.readings).reshape(7, n, -1))(_points(theta, steps, jnp))
-    return _combined(g, h, var, steps.shape[1], jnp)
+    at = _scores(tiled, model, free)(theta, tiled.readings).reshape(7, n, -1)          # [7, rows, p]
+    off = jax.vmap(lambda th: _scores(prob, model, free)(th, prob.readings))(_points(theta, steps, jnp)[1:])
+    q = steps.shape[1]
+    d1 = (at[1:4] - at[4:7]) / (2.0 * h[:, :, None])
+    d2 = at[1:4] - 2.0 * at[0][None] + at[4:7]
+    a_u = (off[:q] - off[q:]).sum(axis=1) / 2.0           # (the rows' share: the priors' is added by the caller)
+    h_uu = (off[:q] + off[q:] - 2.0 * at[0][None]).sum(axis=1)
+    t1 = jnp.einsum("cn,cna->a", var / h**2, d2)
+    b = jnp.einsum("cn,cna,cnb->ab", var, d1, d1)
+    return a_u, h_uu, t1, b, d1
+
+
+def _mixed(theta, steps, per, prob: Problem, model: Model, free, share):
+    """``sum_k sigma_k^2 (d/dv_k) psi_m_k`` [p]: each reading's score differentiated by that reading and along a
+    direction of theta of its own, ``v_k``.
+
+    By central differences in both: ``steps`` [3, rows, p] (scaled) is each reading's step along theta, ``per``
+    [3, rows] its ``v_k`` per unit of that step (0 for a reading without a direction: held out, or without noise).
+    Four evaluations per kind of reading (top current, bottom current, position), each row at its own theta (the
+    rows evaluated one by one under ``vmap``)."""
+    free = jnp.asarray(free, dtype=float)
+    n = prob.readings.x.shape[0]
+    readings, h, var = _readings(prob, share, jnp)
+    # the four corners of each kind: (theta + step, reading + h), (+, - h), (-, + h), (-, - h)
+    sign = jnp.asarray([1.0, 1.0, -1.0, -1.0])
+    picks = jnp.asarray([1, 4, 1, 4])                     # the reading one step up, one step down (_readings' order)
+    thetas = theta + sign[None, :, None, None] * steps[:, None]                           # [3, 4, rows, p]
+    corner = readings[jnp.arange(3)[:, None] + picks[None, :]]                            # [3, 4, 3, rows]
+    rows = jax.tree.map(lambda a: jnp.tile(a, (12,) + (1,) * (a.ndim - 1))[:, None] if a.ndim else a, prob)
+    rows = eqx.tree_at(lambda t: t.k_free, rows, jnp.broadcast_to(prob.k_free, (12 * n,) + prob.k_free.shape))
+    rows = rows.with_readings(*corner.transpose(2, 0, 1, 3).reshape(3, 12 * n, 1))
+
+    def one(th, row):
+        f, s, jac = measured(th, row, model)
+        return ((row.mask**2 * f / s**2)[:, None] * jac * free)[0]
+
+    g = jax.vmap(one)(thetas.reshape(12 * n, -1), rows).reshape(3, 4, n, -1)
+    mixed = (g[:, 0] - g[:, 1] - g[:, 2] + g[:, 3]) / (4.0 * h[:, :, None])
+    return jnp.einsum("cn,cna->a", var * per, mixed)
 
 
 def _measured_moments(theta, steps, prob: Problem, model: Model, free, share):
-    """:func:`_moments` of one data set from :func:`ambfit.estimation.lm.measure`: the program its fit already
-    compiled for this problem's shape, called at each of the ``(2q + 1) x 7`` points and readings.  Costs those
-    calls (a fraction of a millisecond each) where :func:`_moments` costs a compilation of its own."""
+    """:func:`_moments` and the mixed term of one data set from :func:`ambfit.estimation.lm.measure`: the program
+    its fit already compiled for this problem's shape, called at each of the ``(2q + 1) x 7`` points and readings
+    (``a_u, h_uu, t1, B`` and ``cross[a, j, d] = sum_k sigma_k^2 (d psi_m_k,a / d u_j) psi_m_k,d`` [p, q, p]).
+    Costs those calls where :func:`_moments` and :func:`_mixed` cost compilations of their own."""
     free = np.asarray(free, dtype=float)
     n = np.shape(prob.readings.x)[0]
     readings, h, var = _readings(jax.tree.map(np.asarray, prob), share, np)
-    weight = np.asarray(prob.mask, dtype=float)
+    weight = np.asarray(prob.mask, dtype=float) ** 2
 
-    def scores(th, reading):
-        sol = measure(th, prob.with_readings(*reading), model)       # jac: mask d(F - L)/d theta / s; z: (F - L) / s
-        return (weight * np.asarray(sol.z))[:, None] * np.asarray(sol.jac)[:n] * free
+    def scores(th, reading):            # as _scores: mask^2 (F - L) / s^2 d(F - L)/d theta (z = (F - L) / s, and
+        sol = measure(th, prob.with_readings(*reading), model)       # jac_all the Jacobian / s, every row at 1)
+        return (weight * np.asarray(sol.z))[:, None] * np.asarray(sol.jac_all)[:n] * free
 
     g = np.stack([np.stack([scores(th, reading) for reading in readings])
                   for th in _points(np.asarray(theta, dtype=float), np.asarray(steps), np)])
@@ -254,6 +292,9 @@ def _measured_moments(theta, steps, prob: Problem, model: Model, free, share):
 moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, None, 0, 0)))
 """:func:`_moments` of a batch of data sets (leading axis of theta, steps, problems, free masks and shares)."""
 
+mixed_of_sets = eqx.filter_jit(eqx.filter_vmap(_mixed, in_axes=(0, 0, 0, 0, None, 0, 0)))
+""":func:`_mixed` of a batch of data sets."""
+
 
 _BY_SOLVE: contextvars.ContextVar[bool] = contextvars.ContextVar("ambfit_bias_by_solve", default=False)
 
@@ -261,9 +302,10 @@ _BY_SOLVE: contextvars.ContextVar[bool] = contextvars.ContextVar("ambfit_bias_by
 @contextlib.contextmanager
 def by_solve():
     """Within this context a data set's second-order bias, computed alone, is evaluated with its solve's compiled
-    program (``second_order_biases(by_solve=True)``) instead of a program of its own: for a process that fits once
-    and ends (a command), where that program's compilation would cost more than the fit.  The biases agree to
-    about 1e-8 of themselves (the same differences, summed in another order)."""
+    program (``second_order_biases(via_solve=True)``) instead of programs of its own: for a process that fits a
+    data set or two and ends (a command), where compiling those programs would cost more than the fits.  The two
+    routes take the same differences (the mixed term along other directions) and agree to round-off and the
+    differences' own error (``tests/test_bias.py``)."""
     token = _BY_SOLVE.set(True)
     try:
         yield
@@ -277,7 +319,7 @@ def bias_by_solve() -> bool:
 
 
 def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(1.0, 1.0, 1.0),
-                        row_scale=1.0, *, by_solve: bool = False) -> np.ndarray:
+                        row_scale=1.0, *, via_solve: bool = False) -> np.ndarray:
     """Second-order bias of each of a batch of estimates (module docstring).
 
     Parameters
@@ -300,10 +342,10 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     row_scale : float or array[sets]
         Each problem's rows stand for this many times as many (an evenly spaced subset of a long data set's rows:
         the sums over rows scaled up, :data:`MAX_ROWS`).
-    by_solve : bool
+    via_solve : bool
         Evaluate the model with the solve's compiled program, a set at a time (:func:`_measured_moments`): for a
-        data set or two whose fit compiled that program at their shape.  The default runs every set in one program
-        of its own (:func:`_moments`), compiled once per batch shape.
+        data set or two whose fit compiled that program at their shape.  The default runs every set in two programs
+        of their own (:func:`_moments`, then :func:`_mixed`), compiled once per batch shape.
 
     Returns
     -------
@@ -345,13 +387,18 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     roots = roots[:, :, p - moving:]                                       # [sets, p, moving]
     share = np.broadcast_to(np.asarray(share, dtype=float), (sets, 3))
     rows = np.broadcast_to(np.asarray(row_scale, dtype=float), (sets,))
-    if by_solve:
-        parts = [_measured_moments(thetas[s], THETA_STEP * roots[s], jax.tree.map(lambda a, s=s: np.asarray(a)[s], probs),
-                                   model, free[s], share[s]) for s in range(sets)]
-        moments = [np.stack(m) for m in zip(*parts)]
+    def summed(a):              # a sum over rows, of a subset's rows standing for more
+        return np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1))
+
+    if via_solve:
+        parts = [_measured_moments(thetas[s], THETA_STEP * roots[s],
+                                   jax.tree.map(lambda a, s=s: np.asarray(a)[s], probs), model, free[s], share[s])
+                 for s in range(sets)]
+        a_u, h_uu, t1, b, cross = (summed(np.stack(m)) for m in zip(*parts))
     else:
-        moments = moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share)
-    a_u, h_uu, t1, b, cross = (np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1)) for a in moments)
+        *sums, d1 = moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share)
+        a_u, h_uu, t1, b = (summed(a) for a in sums)
+        d1 = np.asarray(d1)                                                # [sets, 3, rows, p]
     if model.n:                 # the priors' share of A u_j: the steps' entries of q
         q = slice(p - model.n, p)
         a_u[:, :, q] += THETA_STEP * np.swapaxes(roots, 1, 2)[:, :, q] * free[:, None, q]
@@ -362,7 +409,18 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
         a_inv = _inverses(a)
         c = u_inv @ a_inv @ b @ np.swapaxes(a_inv, 1, 2) @ np.swapaxes(u_inv, 1, 2)
         t3 = np.einsum("sj,sja->sa", np.diagonal(c, axis1=1, axis2=2), h_uu / THETA_STEP**2)
-        t2 = -2.0 * np.einsum("sajd,sjd->sa", cross / THETA_STEP, u_inv @ a_inv)
+        w = u_inv @ a_inv                                                   # [sets, q, p]
+        if via_solve:
+            t2 = -2.0 * np.einsum("sajd,sjd->sa", cross / THETA_STEP, w)
+        else:
+            # sum_j cross[a, j, d] w[j, d] is each reading's score differentiated along v_k = U w psi_m_k: one
+            # direction per reading, stepped THETA_STEP along it in the covariance's square roots
+            coords = np.einsum("sjd,scnd->scnj", w, d1)
+            size = np.sqrt(np.sum(coords**2, axis=-1))                      # [sets, 3, rows]
+            per = np.where(size > 0, size / THETA_STEP, 0.0)
+            steps = THETA_STEP * np.einsum("spj,scnj->scnp", roots, coords / np.where(size > 0, size, 1.0)[..., None])
+            t2 = -2.0 * summed(mixed_of_sets(thetas, np.nan_to_num(steps), np.nan_to_num(per), probs, model, free,
+                                             share))
         bias = -0.5 * np.einsum("sab,sb->sa", a_inv, (t1 + t2 + t3) * free)
     return np.where(np.isfinite(a_inv).all(axis=(1, 2))[:, None], bias, np.nan)
 

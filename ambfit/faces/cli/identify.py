@@ -199,7 +199,7 @@ def identify(
                  "--scheduler take several files or --by COLUMN)")
         from ambfit.estimation.debias import by_solve
 
-        with by_solve():    # one fit and the command ends: its bias costs no compilation of its own
+        with by_solve():    # a command fits a data set or two and ends: their biases cost no compilation
             _identify_file(paths[0], opts, max_position_um, json_out, table)
     else:
         _identify_groups(paths, unmatched, column, opts, max_position_um, pooled, json_out, table, workers,
