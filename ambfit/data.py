@@ -326,9 +326,9 @@ def duplicate_rows(df: pd.DataFrame) -> list[tuple[int, int]]:
     tol = np.array([NEAR[c] for c in numbers])
     if len(df) < 2 or not numbers:
         return []
-    # labels compared as text, a missing one as "nan" (a group of its own)
-    group = (joint_codes(*(df[c].astype(str).to_numpy() for c in labels), own_missing=True) if labels
-             else np.zeros(len(df), int))
+    # labels compared as text; a missing one (None, NaN) is a value of its own, whatever the pandas version
+    group = (joint_codes(*(df[c].astype(str).where(df[c].notna()).to_numpy() for c in labels), own_missing=True)
+             if labels else np.zeros(len(df), int))
     first = values[:, 0]
     order = np.lexsort((first, group))       # by group, then by the first number (stable): copies are neighbours
     later, earlier = [], []

@@ -182,7 +182,7 @@ def _duplicates_by_definition(df):
 
     labels = [c for c in ("axis", "load_id", "experiment", "iteration", "time_s") if c in df.columns]
     numbers = [c for c in NEAR if c in df.columns]
-    key = [tuple(str(v) for v in row) for row in df[labels].itertuples(index=False)]
+    key = [tuple(None if pd.isna(v) else str(v) for v in row) for row in df[labels].itertuples(index=False)]
     v = df[numbers].to_numpy(float)
     tol = np.array([NEAR[c] for c in numbers])
     found = {}
@@ -201,6 +201,8 @@ def _duplicates_by_definition(df):
                           st.sampled_from([0.0, float("nan")])), min_size=0, max_size=40))
 @example([("v", "E1", 1, 1.0, 0.9, 2.0, 0.0), ("v", "E1", 1, 1.0, 0.9 + 3e-5, 2.0, 0.0),
           ("v", "E1", 1, 1.0 + 4e-6, 0.9, 2.0, 0.0)])         # a copy two places on, past another reading
+@example([("w", None, 2, 0.0, 0.9, 2.0, 0.0), ("w", None, 2, 1e-5, 0.9, 2.0, 0.0),
+          ("w", "nan", 2, 0.0, 0.9, 2.0, 0.0)])                # 10 µA apart exactly; a missing label is not "nan"
 def test_duplicates_are_every_pair_within_the_tolerances(rows):
     """The sorted search finds what the definition does: pairs within the tolerances (10 µA apart, chains of
     readings each within 10 µA of the next but not of each other, missing labels and numbers)."""

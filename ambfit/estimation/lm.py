@@ -54,7 +54,7 @@ RTOL = 1e-6
 Convergence is judged by ``EDM_MAX``; a tighter tolerance only adds steps rejected on round-off near the optimum."""
 
 
-class RESULTS(eqx.Enumeration):  # noqa: N801  (optimistix's name)
+class RESULTS(eqx.Enumeration):
     """A solve's outcome: the values of optimistix's ``RESULTS`` that the iteration written out here can reach,
     with optimistix's messages.  Defined here so that a fit imports neither optimistix nor lineax, whose import
     every command would wait for."""
@@ -67,7 +67,10 @@ class RESULTS(eqx.Enumeration):  # noqa: N801  (optimistix's name)
 
 def succeeded(result) -> np.ndarray:
     """Whether a concrete outcome (or each of a batch's) is ``successful``, read in NumPy: comparing two outcomes
-    would run a JAX operation."""
+    would run a JAX operation.  An outcome given as text (:func:`ambfit.estimation.batches.solve_sets`) is
+    ``"successful"`` or a message."""
+    if isinstance(result, str):
+        return np.asarray(result == "successful")
     (value,), (ok,) = jax.tree.leaves(result), jax.tree.leaves(RESULTS.successful)
     return np.asarray(value) == np.asarray(ok)
 

@@ -163,7 +163,8 @@ _ONCE: contextvars.ContextVar = contextvars.ContextVar("fitted_once", default=Fa
 @contextlib.contextmanager
 def fitted_once():
     """Within this block a table's problem is built without being hashed or kept: for tables made to be fitted
-    once (an uncertainty budget's recorded copies), where hashing a long table costs as much as building it."""
+    once (an uncertainty budget's recorded copies), whose hashing is wasted and whose problems would push the
+    problems of tables fitted again out of the cache."""
     token = _ONCE.set(True)
     try:
         yield
