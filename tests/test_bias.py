@@ -11,6 +11,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
@@ -143,6 +144,24 @@ def test_the_solves_program_gives_the_same_bias(name):
     # (measured: at most 1.3e-9 of a standard deviation in these cases)
     np.testing.assert_allclose(solved, mine, rtol=1e-6, atol=1e-7)
     assert np.all(held_mine == 0.0) and np.all(held_solved == 0.0)
+
+
+@pytest.mark.parametrize("via_solve", [False, True])
+def test_rows_standing_for_more_are_summed_as_that_many(via_solve):
+    """A long data set's bias is summed over a subset of its rows scaled up (``row_scale``): every row counted
+    twice gives the bias of the data set with each row there twice, by both routes."""
+    data, effects = _cases()["effect priors"]
+    model = core.Model.of(effects)
+    plain = fit.fit(data, effects, debias="none")
+    prob, meta = core.build_problem(data)
+    twice, _ = core.build_problem(pd.concat([data, data], ignore_index=True))
+    free, cov = _scaled_cov(plain, prob, meta, model)
+    one, two = (jax.tree.map(lambda a: np.asarray(a)[None], p) for p in (prob, twice))
+    scaled, doubled = (second_order_biases(plain.theta[None], p, model, free[None], cov[None], row_scale=r,
+                                           via_solve=via_solve)[0] for p, r in ((one, 2.0), (two, 1.0)))
+    sd = np.sqrt(np.diag(cov))[free]
+    assert np.all(np.abs(doubled[free] / sd) > 1e-3)
+    np.testing.assert_allclose(scaled[free] / sd, doubled[free] / sd, rtol=1e-8, atol=1e-10)
 
 
 def test_identify_takes_the_bias_from_its_solves_program(tmp_path, table2, monkeypatch):

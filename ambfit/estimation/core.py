@@ -154,6 +154,10 @@ class Model(eqx.Module):
         return cls(tuple(built), tuple(fields), np.asarray(centre, dtype=float).reshape(-1),
                    np.asarray(width, dtype=float).reshape(-1), bearing, len(centre))
 
+    def __check_init__(self):
+        if self.n != sum(1 if shared else 2 for _, _, shared in self.fields):
+            raise ValueError(f"a model of fields {self.fields} has n={self.n}: n counts their free entries")
+
     @property
     def name(self) -> str:
         """``ideal`` or the effect names joined with ``+`` (contract section 3)."""

@@ -21,7 +21,7 @@ the same expansion as Cox and Snell's (J. R. Stat. Soc. B 30, 248, 1968) for an 
 readings instead of the responses (Amemiya and Fuller, Ann. Stat. 16, 147, 1988, for errors in variables).
 ``theta(m_true)`` is the truth for the ideal law; with effects under priors it is the noise-free estimate, so the
 priors' pull towards their centres stays (it is not noise).  The derivatives are differences of the model
-(:func:`_moments`); evaluated at the estimate and the measured readings instead of the unknown truth, the
+(:func:`_moments`, and :func:`_mixed` for the middle term); evaluated at the estimate and the measured readings instead of the unknown truth, the
 expansion leaves an error of third order.  The force of a row depends only on that row's readings, so one
 difference per kind of reading (top current, bottom current, position) gives every row's derivative at once.
 
@@ -246,9 +246,9 @@ def _mixed(theta, steps, per, prob: Problem, model: Model, free, share):
     direction of theta of its own, ``v_k``.
 
     By central differences in both: ``steps`` [3, rows, p] (scaled) is each reading's step along theta, ``per``
-    [3, rows] its ``v_k`` per unit of that step (0 for a reading without a direction: held out, or without noise).
-    Four evaluations per kind of reading (top current, bottom current, position), each row at its own theta (the
-    rows evaluated one by one under ``vmap``)."""
+    [3, rows] its ``v_k`` per unit of that step (0 for a reading without a direction: a held-out row's; a reading
+    without noise has a direction but no variance).  Four evaluations per kind of reading (top current, bottom
+    current, position), each row at its own theta (the rows evaluated one by one under ``vmap``)."""
     free = jnp.asarray(free, dtype=float)
     n = prob.readings.x.shape[0]
     readings, h, var = _readings(prob, share, jnp)
@@ -257,7 +257,11 @@ def _mixed(theta, steps, per, prob: Problem, model: Model, free, share):
     picks = jnp.asarray([1, 4, 1, 4])                     # the reading one step up, one step down (_readings' order)
     thetas = theta + sign[None, :, None, None] * steps[:, None]                           # [3, 4, rows, p]
     corner = readings[jnp.arange(3)[:, None] + picks[None, :]]                            # [3, 4, 3, rows]
-    rows = jax.tree.map(lambda a: jnp.tile(a, (12,) + (1,) * (a.ndim - 1))[:, None] if a.ndim else a, prob)
+    # every field one entry per row (a value for all rows broadcast to them; the per-axis k_free set after), the
+    # rows twelve times over
+    per_row = eqx.tree_at(lambda t: t.k_free, prob, jnp.zeros(n))
+    rows = jax.tree.map(lambda a: jnp.tile(a if a.ndim else jnp.broadcast_to(a, (n,)),
+                                           (12,) + (1,) * max(a.ndim - 1, 0))[:, None], per_row)
     rows = eqx.tree_at(lambda t: t.k_free, rows, jnp.broadcast_to(prob.k_free, (12 * n,) + prob.k_free.shape))
     rows = rows.with_readings(*corner.transpose(2, 0, 1, 3).reshape(3, 12 * n, 1))
 
@@ -387,6 +391,7 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     roots = roots[:, :, p - moving:]                                       # [sets, p, moving]
     share = np.broadcast_to(np.asarray(share, dtype=float), (sets, 3))
     rows = np.broadcast_to(np.asarray(row_scale, dtype=float), (sets,))
+
     def summed(a):              # a sum over rows, of a subset's rows standing for more
         return np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1))
 

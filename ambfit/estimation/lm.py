@@ -67,7 +67,7 @@ class RESULTS(eqx.Enumeration):
 
 def succeeded(result) -> np.ndarray:
     """Whether a concrete outcome (or each of a batch's) is ``successful``, read in NumPy: comparing two outcomes
-    would run a JAX operation.  An outcome given as text (:func:`ambfit.estimation.batches.solve_sets`) is
+    would run a JAX operation.  One outcome may be given as text (:func:`ambfit.estimation.batches.solve_sets`):
     ``"successful"`` or a message."""
     if isinstance(result, str):
         return np.asarray(result == "successful")
