@@ -21,9 +21,10 @@ the same expansion as Cox and Snell's (J. R. Stat. Soc. B 30, 248, 1968) for an 
 readings instead of the responses (Amemiya and Fuller, Ann. Stat. 16, 147, 1988, for errors in variables).
 ``theta(m_true)`` is the truth for the ideal law; with effects under priors it is the noise-free estimate, so the
 priors' pull towards their centres stays (it is not noise).  The derivatives are differences of the model
-(:func:`_moments`, and :func:`_mixed` for the middle term); evaluated at the estimate and the measured readings instead of the unknown truth, the
-expansion leaves an error of third order.  The force of a row depends only on that row's readings, so one
-difference per kind of reading (top current, bottom current, position) gives every row's derivative at once.
+(:func:`_moments`, and :func:`_mixed` for the middle term); evaluated at the estimate and the measured readings
+instead of the unknown truth, the expansion leaves an error of third order.  The force of a row depends only on
+that row's readings, so one difference per kind of reading (top current, bottom current, position) gives every
+row's derivative at once.
 
 Bootstrap (:func:`bootstrap_bias`)
 ----------------------------------
@@ -185,18 +186,17 @@ def _readings(prob: Problem, share, xp):
     return xp.concatenate([base[None], base[None] + eye * h[None], base[None] - eye * h[None]]), h, var
 
 
-def _combined(g, h, var, q: int, xp):
-    """:func:`_moments`' sums from the scores ``g`` [2q + 1, 7, rows, p] at the points (theta, then theta + u_j,
-    then theta - u_j) and the seven readings of :func:`_readings`."""
-    d1 = (g[:, 1:4] - g[:, 4:7]) / (2.0 * h[None, :, :, None])                     # [2q + 1, 3, rows, p]
-    d2 = g[0, 1:4] - 2.0 * g[0, 0][None] + g[0, 4:7]
-    up, down = slice(1, q + 1), slice(q + 1, 2 * q + 1)
-    a_u = (g[up, 0] - g[down, 0]).sum(axis=1) / 2.0     # (the rows' share: the priors' is added by the caller)
-    h_uu = (g[up, 0] + g[down, 0] - 2.0 * g[0, 0][None]).sum(axis=1)
+def _sums(at, off, h, var, xp):
+    """The sums :func:`_moments` returns, from the scores ``at`` [7, rows, p] at theta and the seven readings of
+    :func:`_readings`, and ``off`` [2q, rows, p] at theta + u_j then theta - u_j and the measured readings."""
+    q = off.shape[0] // 2
+    d1 = (at[1:4] - at[4:7]) / (2.0 * h[:, :, None])
+    d2 = at[1:4] - 2.0 * at[0][None] + at[4:7]
+    a_u = (off[:q] - off[q:]).sum(axis=1) / 2.0           # (the rows' share: the priors' is added by the caller)
+    h_uu = (off[:q] + off[q:] - 2.0 * at[0][None]).sum(axis=1)
     t1 = xp.einsum("cn,cna->a", var / h**2, d2)
-    b = xp.einsum("cn,cna,cnb->ab", var, d1[0], d1[0])
-    cross = xp.einsum("cn,jcna,cnd->ajd", var, (d1[up] - d1[down]) / 2.0, d1[0])
-    return a_u, h_uu, t1, b, cross
+    b = xp.einsum("cn,cna,cnb->ab", var, d1, d1)
+    return a_u, h_uu, t1, b, d1
 
 
 def _points(theta, steps, xp):
@@ -231,14 +231,7 @@ def _moments(theta, steps, prob: Problem, model: Model, free, share):
     tiled = tiled.with_readings(*readings.transpose(1, 0, 2).reshape(3, 7 * n))
     at = _scores(tiled, model, free)(theta, tiled.readings).reshape(7, n, -1)          # [7, rows, p]
     off = jax.vmap(lambda th: _scores(prob, model, free)(th, prob.readings))(_points(theta, steps, jnp)[1:])
-    q = steps.shape[1]
-    d1 = (at[1:4] - at[4:7]) / (2.0 * h[:, :, None])
-    d2 = at[1:4] - 2.0 * at[0][None] + at[4:7]
-    a_u = (off[:q] - off[q:]).sum(axis=1) / 2.0           # (the rows' share: the priors' is added by the caller)
-    h_uu = (off[:q] + off[q:] - 2.0 * at[0][None]).sum(axis=1)
-    t1 = jnp.einsum("cn,cna->a", var / h**2, d2)
-    b = jnp.einsum("cn,cna,cnb->ab", var, d1, d1)
-    return a_u, h_uu, t1, b, d1
+    return _sums(at, off, h, var, jnp)
 
 
 def _mixed(theta, steps, per, prob: Problem, model: Model, free, share):
@@ -289,8 +282,13 @@ def _measured_moments(theta, steps, prob: Problem, model: Model, free, share):
         return (weight * np.asarray(sol.z))[:, None] * np.asarray(sol.jac_all)[:n] * free
 
     g = np.stack([np.stack([scores(th, reading) for reading in readings])
-                  for th in _points(np.asarray(theta, dtype=float), np.asarray(steps), np)])
-    return _combined(g, h, var, np.shape(steps)[1], np)
+                  for th in _points(np.asarray(theta, dtype=float), np.asarray(steps), np)])   # [2q + 1, 7, rows, p]
+    a_u, h_uu, t1, b, d1 = _sums(g[0], g[1:, 0], h, var, np)
+    # each reading's derivative at theta +- u_j, differenced along u_j
+    moved = (g[1:, 1:4] - g[1:, 4:7]) / (2.0 * h[None, :, :, None])                  # [2q, 3, rows, p]
+    q = len(moved) // 2
+    cross = np.einsum("cn,jcna,cnd->ajd", var, (moved[:q] - moved[q:]) / 2.0, d1)
+    return a_u, h_uu, t1, b, cross
 
 
 moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, None, 0, 0)))
