@@ -270,3 +270,22 @@ def test_a_held_circuit_parameter_is_not_fitted_and_survives_the_model_file():
     assert again.held == ("fringe_depth",) and float(again.fringe_depth) == 1.5e-3
     with pytest.raises(ValueError, match="bogus"):
         MagneticCircuit(held=("bogus",))
+
+
+def test_newton_stops_a_step_early_without_losing_accuracy(monkeypatch):
+    # the stop at NEWTON_STOP saves the step that only confirmed convergence; the implicit-function step that
+    # follows polishes the fluxes, so forces match a solve run to a 1e-13 step
+    from ambfit.physics.circuit import solve
+
+    p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
+    args = [jnp.asarray(a) for a in random_readings(11, bias=2.5, reach=100e-6)]
+
+    def solved():
+        return jax.vmap(solve._solve_one, in_axes=(None, None, 0, 0, 0, 0, 0, 0))(p, FEM_BEARING, *args)
+
+    early = solved()
+    monkeypatch.setattr(solve, "NEWTON_STOP", 1e-13)
+    late = solved()
+    assert int(jnp.sum(early.iterations)) < int(jnp.sum(late.iterations))
+    np.testing.assert_allclose(early.force, late.force, rtol=1e-13, atol=1e-12)
+    assert float(jnp.max(early.residual)) < 1e-12

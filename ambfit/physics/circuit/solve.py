@@ -1,7 +1,7 @@
 """Solving the magnetic equivalent circuit per reading: Newton's method on the loop fluxes, and the forces.
 
 The circuit is solved by Newton's method (at most :data:`MAX_NEWTON` steps, stopping at a
-relative step of 1e-13; a reading whose solve is still moving by more than :data:`NEWTON_FAILED` after
+relative step of :data:`NEWTON_STOP`; a reading whose solve is still moving by more than :data:`NEWTON_FAILED` after
 :data:`MAX_NEWTON` steps gets a NaN force, so that a fit names its rows instead of using a wrong number); derivatives with respect to the parameters and inputs come from one
 extra Newton step whose Jacobian is held constant (the implicit-function theorem), so
 :func:`mec_forces` is jit-able, vmap-able and differentiable in float64.  Newton runs on 17 loop
@@ -36,12 +36,20 @@ from ambfit.physics.circuit.network import (
 )
 
 MAX_NEWTON = 40
-"""Upper bound on the Newton steps of one circuit solve (typically 5-8 are used)."""
+"""Upper bound on the Newton steps of one circuit solve (typically 2-5 are used: 2 with linear iron)."""
+
+NEWTON_STOP = 1e-10
+"""Newton's method stops once a step moves the fluxes by at most this (relative).  Its convergence is quadratic,
+so the fluxes are then within about the square of this of the solution, and the implicit-function step that
+follows (a Newton step with the last factors) brings them to round-off; the derivatives use those factors, taken
+at most this far from the solution.  A vmapped solve runs every reading for as many steps as its hardest one:
+on the finite-element development bearing a stop at 1e-13 took a fifth step on a quarter of the readings only to
+confirm convergence, this one takes four (the forces agree to 1e-15 relative; ``tests/test_circuit.py`` holds the
+derivatives to 1e-8).  A stop at 1e-8 saves no further step there and moves the derivatives by 1e-7."""
 
 NEWTON_FAILED = 1e-8
 """A solve whose last Newton step still moved the fluxes by more than this (relative) after :data:`MAX_NEWTON`
-steps did not converge: its force is NaN.  (Round-off can keep a converged solve from the 1e-13 stopping
-step; it does not leave it moving by 1e-8.)"""
+steps did not converge: its force is NaN."""
 
 
 class MECSolution(eqx.Module):
@@ -174,7 +182,7 @@ def _newton(p, bearing, currents, gaps):
 
     def cond(state):
         _, step, res, it, _ = state
-        return (step > 1e-13) & (res > 1e-14) & (it < MAX_NEWTON)
+        return (step > NEWTON_STOP) & (res > 1e-14) & (it < MAX_NEWTON)
 
     def body(state):
         x, _, _, it, _ = state
@@ -198,8 +206,8 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     x_star, iterations, lu, converged = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
                                      jax.lax.stop_gradient(gaps))
     x_star, lu = jax.lax.stop_gradient((x_star, lu))
-    # One more Newton step with the Jacobian held constant (the last step's factors: the iterate moved by
-    # < 1e-13 since): same value, implicit-function derivatives.
+    # One more Newton step with the Jacobian held constant (the last step's factors: the iterate moved by at most
+    # NEWTON_STOP since): the value polished to round-off, and implicit-function derivatives.
     res, _, _ = _loop_system(x_star, p, bearing, currents, gaps, with_jacobian=False)
     x = x_star - jax.scipy.linalg.lu_solve(lu, res)
     _, _, ((f_root, fg, fr, fy), (u_mr, u_yr)) = _loop_system(x, p, bearing, currents, gaps, with_jacobian=False)
