@@ -4,6 +4,7 @@ Every call below uses batches of ``BATCH`` readings so that the jitted solver co
 bearing (compilation dominates the run time of this file).
 """
 
+import functools
 import math
 
 import jax
@@ -151,6 +152,20 @@ def test_bearing_without_a_bh_curve_uses_linear_iron():
     np.testing.assert_allclose(f / np.asarray(currents) ** 2, f[0] / 0.25, rtol=1e-9)   # no saturation
 
 
+
+def test_the_bh_curve_has_its_slope_at_every_knot():
+    # the monotone cubic's derivative at a knot (B = 0 among them, where Newton's method starts) is the knot's
+    # slope, from either side: a clipped interval coordinate would halve it there
+    from ambfit.physics.circuit.iron import bh_curve
+
+    bh = bh_curve(FEM_BEARING)
+    knots, slopes = np.array(bh.b), np.array(bh.d)
+    for b, d in zip(knots[:-1], slopes[:-1]):
+        _, at = jax.jvp(bh, (jnp.asarray(b),), (jnp.asarray(1.0),))
+        left = (float(bh(jnp.asarray(b))) - float(bh(jnp.asarray(b - 1e-7)))) / 1e-7 if b > 0 else d
+        np.testing.assert_allclose(float(at), d, rtol=1e-9)
+        np.testing.assert_allclose(left, d, rtol=1e-4)
+
 # --- the loop-flux solver against the nodal form of the same circuit -----------------------------------------
 
 # Reference forces from Newton's method on the 64 nodal unknowns of ``_residual`` with a traced Jacobian
@@ -273,19 +288,27 @@ def test_a_held_circuit_parameter_is_not_fitted_and_survives_the_model_file():
 
 
 def test_newton_stops_a_step_early_without_losing_accuracy(monkeypatch):
-    # the stop at NEWTON_STOP saves the step that only confirmed convergence; the implicit-function step that
-    # follows polishes the fluxes, so forces match a solve run to a 1e-13 step
+    # the stop at NEWTON_STOP saves the step that only confirmed convergence: the fluxes are then within the square
+    # of the last step of the solution, and the implicit-function step's derivatives come from factors that close
     from ambfit.physics.circuit import solve
 
     p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
-    args = [jnp.asarray(a) for a in random_readings(11, bias=2.5, reach=100e-6)]
+    args = random_readings(11, bias=2.5, reach=100e-6)
 
     def solved():
         return jax.vmap(solve._solve_one, in_axes=(None, None, 0, 0, 0, 0, 0, 0))(p, FEM_BEARING, *args)
 
-    early = solved()
+    def slopes():
+        def f(lk, ih):
+            return jax.vmap(functools.partial(solve._solve_one, full=False), in_axes=(None, None, 0, 0, 0, 0, 0, 0))(
+                p.replace(leakage=lk, iron_h_scale=ih), FEM_BEARING, *args)[:, 0]
+
+        return np.stack(jax.jacfwd(f, argnums=(0, 1))(p.leakage, p.iron_h_scale), 1)
+
+    early, early_slopes = solved(), slopes()
     monkeypatch.setattr(solve, "NEWTON_STOP", 1e-13)
-    late = solved()
+    late, late_slopes = solved(), slopes()
     assert int(jnp.sum(early.iterations)) < int(jnp.sum(late.iterations))
     np.testing.assert_allclose(early.force, late.force, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(early_slopes, late_slopes, rtol=1e-9)
     assert float(jnp.max(early.residual)) < 1e-12

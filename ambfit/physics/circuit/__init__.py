@@ -64,6 +64,7 @@ from ambfit.physics.circuit.network import POLE_SPLIT, ROTOR_SPLIT, YOKE_SPLIT, 
 from ambfit.physics.circuit.solve import (
     MAX_NEWTON,
     NEWTON_FAILED,
+    NEWTON_STOP,
     MECSolution,
     mec_axis_force,
     mec_forces,
@@ -73,5 +74,5 @@ from ambfit.physics.circuit.solve import (
 
 __all__ = [
     "MECParams", "MECSolution", "mec_solve", "mec_forces", "mec_axis_force", "row_axis_force", "bh_curve",
-    "MAX_NEWTON", "NEWTON_FAILED", "POLE_SPLIT", "YOKE_SPLIT", "ROTOR_SPLIT", "DEFAULT_MU_R",
+    "MAX_NEWTON", "NEWTON_FAILED", "NEWTON_STOP", "POLE_SPLIT", "YOKE_SPLIT", "ROTOR_SPLIT", "DEFAULT_MU_R",
 ]

@@ -55,7 +55,9 @@ class _BH(eqx.Module):
         row = table[j]
         x0, x1, y0, y1, d0, d1 = (row[..., c] for c in range(6))
         hh = x1 - x0
-        t = jnp.clip((b_abs - x0) / hh, 0.0, 1.0)
+        # 0 <= t <= 1 by the interval's choice (beyond the table the linear extension is used): no clip, whose
+        # derivative at a knot (B = 0, where Newton's method starts) would be half the curve's slope
+        t = (b_abs - x0) / hh
         h00, h10 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t
         h01, h11 = -2 * t**3 + 3 * t**2, t**3 - t**2
         inside = h00 * y0 + h10 * hh * d0 + h01 * y1 + h11 * hh * d1

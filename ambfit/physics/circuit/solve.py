@@ -36,20 +36,23 @@ from ambfit.physics.circuit.network import (
 )
 
 MAX_NEWTON = 40
-"""Upper bound on the Newton steps of one circuit solve (typically 2-5 are used: 2 with linear iron)."""
+"""Upper bound on the Newton steps of one circuit solve (typically 2-8 are used: 2 with linear iron, up to 8 at
+readings deep in saturation)."""
 
 NEWTON_STOP = 1e-10
-"""Newton's method stops once a step moves the fluxes by at most this (relative).  Its convergence is quadratic,
-so the fluxes are then within about the square of this of the solution, and the implicit-function step that
-follows (a Newton step with the last factors) brings them to round-off; the derivatives use those factors, taken
-at most this far from the solution.  A vmapped solve runs every reading for as many steps as its hardest one:
-on the finite-element development bearing a stop at 1e-13 took a fifth step on a quarter of the readings only to
-confirm convergence, this one takes four (the forces agree to 1e-15 relative; ``tests/test_circuit.py`` holds the
-derivatives to 1e-8).  A stop at 1e-8 saves no further step there and moves the derivatives by 1e-7."""
+"""Newton's method stops once a step moves the fluxes by at most this (relative); must stay below
+:data:`NEWTON_FAILED`.  Its convergence is quadratic, so the fluxes that step returns are within about the square of
+this of the solution, below round-off; the implicit-function step that follows adds the derivatives, from factors
+taken at most this far from the solution (:data:`NEWTON_FAILED` for a solve that used all its steps), about 1e-11
+relative.  A vmapped solve runs every reading for as many steps as its hardest one: on the finite-element development
+bearing's readings a stop at 1e-13 takes a fifth step on a quarter of them only to confirm convergence, this one
+takes four (the forces agree to 1e-15 relative).  A stop at 1e-8 saves no further step there and moves the
+derivatives by 1e-7."""
 
 NEWTON_FAILED = 1e-8
 """A solve whose last Newton step still moved the fluxes by more than this (relative) after :data:`MAX_NEWTON`
-steps did not converge: its force is NaN."""
+steps did not converge: its force is NaN.  One that used all its steps but last moved by less is accepted (its
+fluxes are within about the square of this of the solution)."""
 
 
 class MECSolution(eqx.Module):
@@ -206,8 +209,8 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     x_star, iterations, lu, converged = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
                                      jax.lax.stop_gradient(gaps))
     x_star, lu = jax.lax.stop_gradient((x_star, lu))
-    # One more Newton step with the Jacobian held constant (the last step's factors: the iterate moved by at most
-    # NEWTON_STOP since): the value polished to round-off, and implicit-function derivatives.
+    # One more Newton step with the Jacobian held constant (the last step's factors, taken one step of at most
+    # NEWTON_STOP before x_star): the same value, and implicit-function derivatives.
     res, _, _ = _loop_system(x_star, p, bearing, currents, gaps, with_jacobian=False)
     x = x_star - jax.scipy.linalg.lu_solve(lu, res)
     _, _, ((f_root, fg, fr, fy), (u_mr, u_yr)) = _loop_system(x, p, bearing, currents, gaps, with_jacobian=False)
