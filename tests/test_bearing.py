@@ -57,6 +57,9 @@ def test_contract_file_in_si_units(tmp_path):
     ("nominal_gap_um = -5.0", "nominal_gap must be a positive number"),
     ('polarity = "NNNN"', "polarity must be one of NNSS, NSNS"),
     ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [0.0]", "B_T must ascend and match"),
+    ("[material]\nB_T = [0.0, 1.0, 1.5]\nH_A_per_m = [0.0, 300.0, 200.0]", "H_A_per_m must ascend with B_T.*300.0 then 200.0"),
+    ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [50.0, 300.0]", "must start at B = 0, H = 0"),
+    ("[material]\nB_T = [-1.0, 1.0]\nH_A_per_m = [-300.0, 300.0]", "must start at B = 0, H = 0"),
     ("nominal_gap_um = ", "not valid TOML"),
     ("nominal_gap = 762.0", "unknown key 'nominal_gap'; did you mean 'nominal_gap_um'"),
     ("turns_per_poles = 160", "did you mean 'turns_per_pole'"),
@@ -102,3 +105,13 @@ def test_a_description_survives_its_own_dict():
     for f in dataclasses.fields(Bearing):
         a, b = getattr(other, f.name), getattr(back, f.name)
         assert (a == pytest.approx(b, rel=1e-12)) if isinstance(a, float) else a == b, f.name
+
+
+def test_a_bh_table_from_above_zero_is_completed_with_the_origin(tmp_path):
+    # data sheets often start at 0.1 T or more: soft iron has H = 0 at B = 0, which the circuit's odd curve needs
+    path = tmp_path / "b.toml"
+    path.write_text("[material]\nB_T = [0.5, 1.0, 1.5]\nH_A_per_m = [80.0, 200.0, 2000.0]\n")
+    b = Bearing.from_toml(path)
+    assert b.b_curve == (0.0, 0.5, 1.0, 1.5) and b.h_curve == (0.0, 80.0, 200.0, 2000.0)
+    with pytest.raises(BearingError, match="must start at B = 0"):
+        PAPER_BEARING.with_(b_curve=(0.5, 1.0), h_curve=(80.0, 200.0))

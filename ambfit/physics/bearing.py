@@ -85,7 +85,8 @@ class Bearing:
         Share of the rotor's weight this bearing carries [kg] (the virtual rig's static load, carried by
         axes at ±45° from vertical; 1 kg on the paper's rig, an assumption: the paper does not print it).
     b_curve, h_curve : tuple of float
-        Lamination B-H curve, B ascending [T] and H [A/m]; empty when unknown.
+        Lamination B-H curve, B [T] and H [A/m] ascending together from ``(0, 0)``; empty when unknown.  A
+        bearing file's table that starts above B = 0 is completed with the origin.
     extra_keys : tuple of str
         Keys of the file that ambfit does not use (the contract allows more keys; a key that looks
         like a misspelt known one is an error instead).
@@ -147,6 +148,8 @@ class Bearing:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
                 raise BearingError(f"{name} must be a fraction in [0, 1) (0.001 is 0.1 %), got {value!r}")
+        if self.b_curve or self.h_curve:
+            _check_bh(tuple(self.b_curve), tuple(self.h_curve))
 
     # --- derived quantities -------------------------------------------------------------------------------
 
@@ -310,7 +313,28 @@ def _material(material, source: str) -> dict:
         raise BearingError(f"{source}: [material] B_T and H_A_per_m must be finite numbers")
     if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
         raise BearingError(f"{source}: [material] B_T must ascend and match H_A_per_m in length")
+    if b[0] > 0 and h[0] > 0:
+        b, h = (0.0,) + b, (0.0,) + h          # a data sheet's table from 0.1 T: soft iron has H = 0 at B = 0
+    try:
+        _check_bh(b, h)
+    except BearingError as exc:
+        raise BearingError(f"{source}: [material] {exc}") from None
     return {"b_curve": b, "h_curve": h}
+
+
+def _check_bh(b: tuple, h: tuple) -> None:
+    """A lamination's B-H curve as the magnetic circuit uses it (odd in B, monotone cubic through the table): B and
+    H ascending together from the origin."""
+    if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
+        raise BearingError("B_T must ascend and match H_A_per_m in length")
+    if b[0] != 0.0 or h[0] != 0.0:
+        raise BearingError(f"the B-H curve must start at B = 0, H = 0 (it is extended to negative B as an odd "
+                           f"function; a remanent field is not modelled), got B = {b[0]!r} T, H = {h[0]!r} A/m "
+                           "first")
+    bad = next((k for k in range(1, len(h)) if not h[k] > h[k - 1]), None)
+    if bad is not None:
+        raise BearingError(f"H_A_per_m must ascend with B_T (soft iron's B-H curve is monotone), got "
+                           f"H = {h[bad - 1]!r} then {h[bad]!r} A/m at B = {b[bad - 1]!r}, {b[bad]!r} T")
 
 
 def _paper_bearing() -> Bearing:
