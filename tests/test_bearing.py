@@ -58,8 +58,8 @@ def test_contract_file_in_si_units(tmp_path):
     ('polarity = "NNNN"', "polarity must be one of NNSS, NSNS"),
     ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [0.0]", "B_T must ascend and match"),
     ("[material]\nB_T = [0.0, 1.0, 1.5]\nH_A_per_m = [0.0, 300.0, 200.0]", "H_A_per_m must ascend with B_T.*300.0 then 200.0"),
-    ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [50.0, 300.0]", "must start at B = 0, H = 0"),
-    ("[material]\nB_T = [-1.0, 1.0]\nH_A_per_m = [-300.0, 300.0]", "must start at B = 0, H = 0"),
+    ("[material]\nB_T = [-1.0, 1.0]\nH_A_per_m = [-300.0, 300.0]", "given for B >= 0"),
+    ("[material]\nB_T = [0.5, 1.0]\nH_A_per_m = [0.0, 300.0]", "give H > 0 there"),
     ("nominal_gap_um = ", "not valid TOML"),
     ("nominal_gap = 762.0", "unknown key 'nominal_gap'; did you mean 'nominal_gap_um'"),
     ("turns_per_poles = 160", "did you mean 'turns_per_pole'"),
@@ -113,5 +113,6 @@ def test_a_bh_table_from_above_zero_is_completed_with_the_origin(tmp_path):
     path.write_text("[material]\nB_T = [0.5, 1.0, 1.5]\nH_A_per_m = [80.0, 200.0, 2000.0]\n")
     b = Bearing.from_toml(path)
     assert b.b_curve == (0.0, 0.5, 1.0, 1.5) and b.h_curve == (0.0, 80.0, 200.0, 2000.0)
-    with pytest.raises(BearingError, match="must start at B = 0"):
-        PAPER_BEARING.with_(b_curve=(0.5, 1.0), h_curve=(80.0, 200.0))
+    direct = PAPER_BEARING.with_(b_curve=(0.5, 1.0), h_curve=(80.0, 200.0))
+    assert direct.b_curve == (0.0, 0.5, 1.0) and direct.h_curve == (0.0, 80.0, 200.0)
+    assert direct.with_(lamination=0.9).b_curve == direct.b_curve      # completed once, then kept as it is

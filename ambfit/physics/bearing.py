@@ -85,8 +85,9 @@ class Bearing:
         Share of the rotor's weight this bearing carries [kg] (the virtual rig's static load, carried by
         axes at ±45° from vertical; 1 kg on the paper's rig, an assumption: the paper does not print it).
     b_curve, h_curve : tuple of float
-        Lamination B-H curve, B [T] and H [A/m] ascending together from ``(0, 0)``; empty when unknown.  A
-        bearing file's table that starts above B = 0 is completed with the origin.
+        Lamination B-H curve, B [T] ascending from 0 or above, H [A/m] not falling; empty when unknown.  A table
+        that starts above B = 0 (a data sheet's from 0.1 T) is completed with the origin, where soft iron has
+        H = 0.
     extra_keys : tuple of str
         Keys of the file that ambfit does not use (the contract allows more keys; a key that looks
         like a misspelt known one is an error instead).
@@ -149,7 +150,9 @@ class Bearing:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
                 raise BearingError(f"{name} must be a fraction in [0, 1) (0.001 is 0.1 %), got {value!r}")
         if self.b_curve or self.h_curve:
-            _check_bh(tuple(self.b_curve), tuple(self.h_curve))
+            b, h = _completed_bh(tuple(self.b_curve), tuple(self.h_curve))
+            object.__setattr__(self, "b_curve", b)
+            object.__setattr__(self, "h_curve", h)
 
     # --- derived quantities -------------------------------------------------------------------------------
 
@@ -313,28 +316,32 @@ def _material(material, source: str) -> dict:
         raise BearingError(f"{source}: [material] B_T and H_A_per_m must be finite numbers")
     if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
         raise BearingError(f"{source}: [material] B_T must ascend and match H_A_per_m in length")
-    if b[0] > 0 and h[0] > 0:
-        b, h = (0.0,) + b, (0.0,) + h          # a data sheet's table from 0.1 T: soft iron has H = 0 at B = 0
     try:
-        _check_bh(b, h)
+        b, h = _completed_bh(b, h)
     except BearingError as exc:
         raise BearingError(f"{source}: [material] {exc}") from None
     return {"b_curve": b, "h_curve": h}
 
 
-def _check_bh(b: tuple, h: tuple) -> None:
-    """A lamination's B-H curve as the magnetic circuit uses it (odd in B, monotone cubic through the table): B and
-    H ascending together from the origin."""
+def _completed_bh(b: tuple, h: tuple) -> tuple[tuple, tuple]:
+    """A lamination's B-H table as the magnetic circuit uses it (odd in B, a monotone cubic through the table): B
+    ascending from 0 or above, H not falling; a table that starts above B = 0 (a data sheet's from 0.1 T) completed
+    with the origin, where soft iron has H = 0."""
     if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
         raise BearingError("B_T must ascend and match H_A_per_m in length")
-    if b[0] != 0.0 or h[0] != 0.0:
-        raise BearingError(f"the B-H curve must start at B = 0, H = 0 (it is extended to negative B as an odd "
-                           f"function; a remanent field is not modelled), got B = {b[0]!r} T, H = {h[0]!r} A/m "
-                           "first")
-    bad = next((k for k in range(1, len(h)) if not h[k] > h[k - 1]), None)
+    if b[0] < 0 or h[0] < 0:
+        raise BearingError(f"the B-H curve is given for B >= 0 (it is extended to negative B as an odd function), "
+                           f"got B = {b[0]!r} T, H = {h[0]!r} A/m first")
+    bad = next((k for k in range(1, len(h)) if h[k] < h[k - 1]), None)
     if bad is not None:
         raise BearingError(f"H_A_per_m must ascend with B_T (soft iron's B-H curve is monotone), got "
                            f"H = {h[bad - 1]!r} then {h[bad]!r} A/m at B = {b[bad - 1]!r}, {b[bad]!r} T")
+    if b[0] > 0:
+        if h[0] <= 0:
+            raise BearingError(f"the B-H table starts at B = {b[0]!r} T with H = {h[0]!r} A/m: give H > 0 there, or "
+                               "the curve from B = 0")
+        b, h = (0.0,) + b, (0.0,) + h
+    return b, h
 
 
 def _paper_bearing() -> Bearing:
