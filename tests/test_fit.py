@@ -27,6 +27,16 @@ def test_recovers_truth_on_symmetric_design(seed):
     assert 0.5 < res.reduced_chi2 < 1.6   # 80 rows, 6 parameters: chi2/dof within its ~99 % range
 
 
+def test_print_says_a_fit_is_healthy_or_what_is_wrong():
+    sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=0)
+    good = str(fit.fit(sim.data))
+    assert "healthy: converged, identified, fits its readings" in good and "  ! " not in good
+    # the std columns a third of the real noise: the ideal law does not fit its readings (chi2/dof about 9)
+    noisy = sim.data.assign(**{c: sim.data[c] / 3 for c in ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")})
+    bad = str(fit.fit(noisy))
+    assert "healthy" not in bad and "  ! the ideal law does not fit these data" in bad
+
+
 def test_recovers_truth_on_non_symmetric_rich_design():
     spec = rig.PAPER_RIG.with_truth(g0=(790e-6, 745e-6), x0=(-20e-6, 14e-6))
     sim = rig.simulate(spec, P.rich(), seed=3)

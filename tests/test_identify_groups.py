@@ -199,3 +199,4 @@ def test_a_group_whose_law_does_not_fit_is_not_called_fine(tmp_path, table2):
     assert "1 group(s) whose model does not fit its readings" in r.output and "noisy (χ²/dof" in r.output
     assert "all 2 group(s) fitted, 1 of them not fitting their readings" in r.output
     assert "fine" not in r.output
+    assert r.output.count("ok, misfit") == 1          # the table's status says it too

@@ -233,7 +233,7 @@ class FitResult:
             ("converged", self.converged, not_converged(self, EDM_MAX)),
             ("adequate", self.adequate,
              f"{law} does not fit these data, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof "
-             f"(p = {self.p_value:.2g}); the errors above assume it does; run ambfit diagnose"),
+             f"(p = {self.p_value:.2g}); the estimates' errors assume it does; run ambfit diagnose"),
             ("noise_as_declared", self.noise_as_declared,
              f"χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof is improbably small for the declared noise (p = "
              f"{self.chi2_lower_p:.2g} of a χ² this small): the std columns or --current-noise-ma/--position-noise-um "
@@ -380,7 +380,7 @@ class FitResult:
         """A short text summary: estimates in display units, χ², health."""
         lines = [f"least squares ({self.model}), {self.n_rows} rows, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof"]
         lines += [f"  {n:<24} {v} {u}" for n, v, u in self._rows()]
-        lines += [f"  ! {h}" for h in self.health()]
+        lines += [f"  ! {h}" for h in self.health()] or ["  healthy: converged, identified, fits its readings"]
         return "\n".join(lines)
 
     __str__ = summary

@@ -297,5 +297,6 @@ def _display_row(entry: dict) -> dict:
                                                                           else std)
     chi2 = entry.get("reduced_chi2")
     row["χ²/dof"] = "–" if chi2 is None else f"{chi2:.2f}"
-    row["status"] = STATUS_TEXT[entry["status"]]
+    misfit = entry["status"] == "ok" and (entry.get("goodness_of_fit") or {}).get("adequate") is False
+    row["status"] = "ok, misfit" if misfit else STATUS_TEXT[entry["status"]]      # (the warning below says more)
     return row
