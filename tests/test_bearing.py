@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 
 from ambfit import PAPER_BEARING, Bearing
@@ -56,8 +57,11 @@ def test_contract_file_in_si_units(tmp_path):
     ('turns_per_pole = "many"', "turns_per_pole must be a number"),
     ("nominal_gap_um = -5.0", "nominal_gap must be a positive number"),
     ('polarity = "NNNN"', "polarity must be one of NNSS, NSNS"),
-    ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [0.0]", "B_T must ascend and match"),
-    ("[material]\nB_T = [0.0, 1.0, 1.5]\nH_A_per_m = [0.0, 300.0, 200.0]", "H_A_per_m must ascend with B_T.*300.0 then 200.0"),
+    ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [0.0]", "must have the same length, at least 2, got 2 and 1"),
+    ("[material]\nB_T = [0.0, 1.0, 1.0]\nH_A_per_m = [0.0, 1.0, 2.0]", "B_T must ascend, got 1.0 then 1.0"),
+    ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [-5.0, 300.0]", "given for B >= 0"),
+    ("[material]\nB_T = [0.0, 1.0]\nH_A_per_m = [0.0, \"x\"]", "must be lists of numbers"),
+    ("[material]\nB_T = [0.0, 1.0, 1.5]\nH_A_per_m = [0.0, 300.0, 200.0]", "H_A_per_m must not fall as B_T rises.*300.0 then 200.0"),
     ("[material]\nB_T = [-1.0, 1.0]\nH_A_per_m = [-300.0, 300.0]", "given for B >= 0"),
     ("[material]\nB_T = [0.5, 1.0]\nH_A_per_m = [0.0, 300.0]", "give H > 0 there"),
     ("nominal_gap_um = ", "not valid TOML"),
@@ -113,6 +117,16 @@ def test_a_bh_table_from_above_zero_is_completed_with_the_origin(tmp_path):
     path.write_text("[material]\nB_T = [0.5, 1.0, 1.5]\nH_A_per_m = [80.0, 200.0, 2000.0]\n")
     b = Bearing.from_toml(path)
     assert b.b_curve == (0.0, 0.5, 1.0, 1.5) and b.h_curve == (0.0, 80.0, 200.0, 2000.0)
-    direct = PAPER_BEARING.with_(b_curve=(0.5, 1.0), h_curve=(80.0, 200.0))
+    direct = PAPER_BEARING.with_(b_curve=np.array([0.5, 1.0]), h_curve=[80, 200])
     assert direct.b_curve == (0.0, 0.5, 1.0) and direct.h_curve == (0.0, 80.0, 200.0)
     assert direct.with_(lamination=0.9).b_curve == direct.b_curve      # completed once, then kept as it is
+    hash(direct)                                                        # (a static argument of compiled fits)
+    # kept as given: H > 0 at B = 0 (a coercive field, not modelled) and H level between two points
+    kept = PAPER_BEARING.with_(b_curve=(0.0, 0.5, 1.0), h_curve=(5.0, 80.0, 80.0))
+    assert kept.b_curve == (0.0, 0.5, 1.0) and kept.h_curve == (5.0, 80.0, 80.0)
+    # a bearing built in code is checked as a file's table is, its messages naming the fields
+    for b_curve, h_curve, words in [((0.0, 1.0, 1.5), (0.0, 300.0, 200.0), "h_curve must not fall as b_curve rises"),
+                                    ((0.0, float("nan")), (0.0, 1.0), "must be finite numbers"),
+                                    ((0.0, 1.0), (0.0,), "must have the same length")]:
+        with pytest.raises(BearingError, match=words):
+            PAPER_BEARING.with_(b_curve=b_curve, h_curve=h_curve)

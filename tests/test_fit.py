@@ -30,11 +30,19 @@ def test_recovers_truth_on_symmetric_design(seed):
 def test_print_says_a_fit_is_healthy_or_what_is_wrong():
     sim = rig.simulate(rig.PAPER_RIG, P.paper_table2(center=(-33.3e-6, 11.3e-6)), seed=0)
     good = str(fit.fit(sim.data))
-    assert "healthy: converged, identified, fits its readings" in good and "  ! " not in good
+    assert "healthy: converged, well conditioned, fits its readings" in good and "  ! " not in good
     # the std columns a third of the real noise: the ideal law does not fit its readings (chi2/dof about 9)
     noisy = sim.data.assign(**{c: sim.data[c] / 3 for c in ("i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um")})
     bad = str(fit.fit(noisy))
     assert "healthy" not in bad and "  ! the ideal law does not fit these data" in bad
+    # no std columns: the noise is estimated from the residuals, so the fit to them is not judged
+    bare = str(fit.fit(sim.data.drop(columns=["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"])))
+    assert "healthy: converged, well conditioned, its fit to the readings not judged" in bare
+    # unknown loads: k is not identified, and the healthy line says so
+    loads = {"u": P.Load(5.0, 4.0, known=False)}
+    proto = P.perturbation((1.2, 1.4, 1.6), (20e-6, 40e-6), center=(-33.3e-6, 11.3e-6), load="u", loads=loads)
+    assert str(fit.fit(rig.simulate(rig.PAPER_RIG, proto, seed=1).data)).endswith(
+        "healthy: converged, well conditioned, fits its readings, k_v and k_w not identified")
 
 
 def test_recovers_truth_on_non_symmetric_rich_design():

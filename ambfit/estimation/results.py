@@ -380,8 +380,19 @@ class FitResult:
         """A short text summary: estimates in display units, χ², health."""
         lines = [f"least squares ({self.model}), {self.n_rows} rows, χ²/dof {self.reduced_chi2:.3g} on {self.dof} dof"]
         lines += [f"  {n:<24} {v} {u}" for n, v, u in self._rows()]
-        lines += [f"  ! {h}" for h in self.health()] or ["  healthy: converged, identified, fits its readings"]
+        lines += [f"  ! {h}" for h in self.health()] or [f"  healthy: {self._healthy()}"]
         return "\n".join(lines)
+
+    def _healthy(self) -> str:
+        """What a fit with no failed health check has passed: converged and well conditioned, and whether its fit to the
+        readings was judged (not when the noise was estimated from them) and its ``k`` determined."""
+        passed = {name: ok for name, ok, _ in self.checks()}
+        words = ["converged", "well conditioned"]
+        words.append("fits its readings" if passed.get("adequate") else "its fit to the readings not judged (the noise "
+                     "estimated from them)")
+        if passed.get("k_identified") is False:
+            words.append(next(text for name, _, text in self.checks() if name == "k_identified").split(":")[0])
+        return ", ".join(words)
 
     __str__ = summary
 

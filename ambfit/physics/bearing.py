@@ -87,7 +87,7 @@ class Bearing:
     b_curve, h_curve : tuple of float
         Lamination B-H curve, B [T] ascending from 0 or above, H [A/m] not falling; empty when unknown.  A table
         that starts above B = 0 (a data sheet's from 0.1 T) is completed with the origin, where soft iron has
-        H = 0.
+        H = 0; H > 0 at B = 0 is kept (the curve, odd in B, then steps at zero flux).
     extra_keys : tuple of str
         Keys of the file that ambfit does not use (the contract allows more keys; a key that looks
         like a misspelt known one is an error instead).
@@ -149,8 +149,8 @@ class Bearing:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
                 raise BearingError(f"{name} must be a fraction in [0, 1) (0.001 is 0.1 %), got {value!r}")
-        if self.b_curve or self.h_curve:
-            b, h = _completed_bh(tuple(self.b_curve), tuple(self.h_curve))
+        if len(self.b_curve) or len(self.h_curve):
+            b, h = _completed_bh(self.b_curve, self.h_curve, names=("b_curve", "h_curve"))
             object.__setattr__(self, "b_curve", b)
             object.__setattr__(self, "h_curve", h)
 
@@ -308,14 +308,9 @@ def short_repr(value) -> str:
 
 def _material(material, source: str) -> dict:
     try:
-        b = tuple(float(v) for v in material["B_T"])
-        h = tuple(float(v) for v in material["H_A_per_m"])
-    except (KeyError, TypeError, ValueError, OverflowError):
+        b, h = material["B_T"], material["H_A_per_m"]
+    except (KeyError, TypeError):
         raise BearingError(f"{source}: [material] needs numeric lists B_T and H_A_per_m") from None
-    if not all(map(math.isfinite, b + h)):
-        raise BearingError(f"{source}: [material] B_T and H_A_per_m must be finite numbers")
-    if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
-        raise BearingError(f"{source}: [material] B_T must ascend and match H_A_per_m in length")
     try:
         b, h = _completed_bh(b, h)
     except BearingError as exc:
@@ -323,18 +318,29 @@ def _material(material, source: str) -> dict:
     return {"b_curve": b, "h_curve": h}
 
 
-def _completed_bh(b: tuple, h: tuple) -> tuple[tuple, tuple]:
-    """A lamination's B-H table as the magnetic circuit uses it (odd in B, a monotone cubic through the table): B
-    ascending from 0 or above, H not falling; a table that starts above B = 0 (a data sheet's from 0.1 T) completed
-    with the origin, where soft iron has H = 0."""
-    if len(b) != len(h) or len(b) < 2 or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
-        raise BearingError("B_T must ascend and match H_A_per_m in length")
+def _completed_bh(b, h, names=("B_T", "H_A_per_m")) -> tuple[tuple, tuple]:
+    """A lamination's B-H table as the magnetic circuit uses it (odd in B, a monotone cubic through the table), as
+    tuples of floats: B ascending from 0 or above, H not falling.  A table that starts above B = 0 (a data sheet's
+    from 0.1 T) is completed with the origin, where soft iron has H = 0; one that gives H > 0 at B = 0 is kept (the
+    odd curve then steps by twice that H at zero flux).  ``names``: the two lists' names in messages."""
+    nb, nh = names
+    try:
+        b, h = tuple(float(v) for v in b), tuple(float(v) for v in h)
+    except (TypeError, ValueError, OverflowError):
+        raise BearingError(f"{nb} and {nh} must be lists of numbers") from None
+    if not all(map(math.isfinite, b + h)):
+        raise BearingError(f"{nb} and {nh} must be finite numbers")
+    if len(b) != len(h) or len(b) < 2:
+        raise BearingError(f"{nb} and {nh} must have the same length, at least 2, got {len(b)} and {len(h)}")
+    bad = next((k for k in range(1, len(b)) if not b[k] > b[k - 1]), None)
+    if bad is not None:
+        raise BearingError(f"{nb} must ascend, got {b[bad - 1]!r} then {b[bad]!r} T")
     if b[0] < 0 or h[0] < 0:
         raise BearingError(f"the B-H curve is given for B >= 0 (it is extended to negative B as an odd function), "
                            f"got B = {b[0]!r} T, H = {h[0]!r} A/m first")
     bad = next((k for k in range(1, len(h)) if h[k] < h[k - 1]), None)
     if bad is not None:
-        raise BearingError(f"H_A_per_m must ascend with B_T (soft iron's B-H curve is monotone), got "
+        raise BearingError(f"{nh} must not fall as {nb} rises (soft iron's B-H curve is monotone), got "
                            f"H = {h[bad - 1]!r} then {h[bad]!r} A/m at B = {b[bad - 1]!r}, {b[bad]!r} T")
     if b[0] > 0:
         if h[0] <= 0:

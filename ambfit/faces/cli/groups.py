@@ -136,7 +136,7 @@ def _identify_groups(paths, unmatched, column, opts: _Options, max_position_um, 
     if table is not None:
         _write_table([_table_row(e) for e in shown], column, table)
     bad = [e for e in shown if e["status"] != "ok"]
-    misfit = [e for e in shown if e["status"] == "ok" and (e.get("goodness_of_fit") or {}).get("adequate") is False]
+    misfit = [e for e in shown if _misfit(e)]
     if misfit:            # estimates stand (as identify's of one file do), but the law does not fit these groups
         warn(f"{len(misfit)} group(s) whose model does not fit its readings (their errors assume it does; run "
              "ambfit diagnose): " + "; ".join(f"{e['group']} (χ²/dof {e['goodness_of_fit']['reduced_chi2']:.3g})"
@@ -297,6 +297,10 @@ def _display_row(entry: dict) -> dict:
                                                                           else std)
     chi2 = entry.get("reduced_chi2")
     row["χ²/dof"] = "–" if chi2 is None else f"{chi2:.2f}"
-    misfit = entry["status"] == "ok" and (entry.get("goodness_of_fit") or {}).get("adequate") is False
-    row["status"] = "ok, misfit" if misfit else STATUS_TEXT[entry["status"]]      # (the warning below says more)
+    row["status"] = "ok, misfit" if _misfit(entry) else STATUS_TEXT[entry["status"]]   # (the warning below says more)
     return row
+
+
+def _misfit(entry: dict) -> bool:
+    """Whether a group was fitted but its model does not fit its readings (its estimates stand, with a warning)."""
+    return entry["status"] == "ok" and (entry.get("goodness_of_fit") or {}).get("adequate") is False

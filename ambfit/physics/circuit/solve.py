@@ -210,7 +210,8 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
                                      jax.lax.stop_gradient(gaps))
     x_star, lu = jax.lax.stop_gradient((x_star, lu))
     # One more Newton step with the Jacobian held constant (the last step's factors, taken one step of at most
-    # NEWTON_STOP before x_star): the same value, and implicit-function derivatives.
+    # NEWTON_STOP before x_star, NEWTON_FAILED when the solve used all its steps): the same value, and
+    # implicit-function derivatives.
     res, _, _ = _loop_system(x_star, p, bearing, currents, gaps, with_jacobian=False)
     x = x_star - jax.scipy.linalg.lu_solve(lu, res)
     _, _, ((f_root, fg, fr, fy), (u_mr, u_yr)) = _loop_system(x, p, bearing, currents, gaps, with_jacobian=False)
