@@ -96,7 +96,8 @@ class Linearisation:
         from ambfit.estimation.units import pm
 
         corr = self.correlation
-        return {"axis": self.axis, "bias [A]": f"{self.bias_A:g}", "at [µm]": f"{self.position * 1e6:.2f}",
+        return {"axis": self.axis, "bias [A]": f"{self.bias_A:g}",
+                "at sensor reading [µm]": f"{self.position * 1e6:.2f}",       # (the bearing centre is -origin)
                 "k_i [N/A]": pm(self.k_i, self.k_i_std, 2), "k_s [N/m]": pm(self.k_s, self.k_s_std, 2),
                 "corr": "–" if corr is None else f"{corr:+.2f}"}
 
