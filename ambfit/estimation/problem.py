@@ -203,13 +203,13 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     df = data.frame if isinstance(data, Dataset) else data
     if _ONCE.get():
         prob, meta = _build(df, sigma_i, sigma_x)
-        return (prob if mask is None else prob.with_mask(mask)), meta
-    key = _content_key(df, sigma_i, sigma_x)
-    hit = _BUILT.get(key)
-    if hit is None:
-        hit = _build(df, sigma_i, sigma_x)
-        _BUILT.put(key, hit)
-    prob, meta = hit
+    else:
+        key = _content_key(df, sigma_i, sigma_x)
+        hit = _BUILT.get(key)
+        if hit is None:
+            hit = _build(df, sigma_i, sigma_x)
+            _BUILT.put(key, hit)
+        prob, meta = hit
     return (prob if mask is None else prob.with_mask(mask)), meta
 
 

@@ -386,12 +386,12 @@ class FitResult:
     def _healthy(self) -> str:
         """What a fit with no failed health check has passed: converged and well conditioned, and whether its fit to the
         readings was judged (not when the noise was estimated from them) and its ``k`` determined."""
-        passed = {name: ok for name, ok, _ in self.checks()}
+        checks = {name: (ok, text) for name, ok, text in self.checks()}
         words = ["converged", "well conditioned"]
-        words.append("fits its readings" if passed.get("adequate") else "its fit to the readings not judged (the noise "
+        words.append("fits its readings" if checks["adequate"][0] else "its fit to the readings not judged (the noise "
                      "estimated from them)")
-        if passed.get("k_identified") is False:
-            words.append(next(text for name, _, text in self.checks() if name == "k_identified").split(":")[0])
+        if checks["k_identified"][0] is False:
+            words.append(checks["k_identified"][1].split(":")[0])
         return ", ".join(words)
 
     __str__ = summary
