@@ -291,11 +291,56 @@ def _measured_moments(theta, steps, prob: Problem, model: Model, free, share):
     return a_u, h_uu, t1, b, cross
 
 
-moments_of_sets = eqx.filter_jit(eqx.filter_vmap(_moments, in_axes=(0, 0, 0, None, 0, 0)))
-""":func:`_moments` of a batch of data sets (leading axis of theta, steps, problems, free masks and shares)."""
+def _inverse(a, xp):
+    """``a``'s inverse; NaN where ``a`` is singular (NumPy's raises, JAX's gives non-finite entries)."""
+    if xp is not np:
+        return jnp.linalg.inv(a)
+    try:
+        return np.linalg.inv(a)
+    except np.linalg.LinAlgError:
+        return np.full_like(a, np.nan)
 
-mixed_of_sets = eqx.filter_jit(eqx.filter_vmap(_mixed, in_axes=(0, 0, 0, 0, None, 0, 0)))
-""":func:`_mixed` of a batch of data sets."""
+
+def _linear_parts(a_u, h_uu, b, roots, u_inv, free, n_effects: int, xp):
+    """From one data set's sums (:func:`_moments`, over its rows) and the covariance's square roots ``U`` [p, q] with
+    their pseudo-inverse ``U^+`` [q, p]: ``A^-1`` [p, p], ``W = U^+ A^-1`` [q, p] and the third term
+    ``t3 = psi_theta,theta`` contracted with ``C`` [p] (:func:`second_order_biases`' notes)."""
+    p = roots.shape[0]
+    prior = (xp.arange(p) >= p - n_effects) * free         # the priors' share of A u_j: the steps' entries of q
+    a_u = a_u + THETA_STEP * roots.T * prior[None, :]
+    a = (a_u / THETA_STEP).T @ u_inv * free[:, None] * free[None, :] + xp.diag(1.0 - free)
+    a_inv = _inverse(a, xp)
+    c = u_inv @ a_inv @ b @ a_inv.T @ u_inv.T
+    return a_inv, u_inv @ a_inv, xp.diagonal(c) @ (h_uu / THETA_STEP**2)
+
+
+def _bias(a_inv, t1, t2, t3, free, xp):
+    """``-1/2 A^-1 (t1 + t2 + t3)`` over the free entries; NaN where ``A`` is singular."""
+    bias = -0.5 * a_inv @ ((t1 + t2 + t3) * free)
+    return xp.where(xp.all(xp.isfinite(a_inv)), bias, xp.nan)
+
+
+def _bias_one(theta, roots, u_inv, prob: Problem, model: Model, free, share, row_scale):
+    """One data set's second-order bias (scaled) in one program: :func:`_moments`, the linear algebra, then
+    :func:`_mixed` along the directions that fixes (``roots`` [p, q]: square roots of the covariance along which
+    theta is differenced, ``u_inv`` their pseudo-inverse; ``row_scale``: the rows stand for this many times as
+    many)."""
+    free = jnp.asarray(free, dtype=float)
+    *sums, d1 = _moments(theta, THETA_STEP * roots, prob, model, free, share)
+    a_u, h_uu, t1, b = (row_scale * a for a in sums)
+    a_inv, w, t3 = _linear_parts(a_u, h_uu, b, roots, u_inv, free, model.n, jnp)
+    # sum_j cross[a, j, d] w[j, d] is each reading's score differentiated along v_k = U w psi_m_k: one direction per
+    # reading, stepped THETA_STEP along it in the covariance's square roots
+    coords = jnp.einsum("jd,cnd->cnj", w, d1)
+    size = jnp.sqrt(jnp.sum(coords**2, axis=-1))                                      # [3, rows]
+    per = jnp.where(size > 0, size / THETA_STEP, 0.0)
+    steps = THETA_STEP * jnp.einsum("pj,cnj->cnp", roots, coords / jnp.where(size > 0, size, 1.0)[..., None])
+    t2 = -2.0 * row_scale * _mixed(theta, jnp.nan_to_num(steps), jnp.nan_to_num(per), prob, model, free, share)
+    return _bias(a_inv, t1, t2, t3, free, jnp)
+
+
+biases_of_sets = eqx.filter_jit(eqx.filter_vmap(_bias_one, in_axes=(0, 0, 0, 0, None, 0, 0, 0)))
+""":func:`_bias_one` of a batch of data sets (leading axis of every argument but the model)."""
 
 
 _BY_SOLVE: contextvars.ContextVar[bool] = contextvars.ContextVar("ambfit_bias_by_solve", default=False)
@@ -346,8 +391,8 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
         the sums over rows scaled up, :data:`MAX_ROWS`).
     via_solve : bool
         Evaluate the model with the solve's compiled program, a set at a time (:func:`_measured_moments`): for a
-        data set or two whose fit compiled that program at their shape.  The default runs every set in two programs
-        of their own (:func:`_moments`, then :func:`_mixed`), compiled once per batch shape.
+        data set or two whose fit compiled that program at their shape.  The default runs every set in one program
+        of its own (:func:`_bias_one`), compiled once per batch shape.
 
     Returns
     -------
@@ -387,56 +432,22 @@ def second_order_biases(thetas, probs: Problem, model: Model, free, cov, share=(
     # as the batch's most estimated entries: a count the data fix, so one batch shape compiles once
     moving = max(int(free.sum(axis=1).max(initial=0)), 1)
     roots = roots[:, :, p - moving:]                                       # [sets, p, moving]
+    # their pseudo-inverse from the eigenvectors, as an SVD's would be (a root below 1e-15 of the largest inverts
+    # to 0), here where the decomposition is at hand
+    size = np.sqrt(np.maximum(lam[:, p - moving:], 0.0))
+    kept = size > 1e-15 * size.max(axis=1, keepdims=True)
+    u_inv = np.swapaxes(vec[:, :, p - moving:] * np.where(kept, 1.0 / np.where(kept, size, 1.0), 0.0)[:, None], 1, 2)
     share = np.broadcast_to(np.asarray(share, dtype=float), (sets, 3))
     rows = np.broadcast_to(np.asarray(row_scale, dtype=float), (sets,))
-
-    def summed(a):              # a sum over rows, of a subset's rows standing for more
-        return np.asarray(a) * rows.reshape((sets,) + (1,) * (np.ndim(a) - 1))
-
-    if via_solve:
-        parts = [_measured_moments(thetas[s], THETA_STEP * roots[s],
-                                   jax.tree.map(lambda a, s=s: np.asarray(a)[s], probs), model, free[s], share[s])
-                 for s in range(sets)]
-        a_u, h_uu, t1, b, cross = (summed(np.stack(m)) for m in zip(*parts))
-    else:
-        *sums, d1 = moments_of_sets(thetas, THETA_STEP * roots, probs, model, free, share)
-        a_u, h_uu, t1, b = (summed(a) for a in sums)
-        d1 = np.asarray(d1)                                                # [sets, 3, rows, p]
-    if model.n:                 # the priors' share of A u_j: the steps' entries of q
-        q = slice(p - model.n, p)
-        a_u[:, :, q] += THETA_STEP * np.swapaxes(roots, 1, 2)[:, :, q] * free[:, None, q]
-    u_inv = np.linalg.pinv(roots)
-    a = (np.einsum("sja,sjb->sab", a_u / THETA_STEP, u_inv) * free[:, :, None] * free[:, None, :]
-         + (1.0 - free)[:, :, None] * np.eye(p))
-    with np.errstate(all="ignore"):
-        a_inv = _inverses(a)
-        c = u_inv @ a_inv @ b @ np.swapaxes(a_inv, 1, 2) @ np.swapaxes(u_inv, 1, 2)
-        t3 = np.einsum("sj,sja->sa", np.diagonal(c, axis1=1, axis2=2), h_uu / THETA_STEP**2)
-        w = u_inv @ a_inv                                                   # [sets, q, p]
-        if via_solve:
-            t2 = -2.0 * np.einsum("sajd,sjd->sa", cross / THETA_STEP, w)
-        else:
-            # sum_j cross[a, j, d] w[j, d] is each reading's score differentiated along v_k = U w psi_m_k: one
-            # direction per reading, stepped THETA_STEP along it in the covariance's square roots
-            coords = np.einsum("sjd,scnd->scnj", w, d1)
-            size = np.sqrt(np.sum(coords**2, axis=-1))                      # [sets, 3, rows]
-            per = np.where(size > 0, size / THETA_STEP, 0.0)
-            steps = THETA_STEP * np.einsum("spj,scnj->scnp", roots, coords / np.where(size > 0, size, 1.0)[..., None])
-            t2 = -2.0 * summed(mixed_of_sets(thetas, np.nan_to_num(steps), np.nan_to_num(per), probs, model, free,
-                                             share))
-        bias = -0.5 * np.einsum("sab,sb->sa", a_inv, (t1 + t2 + t3) * free)
-    return np.where(np.isfinite(a_inv).all(axis=(1, 2))[:, None], bias, np.nan)
-
-
-def _inverses(a: np.ndarray) -> np.ndarray:
-    """The inverse of each of a stack of matrices; NaN for a singular one (NumPy's raises for the whole stack)."""
-    try:
-        return np.linalg.inv(a)
-    except np.linalg.LinAlgError:
-        out = np.full_like(a, np.nan)
-        for s in range(len(a)):
-            try:
-                out[s] = np.linalg.inv(a[s])
-            except np.linalg.LinAlgError:
-                pass
-        return out
+    if not via_solve:
+        return np.asarray(biases_of_sets(thetas, roots, u_inv, probs, model, free, share, rows))
+    out = np.zeros((sets, p))
+    for s in range(sets):
+        a_u, h_uu, t1, b, cross = (rows[s] * a for a in _measured_moments(
+            thetas[s], THETA_STEP * roots[s], jax.tree.map(lambda a, s=s: np.asarray(a)[s], probs), model, free[s],
+            share[s]))
+        with np.errstate(all="ignore"):
+            a_inv, w, t3 = _linear_parts(a_u, h_uu, b, roots[s], u_inv[s], free[s], model.n, np)
+            t2 = -2.0 * np.einsum("ajd,jd->a", cross / THETA_STEP, w)
+            out[s] = _bias(a_inv, t1, t2, t3, free[s], np)
+    return out
