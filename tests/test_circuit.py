@@ -301,7 +301,7 @@ def test_newton_stops_a_step_early_without_losing_accuracy(monkeypatch):
     def slopes():
         def f(lk, ih):
             return jax.vmap(functools.partial(solve._solve_one, full=False), in_axes=(None, None, 0, 0, 0, 0, 0, 0))(
-                p.replace(leakage=lk, iron_h_scale=ih), FEM_BEARING, *args)[:, 0]
+                p.replace(leakage=lk, iron_h_scale=ih), FEM_BEARING, *args)[0][:, 0]
 
         return np.stack(jax.jacfwd(f, argnums=(0, 1))(p.leakage, p.iron_h_scale), 1)
 
@@ -312,3 +312,69 @@ def test_newton_stops_a_step_early_without_losing_accuracy(monkeypatch):
     np.testing.assert_allclose(early.force, late.force, rtol=1e-13, atol=1e-12)
     np.testing.assert_allclose(early_slopes, late_slopes, rtol=1e-9)
     assert float(jnp.max(early.residual)) < 1e-12
+
+
+def test_a_warm_start_takes_fewer_steps_and_gives_the_same_forces_and_slopes():
+    # a fit's next point starts each reading's solve from the fluxes of its last (row_axis_force_and_flux): fewer
+    # Newton steps, the same force and derivatives; a start far off or not finite starts again from zero flux
+    from ambfit.physics.circuit import solve
+
+    p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
+    near = p.replace(leakage=p.leakage * 1.01, iron_h_scale=p.iron_h_scale * 0.99, gap=p.gap * 1.001)
+    args = random_readings(12, bias=2.5, reach=100e-6)
+    cos_t, sin_t, _ = solve._geometry(FEM_BEARING)
+
+    def steps(params, start):
+        def one(i_vt, i_vb, i_wt, i_wb, dv, dw, x0):
+            gaps = params.gap - dv * jnp.asarray(cos_t) - dw * jnp.asarray(sin_t)
+            return solve._newton(params, FEM_BEARING, jnp.stack([i_vt, i_vb, i_wt, i_wb]), gaps, x0)[1]
+        return np.asarray(jax.vmap(one)(*args, start))
+
+    def solved(params, start):
+        def f(lk, ih):
+            return jax.vmap(lambda *row: solve._solve_one(params.replace(leakage=lk, iron_h_scale=ih), FEM_BEARING,
+                                                          *row[:6], full=False, start=row[6]))(*args, start)
+        (force, flux), slopes = f(params.leakage, params.iron_h_scale), jax.jacfwd(
+            lambda lk, ih: f(lk, ih)[0], argnums=(0, 1))(params.leakage, params.iron_h_scale)
+        return np.asarray(force), np.asarray(flux), np.stack(slopes, -1)
+
+    zero = jnp.zeros((BATCH, solve.FLUX_WIDTH))
+    _, flux, _ = solved(p, zero)
+    assert np.all(flux != 0) or np.count_nonzero(flux) > flux.size // 2
+    assert steps(near, jnp.asarray(flux)).max() < steps(near, zero).max()
+    cold, _, cold_slopes = solved(near, zero)
+    far = jnp.asarray(flux) * 1e4 * np.random.default_rng(0).standard_normal(flux.shape)
+    for start in (jnp.asarray(flux), far, jnp.full_like(zero, jnp.nan)):
+        force, again, slopes = solved(near, start)
+        np.testing.assert_allclose(force, cold, rtol=1e-13, atol=1e-12)
+        np.testing.assert_allclose(slopes, cold_slopes, rtol=1e-9, atol=1e-9)
+    assert np.all(steps(near, jnp.asarray(again)) <= 2)         # the fluxes returned are the solution
+
+
+def test_each_rows_fluxes_come_back_for_the_next_evaluation():
+    # what a fit carries from one point to the next (Model.flux_width wide): each row's own solution, whatever start
+    # it was solved from
+    from ambfit.estimation.core import IDEAL, Model
+    from ambfit.physics.circuit import FLUX_WIDTH
+    from ambfit.physics.effects import MagneticCircuit
+    from ambfit.physics.model import BearingParams, Readings, evaluate
+
+    rng = np.random.default_rng(5)
+    n = 6
+    r = Readings.build(axis=np.arange(n) % 2, i_top=2.5 + rng.uniform(-0.9, 0.9, n),
+                       i_bottom=2.5 + rng.uniform(-0.9, 0.9, n), x=rng.uniform(-80e-6, 80e-6, n),
+                       y=rng.uniform(-80e-6, 80e-6, n), i_top_other=2.5 + rng.uniform(-0.9, 0.9, n),
+                       i_bottom_other=2.5 + rng.uniform(-0.9, 0.9, n))
+    params = BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], FEM_BEARING.force_constant())
+    mec = MagneticCircuit()
+    assert Model.of([mec], FEM_BEARING).flux_width == MagneticCircuit.FLUX_WIDTH == FLUX_WIDTH and IDEAL.flux_width == 0
+    force, ctx = evaluate(params, r, [mec], bearing=FEM_BEARING)
+    assert ctx.flux.shape == (n, FLUX_WIDTH) and np.all(np.any(np.asarray(ctx.flux) != 0, axis=1))
+    for i in (0, 3):
+        one = jax.tree.map(lambda a, i=i: a[i:i + 1], r)
+        np.testing.assert_allclose(evaluate(params, one, [mec], bearing=FEM_BEARING)[1].flux[0], ctx.flux[i],
+                                   rtol=1e-12, atol=1e-12)
+    again, ctx2 = evaluate(params, r, [mec], bearing=FEM_BEARING, flux_start=ctx.flux[::-1])   # another row's
+    np.testing.assert_allclose(again, force, rtol=1e-13)
+    np.testing.assert_allclose(ctx2.flux, ctx.flux, rtol=1e-10, atol=1e-12)
+    assert evaluate(params, r, [], bearing=FEM_BEARING)[1].flux is None

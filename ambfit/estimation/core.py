@@ -163,6 +163,12 @@ class Model(eqx.Module):
         """``ideal`` or the effect names joined with ``+`` (contract section 3)."""
         return "+".join(type(e).name for e in self.effects) or "ideal"
 
+    @property
+    def flux_width(self) -> int:
+        """The width per row of the solve an effect makes (the magnetic circuit's loop fluxes), whose solution
+        warm-starts the next evaluation (:func:`measured_from`); 0 without one."""
+        return max((type(e).FLUX_WIDTH for e in self.effects), default=0)
+
     def names(self) -> list[str]:
         """``effect.field[axis]`` per axis, or ``effect.field`` for a field both axes share (one stator)."""
         return list(_names(self.fields, tuple(type(e).name for e in self.effects)))
@@ -225,21 +231,39 @@ def force_misfit(theta, prob: Problem, model: Model = IDEAL):
     """Force misfit ``F - L`` [N] of every row, without the noise (what Levenberg-Marquardt differentiates: the
     effective-variance weights are held within a round, so tracing their derivatives there would only be
     thrown away, and a cold diagnosis is dominated by tracing and compiling)."""
+    return _misfit_and_flux(theta, prob, model)[0]
+
+
+def _misfit_and_flux(theta, prob: Problem, model: Model, flux_start=None):
+    """:func:`force_misfit` and the solution of the model's solve per row, started from ``flux_start``
+    (:meth:`ambfit.physics.stages.Effect.force_and_flux`; None for a model without one)."""
     p = unpack(theta, prob, model)
-    return _force(p.params, p.effects, prob, model) - target(prob, p.loads)
+    force, flux = _force(p.params, p.effects, prob, model, flux_start)
+    return force - target(prob, p.loads), flux
 
 
-def _force(params: BearingParams, effects: tuple, prob: Problem, model: Model):
-    """Each row's force [N]: Eq. 4 for the ideal model (a small program to trace), else the effect pipeline."""
+def _force(params: BearingParams, effects: tuple, prob: Problem, model: Model, flux_start=None):
+    """Each row's force [N] (Eq. 4 for the ideal model, a small program to trace, else the effect pipeline) and its
+    solve's solution (None without one)."""
     if not model.effects:
         a, r = prob.ax, prob.readings
-        return ideal_force(params.g0[a], params.x0[a], params.k[a], r.i_top, r.i_bottom, r.x, model.bearing.cos_alpha)
-    return evaluate(params, prob.readings, effects, bearing=model.bearing)[0]
+        return ideal_force(params.g0[a], params.x0[a], params.k[a], r.i_top, r.i_bottom, r.x,
+                           model.bearing.cos_alpha), None
+    force, ctx = evaluate(params, prob.readings, effects, bearing=model.bearing, flux_start=flux_start)
+    return force, ctx.flux
 
 
 def measured(theta, prob: Problem, model: Model = IDEAL, width: int | None = None, wrt_theta: bool = True):
     """``F - L`` [N] of every row, its effective noise std ``s_eff`` [N] and, with ``wrt_theta``, ``d(F - L)/d theta``
-    [rows, p]: the one place that differentiates the model.
+    [rows, p]: the one place that differentiates the model (:func:`measured_from` without a warm start)."""
+    return measured_from(theta, prob, model, width, wrt_theta)[:3]
+
+
+def measured_from(theta, prob: Problem, model: Model = IDEAL, width: int | None = None, wrt_theta: bool = True,
+                  flux_start=None):
+    """:func:`measured`, its model's solve per row started from ``flux_start`` (a warm start, e.g. the previous
+    point's; :attr:`Model.flux_width` wide), and that solve's solution as a fourth output (None for a model without
+    one).  The force does not depend on the start.
 
     One batched forward pass (``jax.jvp`` under ``vmap``): a tangent per entry of theta (with ``wrt_theta``), then
     one per reading (top current, bottom current, position) for the effective variance.  Forward mode is exact, so
@@ -250,7 +274,7 @@ def measured(theta, prob: Problem, model: Model = IDEAL, width: int | None = Non
     width = theta.shape[0] if width is None else width
 
     def force(th, it, ib, x):
-        return force_misfit(th[:width], prob.with_readings(it, ib, x), model)
+        return _misfit_and_flux(th[:width], prob.with_readings(it, ib, x), model, flux_start)
 
     n = r.x.shape[0]
     p = theta.shape[0] if wrt_theta else 0
@@ -259,9 +283,9 @@ def measured(theta, prob: Problem, model: Model = IDEAL, width: int | None = Non
     # tangents: a unit vector per entry of theta (rows 0..p-1), then one per reading (rows p, p+1, p+2)
     readings = [jnp.zeros((p + 3, n)).at[p + k].set(1.0) for k in range(3)]
     tangents = ([jnp.concatenate([jnp.eye(p), jnp.zeros((3, p))])] if wrt_theta else []) + readings
-    f, d = jax.vmap(lambda *t: jax.jvp(fn, primals, t), out_axes=(None, 1))(*tangents)
+    f, d, flux = jax.vmap(lambda *t: jax.jvp(fn, primals, t, has_aux=True), out_axes=(None, 1, None))(*tangents)
     dt, db, dx = d[:, p], d[:, p + 1], d[:, p + 2]
-    return f, _effective_noise(prob, dt, db, dx), d[:, :p]
+    return f, _effective_noise(prob, dt, db, dx), d[:, :p], flux
 
 
 def misfit(theta, prob: Problem, model: Model = IDEAL):

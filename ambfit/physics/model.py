@@ -168,7 +168,7 @@ def _per_row(value, axis):
 
 def make_context(
     params: BearingParams, readings: Readings, *, bearing: Bearing = PAPER_BEARING, m_prev_top=None,
-    m_prev_bottom=None,
+    m_prev_bottom=None, flux_start=None,
 ) -> Context:
     """Context for ``readings`` under ``params`` before any effect has acted."""
     ax = readings.axis
@@ -184,12 +184,13 @@ def make_context(
         m_prev_bottom=nan if m_prev_bottom is None else jnp.asarray(m_prev_bottom, dtype=float),
         i_top_other=nan if readings.i_top_other is None else readings.i_top_other,
         i_bottom_other=nan if readings.i_bottom_other is None else readings.i_bottom_other,
+        flux_start=flux_start,
     )
 
 
 def evaluate(
     params: BearingParams, readings: Readings, effects: Sequence[Effect] = (), *,
-    bearing: Bearing = PAPER_BEARING, physical: bool = False, m_prev_top=None, m_prev_bottom=None,
+    bearing: Bearing = PAPER_BEARING, physical: bool = False, m_prev_top=None, m_prev_bottom=None, flux_start=None,
 ) -> tuple[jnp.ndarray, Context]:
     """Force on each reading's axis [N] and the final :class:`~ambfit.physics.stages.Context`.
 
@@ -205,8 +206,12 @@ def evaluate(
     physical : bool
         When True the readings are already physical quantities and the sensor
         stage is skipped.
+    flux_start : array, optional
+        A warm start of an effect's solve per row (:meth:`~ambfit.physics.stages.Effect.force_and_flux`), e.g. the
+        returned context's ``flux`` at nearby parameters; the force does not depend on it.
     """
-    ctx = make_context(params, readings, bearing=bearing, m_prev_top=m_prev_top, m_prev_bottom=m_prev_bottom)
+    ctx = make_context(params, readings, bearing=bearing, m_prev_top=m_prev_top, m_prev_bottom=m_prev_bottom,
+                       flux_start=flux_start)
     if not physical:
         for e in effects:
             ctx = e.physical(ctx)
@@ -220,8 +225,12 @@ def evaluate(
     for e in effects:
         ctx = e.coil(ctx)
     force = horseshoe_force(ctx.k_top, ctx.m_top, ctx.g_top, ctx.k_bottom, ctx.m_bottom, ctx.g_bottom)
+    flux = None
     for e in effects:
-        force = e.force(ctx, force)
+        force, solved = e.force_and_flux(ctx, force)
+        flux = flux if solved is None else solved
+    if flux is not None:
+        ctx = eqx.tree_at(lambda c: c.flux, ctx, flux, is_leaf=lambda v: v is None)
     return force, ctx
 
 

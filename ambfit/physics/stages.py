@@ -62,6 +62,10 @@ class Context(eqx.Module):
     m_prev_bottom: jnp.ndarray
     i_top_other: jnp.ndarray
     i_bottom_other: jnp.ndarray
+    flux_start: jnp.ndarray | None = None
+    """A solve's warm start per row, e.g. the magnetic circuit's loop fluxes at a fit's previous point (None: cold)."""
+    flux: jnp.ndarray | None = None
+    """What that solve converged to, for the next evaluation's start (set by the ``force`` stage; None: no solve)."""
 
     def b_top(self) -> jnp.ndarray:
         """Ideal-circuit flux density in the top gaps [T] (:meth:`Bearing.flux_density`)."""
@@ -93,6 +97,8 @@ class Effect(eqx.Module):
     """Fields whose default is a fact of the bearing description: ``{field: Bearing attribute}``
     (:func:`ambfit.physics.effects.effect_by_name` fills them from the bearing it is given)."""
     stateful: ClassVar[bool] = False
+    FLUX_WIDTH: ClassVar[int] = 0
+    """The width of the solve per row whose solution :meth:`force_and_flux` returns (0: none)."""
 
     def ranges(self) -> dict[str, tuple[float, float]]:
         """The free parameters of this instance and their ranges (``RANGES``; an instance may fix some)."""
@@ -121,6 +127,11 @@ class Effect(eqx.Module):
 
     def force(self, ctx: Context, force):
         return force
+
+    def force_and_flux(self, ctx: Context, force):
+        """:meth:`force` and the solution of a solve per row it made from ``ctx.flux_start`` (None: none), for a
+        caller that evaluates again nearby (Levenberg-Marquardt's next point) to start from."""
+        return self.force(ctx, force), None
 
     def temperature(self, time_s, ambient_C):
         """Bearing temperature [°C] this effect implies at ``time_s`` (rig side only)."""

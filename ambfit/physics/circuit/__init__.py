@@ -62,6 +62,7 @@ Units: SI throughout (m, A, Wb, T, N).
 from ambfit.physics.circuit.iron import DEFAULT_MU_R, bh_curve
 from ambfit.physics.circuit.network import POLE_SPLIT, ROTOR_SPLIT, YOKE_SPLIT, MECParams
 from ambfit.physics.circuit.solve import (
+    FLUX_WIDTH,
     MAX_NEWTON,
     NEWTON_FAILED,
     NEWTON_STOP,
@@ -70,9 +71,11 @@ from ambfit.physics.circuit.solve import (
     mec_forces,
     mec_solve,
     row_axis_force,
+    row_axis_force_and_flux,
 )
 
 __all__ = [
-    "MECParams", "MECSolution", "mec_solve", "mec_forces", "mec_axis_force", "row_axis_force", "bh_curve",
+    "MECParams", "MECSolution", "mec_solve", "mec_forces", "mec_axis_force", "row_axis_force",
+    "row_axis_force_and_flux", "bh_curve", "FLUX_WIDTH",
     "MAX_NEWTON", "NEWTON_FAILED", "NEWTON_STOP", "POLE_SPLIT", "YOKE_SPLIT", "ROTOR_SPLIT", "DEFAULT_MU_R",
 ]

@@ -49,6 +49,18 @@ bearing's readings a stop at 1e-13 takes a fifth step on a quarter of them only 
 takes four (the forces agree to 1e-15 relative).  A stop at 1e-8 saves no further step there and moves the
 derivatives by 1e-7."""
 
+WARM_NEWTON = 10
+"""A solve started from fluxes other than zero (a warm start: the solution at nearby parameters,
+:func:`row_axis_force_and_flux`) that still moves after this many steps starts again from zero flux, with the steps
+left of :data:`MAX_NEWTON`.  From the fluxes of a fit's previous point Newton takes 2-5 steps on the finite-element
+development bearing, from zero 4-8; a start far off could take longer than from zero, or diverge."""
+
+WARM_STOP = 1e-12
+"""The stop of a warm start's solve (:data:`NEWTON_STOP` from zero flux).  From nearby fluxes Newton's steps shrink
+from 1e-3 or so, and a last step just below 1e-10 leaves the factors the derivatives come from that far from the
+solution: derivatives 1e-8 off where a start from zero, whose steps reach the stop from further off, ends far below
+it.  At 1e-12 the derivatives agree with a start from zero to 1e-9."""
+
 NEWTON_FAILED = 1e-8
 """A solve whose last Newton step still moved the fluxes by more than this (relative) after :data:`MAX_NEWTON`
 steps did not converge: its force is NaN.  One that used all its steps but last moved by less is accepted (its
@@ -98,6 +110,9 @@ class MECSolution(eqx.Module):
 # Jacobian is written out (the iron's ``l H'(B) / A`` on the flux maps) instead of traced.
 
 _NX = 2 * _N_POLES + 1
+
+FLUX_WIDTH = _NX
+"""The unknowns of one reading's solve (the loop fluxes, scaled): the width of a warm start."""
 
 
 def _flux_maps():
@@ -179,13 +194,15 @@ def _loop_system(x, p: MECParams, bearing: Bearing, currents, gaps, with_jacobia
     return r, jac, out
 
 
-def _newton(p, bearing, currents, gaps):
-    """Newton's method on the loop fluxes from zero flux; returns ``x``, the steps, the last LU factors and
-    whether it converged (see :data:`NEWTON_FAILED`)."""
+def _newton(p, bearing, currents, gaps, x0):
+    """Newton's method on the loop fluxes from ``x0`` (zero flux, or a warm start: :data:`WARM_NEWTON`); returns
+    ``x``, the steps, the last LU factors and whether it converged (see :data:`NEWTON_FAILED`)."""
+    warm = jnp.any(x0 != 0.0)
+    stop = jnp.where(warm, WARM_STOP, NEWTON_STOP)
 
     def cond(state):
         _, step, res, it, _ = state
-        return (step > NEWTON_STOP) & (res > 1e-14) & (it < MAX_NEWTON)
+        return (step > stop) & (res > 1e-14) & (it < MAX_NEWTON)
 
     def body(state):
         x, _, _, it, _ = state
@@ -193,21 +210,26 @@ def _newton(p, bearing, currents, gaps):
         lu = jax.scipy.linalg.lu_factor(jac)
         dx = jax.scipy.linalg.lu_solve(lu, r)
         scale = jnp.maximum(jnp.max(jnp.abs(x)), 1.0)
-        return x - dx, jnp.max(jnp.abs(dx)) / scale, jnp.max(jnp.abs(r)), it + 1, lu
+        step = jnp.max(jnp.abs(dx)) / scale
+        # a warm start still moving after its steps: again from zero flux
+        again = warm & (it + 1 == WARM_NEWTON) & (step > stop)
+        return (jnp.where(again, 0.0, x - dx), jnp.where(again, jnp.inf, step), jnp.max(jnp.abs(r)), it + 1, lu)
 
-    x0 = jnp.zeros(_NX)
     inf = jnp.asarray(jnp.inf)
     lu0 = (jnp.zeros((_NX, _NX)), jnp.zeros(_NX, dtype=jnp.int32))
     x, step, res, it, lu = jax.lax.while_loop(cond, body, (x0, inf, inf, jnp.asarray(0), lu0))
     return x, it, lu, (step <= NEWTON_FAILED) | (res <= 1e-14)
 
 
-def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, full: bool = True):
+def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, full: bool = True, start=None):
+    """One reading's solve: its :class:`MECSolution` (``full``), else its force and the loop fluxes it converged to
+    (zero where it did not), from ``start`` (zero flux if None)."""
     cos_t, sin_t, _ = _geometry(bearing)
     currents = jnp.stack([jnp.asarray(c, dtype=float) for c in (i_vt, i_vb, i_wt, i_wb)])
     gaps = p.gap - dv * jnp.asarray(cos_t) - dw * jnp.asarray(sin_t)
+    x0 = jnp.zeros(_NX) if start is None else jax.lax.stop_gradient(jnp.where(jnp.isfinite(start), start, 0.0))
     x_star, iterations, lu, converged = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
-                                     jax.lax.stop_gradient(gaps))
+                                                jax.lax.stop_gradient(gaps), x0)
     x_star, lu = jax.lax.stop_gradient((x_star, lu))
     # One more Newton step with the Jacobian held constant (the last step's factors, taken one step of at most
     # NEWTON_STOP before x_star, NEWTON_FAILED when the solve used all its steps): the same value, and
@@ -222,7 +244,7 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     force = jnp.stack([jnp.sum(pole_force * jnp.asarray(cos_t)), jnp.sum(pole_force * jnp.asarray(sin_t))])
     force = jnp.where(converged, force, jnp.nan)          # never a wrong number: the caller sees NaN rows
     if not full:
-        return force
+        return force, jnp.where(converged, x_star, 0.0)
     # The nodal unknowns, for the nodal residual of the solution (MECSolution.residual).
     u_ref, _, f_ref = _scales(bearing)
     bh = bh_curve(bearing)
@@ -318,10 +340,14 @@ def mec_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     return jnp.where(is_v, f[..., 0], f[..., 1])
 
 
-def _rows(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw):
-    """:func:`_solve_one`'s force over rows whose parameters differ row by row (every field shaped ``(n,)``)."""
-    one = functools.partial(_solve_one, full=False)
-    return jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0))(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw)
+def _rows(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
+    """:func:`_solve_one`'s force and loop fluxes over rows whose parameters differ row by row (every field shaped
+    ``(n,)``), from ``start`` [n, FLUX_WIDTH] (zero flux if None)."""
+    def one(p, *row):
+        return _solve_one(p, bearing, *row[:6], full=False, start=row[6] if start is not None else None)
+
+    rows = (i_vt, i_vb, i_wt, i_wb, dv, dw) + ((start,) if start is not None else ())
+    return jax.vmap(one)(params, *rows)
 
 
 _solve_rows = jax.jit(_rows, static_argnums=1)
@@ -332,9 +358,20 @@ _solve_rows = jax.jit(_rows, static_argnums=1)
 def row_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i_top_other, i_bottom_other,
                    x, y, x0, y0):
     """:func:`mec_axis_force` with parameters given per row (each field broadcast to the rows)."""
+    return row_axis_force_and_flux(params, bearing, axis, i_top, i_bottom, i_top_other, i_bottom_other,
+                                   x, y, x0, y0)[0]
+
+
+def row_axis_force_and_flux(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i_top_other,
+                            i_bottom_other, x, y, x0, y0, start=None):
+    """:func:`row_axis_force` and each row's loop fluxes [n, :data:`FLUX_WIDTH`] (scaled; zero where its solve did
+    not converge), solved from ``start`` (such fluxes, e.g. at a fit's previous parameters; zero flux if None).
+
+    The force does not depend on the start: every solve converges to the circuit's one solution and ends with the
+    same implicit-function step (it agrees with a solve from zero flux to round-off)."""
     axis = jnp.asarray(axis)
     n = axis.shape[0]
     rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
     is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
-    f = (_rows if traced(rows, inputs) else _solve_rows)(rows, bearing, *inputs)
-    return jnp.where(is_v, f[:, 0], f[:, 1])
+    f, flux = (_rows if traced(rows, inputs, start) else _solve_rows)(rows, bearing, *inputs, start)
+    return jnp.where(is_v, f[:, 0], f[:, 1]), flux

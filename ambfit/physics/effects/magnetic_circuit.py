@@ -64,6 +64,7 @@ class MagneticCircuit(Effect):
                         "pole_area_ratio": (0.5, 1.0)}
     UNITS: ClassVar = {"fringe_depth": "m", "leakage": "-", "iron_scale": "-", "pole_area_ratio": "-"}
     needs_other_axis: ClassVar[bool] = True
+    FLUX_WIDTH: ClassVar[int] = 17         # the circuit's loop fluxes (ambfit.physics.circuit.FLUX_WIDTH)
     SHARED: ClassVar[bool] = True          # one stator: the same parameters for both axes
     FAMILIES: ClassVar = ("saturation", "iron_reluctance", "fringing", "leakage", "cross_coupling")
 
@@ -93,6 +94,11 @@ class MagneticCircuit(Effect):
         return eqx.tree_at(lambda e: e.on, self, on)
 
     def force(self, ctx, force):
+        return self.force_and_flux(ctx, force)[0]
+
+    def force_and_flux(self, ctx, force):
+        """The circuit's force and each row's loop fluxes, solved from ``ctx.flux_start``
+        (:func:`ambfit.physics.circuit.row_axis_force_and_flux`)."""
         from ambfit.physics import circuit
 
         a = ctx.axis
@@ -102,6 +108,6 @@ class MagneticCircuit(Effect):
             iron_h_scale=iron * _ax(self.iron_scale, a),
             pole_area_ratio=iron * _ax(self.pole_area_ratio, a) + (1.0 - iron), link=coupling, saturation=sat)
         bearing = ctx.bearing
-        f = circuit.row_axis_force(params, bearing, a, ctx.m_top, ctx.m_bottom, ctx.i_top_other,
-                                   ctx.i_bottom_other, ctx.x, ctx.y, ctx.x0, ctx.y0)
-        return f * ctx.k / ctx.bearing.force_constant(1.0)
+        f, flux = circuit.row_axis_force_and_flux(params, bearing, a, ctx.m_top, ctx.m_bottom, ctx.i_top_other,
+                                                  ctx.i_bottom_other, ctx.x, ctx.y, ctx.x0, ctx.y0, ctx.flux_start)
+        return f * ctx.k / ctx.bearing.force_constant(1.0), flux
