@@ -378,3 +378,34 @@ def test_each_rows_fluxes_come_back_for_the_next_evaluation():
     np.testing.assert_allclose(again, force, rtol=1e-13)
     np.testing.assert_allclose(ctx2.flux, ctx.flux, rtol=1e-10, atol=1e-12)
     assert evaluate(params, r, [], bearing=FEM_BEARING)[1].flux is None
+
+
+@pytest.mark.parametrize("piece", ["saturation", "iron", "fringing", "leakage", "coupling"])
+def test_a_piece_off_idles_exactly_the_parameters_it_names(piece):
+    # the refits of the circuit's pieces start these parameters at their prior centre (circuit_families): they must
+    # be the ones the force no longer depends on, and only those
+    import equinox as eqx
+
+    from ambfit.physics.effects import MagneticCircuit
+    from ambfit.physics.model import BearingParams, Readings, evaluate
+
+    rng = np.random.default_rng(7)
+    n = 8
+    r = Readings.build(axis=np.arange(n) % 2, i_top=2.0 + rng.uniform(-0.9, 0.9, n),
+                       i_bottom=2.0 + rng.uniform(-0.9, 0.9, n), x=rng.uniform(-80e-6, 80e-6, n),
+                       y=rng.uniform(-80e-6, 80e-6, n), i_top_other=2.0 + rng.uniform(-0.9, 0.9, n),
+                       i_bottom_other=2.0 + rng.uniform(-0.9, 0.9, n))
+    params = BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], FEM_BEARING.force_constant())
+    mec = MagneticCircuit().without(piece)
+    names = ("fringe_depth", "leakage", "iron_scale", "pole_area_ratio")
+
+    def force(values):
+        e = eqx.tree_at(lambda m: tuple(getattr(m, k) for k in names), mec, values)
+        return evaluate(params, r, [e], bearing=FEM_BEARING)[0]
+
+    slopes = jax.jacfwd(force)(tuple(jnp.asarray(v) for v in (2.5e-3, 0.45, 1.1, 0.8)))
+    assert np.all(np.isfinite(np.asarray(force(tuple(jnp.asarray(v) for v in (2.5e-3, 0.45, 1.1, 0.8))))))
+    # each parameter's pull on the force over its own size [N]: 0.1-6 N where it acts; with ideal iron slot leakage
+    # keeps 4e-10 N, the reluctance of the MU_R_MAX ceiling
+    size = [float(np.max(np.abs(np.asarray(d))) * v) for d, v in zip(slopes, (2.5e-3, 0.45, 1.1, 0.8))]
+    assert {k for k, f in zip(names, size) if f < 1e-8 * max(size)} == set(mec.idle)

@@ -20,7 +20,7 @@ that is not a rounding's zero was 1.2e-7 (a saturation sharpness).
 
 When a change is *meant* to change the diagnosis, regenerate the references and say so in the commit:
 
-    .venv/bin/python tests/test_diagnosis_golden.py --regenerate
+    .venv/bin/python tests/test_diagnosis_golden.py --regenerate [CASE ...]
 """
 
 import gzip
@@ -163,8 +163,9 @@ def test_the_comparison_sees_a_changed_number_a_reordered_key_and_a_changed_word
 if __name__ == "__main__" and "--regenerate" in sys.argv:
     import tempfile
 
+    named = [a for a in sys.argv[1:] if a in CASES]          # (default: every case)
     with tempfile.TemporaryDirectory() as tmp:
-        for name in CASES:
+        for name in named or CASES:
             (REFS / f"{name}.json.gz").write_bytes(gzip.compress(
                 (json.dumps(diagnosis_of(name, Path(tmp)), indent=2) + "\n").encode(), mtime=0))
             print("wrote", REFS / f"{name}.json.gz")

@@ -117,7 +117,8 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
 
     def refine(piece) -> None:
         # ideal iron starts from constant-permeability iron, the nearer model (neither has the B-H curve's knee)
-        f = refits.get(piece, refits.get("saturation", full) if piece == "iron" else full)
+        f = refits.get(piece) or _idle_centred(refits.get("saturation", full) if piece == "iron" else full,
+                                               off[piece], bearing)
         while spent[piece] < max_steps:
             # alpha=0: no reading is tested as an outlier (a refit without a piece misfits many; naming them
             # would cost a Cauchy-weighted refit per call and change nothing here)
@@ -149,6 +150,21 @@ def circuit_families(data: pd.DataFrame, full: FitResult, bearing: Bearing, max_
                                  significant=bool(lo > threshold), converged=_settled(f, threshold),
                                  decided=bool(decided(piece)), edm=f.edm, steps=spent[piece]))
     return sorted(out, key=lambda r: -r.delta_chi2)
+
+
+def _idle_centred(f: FitResult, mec, bearing: Bearing) -> FitResult:
+    """``f`` as a start for the circuit ``mec``: the parameters its pieces that are off leave without effect at their
+    prior centre, where the refit's prior would take them (from ``f``'s values it drags them there step by step)."""
+    from ambfit.estimation.core import Model
+
+    model = Model.of([mec], bearing)
+    idle = set(mec.idle)
+    theta = np.array(f.theta, dtype=float)
+    first = len(theta) - model.n
+    for j, name in enumerate(model.names()):
+        if name.split(".", 1)[1].split("[")[0] in idle:
+            theta[first + j] = 0.0                       # (an effect parameter's prior centre is q = 0)
+    return dataclasses.replace(f, theta=theta)
 
 
 def _settled(f: FitResult, threshold: float) -> bool:

@@ -57,6 +57,10 @@ class MagneticCircuit(Effect):
     held: tuple = eqx.field(static=True, default=(), converter=tuple)
     name: ClassVar[str] = "magnetic_circuit"
     PIECES: ClassVar = ("saturation", "iron", "fringing", "leakage", "coupling")
+    IDLE: ClassVar = {"iron": ("leakage", "iron_scale", "pole_area_ratio"), "fringing": ("fringe_depth",),
+                      "leakage": ("leakage",)}
+    """The parameters the force no longer depends on when a piece is off (ideal iron has no drop along the pole that
+    slot leakage could divert flux from; a billionth of its effect remains, from iron's ``MU_R_MAX`` ceiling)."""
     """``saturation`` off: the iron keeps a constant permeability (the B-H curve's initial slope, scaled by
     ``iron_scale``); ``iron`` off: ideal iron; ``fringing``, ``leakage`` off: no such permeances;
     ``coupling`` off: isolated horseshoes (the ideal law's assumption)."""
@@ -81,6 +85,11 @@ class MagneticCircuit(Effect):
     def off(self) -> tuple:
         """The pieces switched off (concrete values only, not inside a traced function)."""
         return tuple(p for p, flag in zip(self.PIECES, np.asarray(self.on)) if flag == 0)
+
+    @property
+    def idle(self) -> tuple:
+        """The parameters of no effect with the pieces that are off (``IDLE``; concrete values only)."""
+        return tuple(dict.fromkeys(n for piece in self.off for n in self.IDLE.get(piece, ())))
 
     def without(self, piece: str) -> MagneticCircuit:
         """The same circuit with one more piece (``PIECES``) switched off."""
