@@ -171,8 +171,8 @@ def test_identify_takes_the_bias_from_its_solves_program(tmp_path, table2, monke
     from ambfit.faces.cli import app
 
     calls = []
-    batched = debias.biases_of_sets
-    monkeypatch.setattr(debias, "biases_of_sets", lambda *a: calls.append(1) or batched(*a))
+    batched = debias.bias_of_one
+    monkeypatch.setattr(debias, "bias_of_one", lambda *a: calls.append(1) or batched(*a))
     csv = tmp_path / "t2.csv"
     table2.to_csv(csv, index=False)
     js = tmp_path / "t2.json"
