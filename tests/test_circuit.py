@@ -409,3 +409,26 @@ def test_a_piece_off_idles_exactly_the_parameters_it_names(piece):
     # keeps 4e-10 N, the reluctance of the MU_R_MAX ceiling
     size = [float(np.max(np.abs(np.asarray(d))) * v) for d, v in zip(slopes, (2.5e-3, 0.45, 1.1, 0.8))]
     assert {k for k, f in zip(names, size) if f < 1e-8 * max(size)} == set(mec.idle)
+
+
+def test_a_warm_start_restarted_from_zero_flux_gives_the_cold_force(monkeypatch):
+    # a warm start still moving after WARM_NEWTON steps starts again from zero flux; its residual, already at
+    # round-off, must not end the fresh solve at zero flux (a wrong force flagged converged). Forced here: no step
+    # is small enough to stop a warm solve, and the restart comes after four steps
+    from ambfit.physics.circuit import solve
+
+    p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
+    for seed, bias in ((1, 1.5), (13, 2.5)):
+        args = random_readings(seed, bias=bias, reach=100e-6)
+
+        def forces(start, args=args):
+            return np.asarray(jax.vmap(lambda *row: solve._solve_one(p, FEM_BEARING, *row[:6], full=False,
+                                                                     start=row[6])[0])(*args, start))
+
+        cold = forces(jnp.zeros((BATCH, solve.FLUX_WIDTH)))
+        flux = jax.vmap(lambda *row: solve._solve_one(p, FEM_BEARING, *row, full=False)[1])(*args)
+        with monkeypatch.context() as m:
+            m.setattr(solve, "WARM_STOP", 0.0)
+            m.setattr(solve, "WARM_NEWTON", 4)
+            for off in (1.02, 1.001):
+                np.testing.assert_allclose(forces(flux * off), cold, rtol=1e-12)

@@ -356,8 +356,8 @@ bias_of_one = eqx.filter_jit(eqx.filter_vmap(_bias_one, in_axes=(0, 0, 0, 0, Non
 the two programs below cost two."""
 
 directions_of_sets = eqx.filter_jit(eqx.filter_vmap(_directions, in_axes=(0, 0, 0, 0, None, 0, 0, 0)))
-""":func:`_directions` of a batch of data sets.  A program of its own: compiled into one with :func:`_finished`, the
-middle term's evaluations of a batch of 64 data sets ran four times slower (one data set's did not)."""
+""":func:`_directions` of a batch of data sets.  A program of its own: compiled into one program with
+:func:`_finished`, XLA builds a batch's middle term poorly (one data set's well)."""
 
 finished_of_sets = eqx.filter_jit(eqx.filter_vmap(_finished, in_axes=(0, 0, 0, None, 0, 0, 0)))
 """:func:`_finished` of a batch of data sets."""

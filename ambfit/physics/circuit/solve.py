@@ -213,7 +213,8 @@ def _newton(p, bearing, currents, gaps, x0):
         step = jnp.max(jnp.abs(dx)) / scale
         # a warm start still moving after its steps: again from zero flux
         again = warm & (it + 1 == WARM_NEWTON) & (step > stop)
-        return (jnp.where(again, 0.0, x - dx), jnp.where(again, jnp.inf, step), jnp.max(jnp.abs(r)), it + 1, lu)
+        return (jnp.where(again, 0.0, x - dx), jnp.where(again, jnp.inf, step),
+                jnp.where(again, jnp.inf, jnp.max(jnp.abs(r))), it + 1, lu)
 
     inf = jnp.asarray(jnp.inf)
     lu0 = (jnp.zeros((_NX, _NX)), jnp.zeros(_NX, dtype=jnp.int32))

@@ -57,13 +57,13 @@ class MagneticCircuit(Effect):
     held: tuple = eqx.field(static=True, default=(), converter=tuple)
     name: ClassVar[str] = "magnetic_circuit"
     PIECES: ClassVar = ("saturation", "iron", "fringing", "leakage", "coupling")
+    """``saturation`` off: the iron keeps a constant permeability (the B-H curve's initial slope, scaled by
+    ``iron_scale``); ``iron`` off: ideal iron; ``fringing``, ``leakage`` off: no such permeances;
+    ``coupling`` off: isolated horseshoes (the ideal law's assumption)."""
     IDLE: ClassVar = {"iron": ("leakage", "iron_scale", "pole_area_ratio"), "fringing": ("fringe_depth",),
                       "leakage": ("leakage",)}
     """The parameters the force no longer depends on when a piece is off (ideal iron has no drop along the pole that
     slot leakage could divert flux from; a billionth of its effect remains, from iron's ``MU_R_MAX`` ceiling)."""
-    """``saturation`` off: the iron keeps a constant permeability (the B-H curve's initial slope, scaled by
-    ``iron_scale``); ``iron`` off: ideal iron; ``fringing``, ``leakage`` off: no such permeances;
-    ``coupling`` off: isolated horseshoes (the ideal law's assumption)."""
     RANGES: ClassVar = {"fringe_depth": (1.0e-3, 5.0e-3), "leakage": (0.2, 1.0), "iron_scale": (0.5, 2.0),
                         "pole_area_ratio": (0.5, 1.0)}
     UNITS: ClassVar = {"fringe_depth": "m", "leakage": "-", "iron_scale": "-", "pole_area_ratio": "-"}
