@@ -95,7 +95,7 @@ class Discrepancy:
         follows each coil's path (its memory group).
         """
         g = self.basis.matrix(readings, frame) - np.asarray(sensitivity) @ self.projection
-        return g @ self.coef, np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, self.cov, g), 0.0))
+        return g @ self.coef, np.sqrt(np.maximum(np.sum((g @ self.cov) * g, axis=1), 0.0))
 
     def largest(self, n: int = 5) -> list[dict]:
         """The ``n`` basis terms that carry most of the correction (coefficient over its standard error)."""
@@ -298,4 +298,4 @@ def fit_discrepancy(result: FitResult, data: Dataset | pd.DataFrame, *, sigma_i:
                        tau=dict(zip(basis.groups, map(float, tau_g))), log_bayes=dict(zip(basis.groups, map(float, bayes))),
                        effective_parameters=neff, row_correction=row, row_correction_n=row * s,
                        unconstrained_shift=unconstrained, row_noise_n=s,
-                       row_variance=np.maximum(np.einsum("ni,ij,nj->n", b_perp, cov, b_perp), 0.0))
+                       row_variance=np.maximum(np.sum((b_perp @ cov) * b_perp, axis=1), 0.0))

@@ -327,7 +327,7 @@ class FittedModel:
                        k_free=jnp.ones(2, dtype=bool), mask=jnp.ones(n), s_held=jnp.zeros(n))
         f, s, d = (np.asarray(a) for a in measured(jnp.asarray(theta), prob, model))
         jac = d[:, columns] / si_scale(prob, model)[0][columns]          # dF/d(each of names) [N per SI unit]
-        val, var = f, np.einsum("ni,ij,nj->n", jac, self.cov, jac)
+        val, var = f, np.sum((jac @ self.cov) * jac, axis=1)
         if self.discrepancy is not None:
             # the correction is orthogonal to the parameters: its variance adds (no cross-covariance)
             delta, delta_std = self.discrepancy.correction(readings, jac)
