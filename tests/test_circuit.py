@@ -324,19 +324,27 @@ def test_a_warm_start_takes_fewer_steps_and_gives_the_same_forces_and_slopes():
     args = random_readings(12, bias=2.5, reach=100e-6)
     cos_t, sin_t, _ = solve._geometry(FEM_BEARING)
 
-    def steps(params, start):
+    @jax.jit
+    def newton_steps(params, start):
         def one(i_vt, i_vb, i_wt, i_wb, dv, dw, x0):
             gaps = params.gap - dv * jnp.asarray(cos_t) - dw * jnp.asarray(sin_t)
             return solve._newton(params, FEM_BEARING, jnp.stack([i_vt, i_vb, i_wt, i_wb]), gaps, x0)[1]
-        return np.asarray(jax.vmap(one)(*args, start))
+        return jax.vmap(one)(*args, start)
 
-    def solved(params, start):
+    @jax.jit
+    def solved_(params, start):
         def f(lk, ih):
             return jax.vmap(lambda *row: solve._solve_one(params.replace(leakage=lk, iron_h_scale=ih), FEM_BEARING,
                                                           *row[:6], full=False, start=row[6]))(*args, start)
         (force, flux), slopes = f(params.leakage, params.iron_h_scale), jax.jacfwd(
             lambda lk, ih: f(lk, ih)[0], argnums=(0, 1))(params.leakage, params.iron_h_scale)
-        return np.asarray(force), np.asarray(flux), np.stack(slopes, -1)
+        return force, flux, jnp.stack(slopes, -1)
+
+    def steps(params, start):
+        return np.asarray(newton_steps(params, start))
+
+    def solved(params, start):
+        return tuple(np.asarray(a) for a in solved_(params, start))
 
     zero = jnp.zeros((BATCH, solve.FLUX_WIDTH))
     _, flux, _ = solved(p, zero)
@@ -380,8 +388,7 @@ def test_each_rows_fluxes_come_back_for_the_next_evaluation():
     assert evaluate(params, r, [], bearing=FEM_BEARING)[1].flux is None
 
 
-@pytest.mark.parametrize("piece", ["saturation", "iron", "fringing", "leakage", "coupling"])
-def test_a_piece_off_idles_exactly_the_parameters_it_names(piece):
+def test_a_piece_off_idles_exactly_the_parameters_it_names():
     # the refits of the circuit's pieces start these parameters at their prior centre (circuit_families): they must
     # be the ones the force no longer depends on, and only those
     import equinox as eqx
@@ -396,19 +403,21 @@ def test_a_piece_off_idles_exactly_the_parameters_it_names(piece):
                        y=rng.uniform(-80e-6, 80e-6, n), i_top_other=2.0 + rng.uniform(-0.9, 0.9, n),
                        i_bottom_other=2.0 + rng.uniform(-0.9, 0.9, n))
     params = BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], FEM_BEARING.force_constant())
-    mec = MagneticCircuit().without(piece)
     names = ("fringe_depth", "leakage", "iron_scale", "pole_area_ratio")
+    at = tuple(jnp.asarray(v) for v in (2.5e-3, 0.45, 1.1, 0.8))
 
-    def force(values):
+    def force(values, mec):
         e = eqx.tree_at(lambda m: tuple(getattr(m, k) for k in names), mec, values)
         return evaluate(params, r, [e], bearing=FEM_BEARING)[0]
 
-    slopes = jax.jacfwd(force)(tuple(jnp.asarray(v) for v in (2.5e-3, 0.45, 1.1, 0.8)))
-    assert np.all(np.isfinite(np.asarray(force(tuple(jnp.asarray(v) for v in (2.5e-3, 0.45, 1.1, 0.8))))))
-    # each parameter's pull on the force over its own size [N]: 0.1-6 N where it acts; with ideal iron slot leakage
-    # keeps 4e-10 N, the reluctance of the MU_R_MAX ceiling
-    size = [float(np.max(np.abs(np.asarray(d))) * v) for d, v in zip(slopes, (2.5e-3, 0.45, 1.1, 0.8))]
-    assert {k for k, f in zip(names, size) if f < 1e-8 * max(size)} == set(mec.idle)
+    pull = jax.jit(jax.jacfwd(force))               # (the pieces are an array: one program for all five)
+    for piece in MagneticCircuit.PIECES:
+        mec = MagneticCircuit().without(piece)
+        # each parameter's pull on the force over its own size [N]: 0.1-6 N where it acts; with ideal iron slot
+        # leakage keeps 4e-10 N, the reluctance of the MU_R_MAX ceiling
+        size = [float(np.max(np.abs(np.asarray(d))) * v) for d, v in zip(pull(at, mec), (2.5e-3, 0.45, 1.1, 0.8))]
+        assert all(np.isfinite(size)), piece
+        assert {k for k, f in zip(names, size) if f < 1e-8 * max(size)} == set(mec.idle), piece
 
 
 def test_a_warm_start_restarted_from_zero_flux_gives_the_cold_force(monkeypatch):
@@ -418,17 +427,18 @@ def test_a_warm_start_restarted_from_zero_flux_gives_the_cold_force(monkeypatch)
     from ambfit.physics.circuit import solve
 
     p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
+
+    def solver():                   # (the constants are read as it is traced: one program before the patch, one after)
+        return jax.jit(lambda args, x0: jax.vmap(lambda *row: solve._solve_one(
+            p, FEM_BEARING, *row[:6], full=False, start=row[6]))(*args, x0))
+
+    cold = solver()
+    zero = jnp.zeros((BATCH, solve.FLUX_WIDTH))
+    monkeypatch.setattr(solve, "WARM_STOP", 0.0)
+    monkeypatch.setattr(solve, "WARM_NEWTON", 4)
+    restarted = solver()
     for seed, bias in ((1, 1.5), (13, 2.5)):
         args = random_readings(seed, bias=bias, reach=100e-6)
-
-        def forces(start, args=args):
-            return np.asarray(jax.vmap(lambda *row: solve._solve_one(p, FEM_BEARING, *row[:6], full=False,
-                                                                     start=row[6])[0])(*args, start))
-
-        cold = forces(jnp.zeros((BATCH, solve.FLUX_WIDTH)))
-        flux = jax.vmap(lambda *row: solve._solve_one(p, FEM_BEARING, *row, full=False)[1])(*args)
-        with monkeypatch.context() as m:
-            m.setattr(solve, "WARM_STOP", 0.0)
-            m.setattr(solve, "WARM_NEWTON", 4)
-            for off in (1.02, 1.001):
-                np.testing.assert_allclose(forces(flux * off), cold, rtol=1e-12)
+        force, flux = cold(args, zero)
+        for off in (1.02, 1.001):
+            np.testing.assert_allclose(restarted(args, flux * off)[0], force, rtol=1e-12)
