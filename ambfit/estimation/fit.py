@@ -117,7 +117,10 @@ def fit(data: Dataset | pd.DataFrame, effects: Sequence[Effect] = (), *, bearing
         The model is ``adequate`` when χ² has a p-value of at least this (only when the noise
         levels are known, not estimated from the residuals).
     max_steps : int
-        Levenberg-Marquardt step budget per reweighting round (:func:`ambfit.estimation.batches.solve_sets`).
+        Levenberg-Marquardt step budget per reweighting round (:func:`ambfit.estimation.batches.solve_sets`).  Each
+        round starts its trust region afresh (step size 1, quartered on each rejected step): a fit continued from
+        ``start_from`` a few steps at a time may not move at all in a narrow valley (on the finite-element
+        bearing's circuit, 5 steps a round do not; 20 do).
     loss : {"auto", "linear", "huber", "cauchy"}
         ``auto`` (default): least squares with an outlier test on the studentized residuals; readings
         beyond the Bonferroni bound (false-alarm probability ``alpha`` per data set) are named in
