@@ -428,17 +428,16 @@ def test_a_warm_start_restarted_from_zero_flux_gives_the_cold_force(monkeypatch)
 
     p = MECParams.drawing(FEM_BEARING, **SAVED_PARAMS)
 
-    def solver():                   # (the constants are read as it is traced: one program before the patch, one after)
+    def solver():                   # (jit reads the constants when it traces, at its first call)
         return jax.jit(lambda args, x0: jax.vmap(lambda *row: solve._solve_one(
             p, FEM_BEARING, *row[:6], full=False, start=row[6]))(*args, x0))
 
-    cold = solver()
-    zero = jnp.zeros((BATCH, solve.FLUX_WIDTH))
+    cold, zero = solver(), jnp.zeros((BATCH, solve.FLUX_WIDTH))
+    cases = [random_readings(seed, bias=bias, reach=100e-6) for seed, bias in ((1, 1.5), (13, 2.5))]
+    solved = [cold(args, zero) for args in cases]            # traced and run before the patch
     monkeypatch.setattr(solve, "WARM_STOP", 0.0)
     monkeypatch.setattr(solve, "WARM_NEWTON", 4)
     restarted = solver()
-    for seed, bias in ((1, 1.5), (13, 2.5)):
-        args = random_readings(seed, bias=bias, reach=100e-6)
-        force, flux = cold(args, zero)
+    for args, (force, flux) in zip(cases, solved):
         for off in (1.02, 1.001):
             np.testing.assert_allclose(restarted(args, flux * off)[0], force, rtol=1e-12)
