@@ -256,13 +256,14 @@ def _solve_in(theta0, prob, models, index, budget, reweightings, edm_round, rtol
         steps = jnp.where(start, 1, c.steps + 1)
         over = done | (steps >= budget)
         outcome = RESULTS.where(done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
+        # the accepted point's measurement and its solve per row, kept for the solution and the next trial
+        at, flux = jax.tree.map(lambda new, old: jnp.where(accept, new, old), ((f, s_now, jf), flux), (c.at, c.flux))
         return _State(y=y, r=r, jac=jac, s=s, step_size=step_size, steps=steps,
                       y_eval=jnp.where(over, y, y - _damped_step(jac, r, step_size)), start=over,
                       round=c.round + over.astype(int), total=c.total + jnp.where(final, 0, 1),
                       result=RESULTS.where(over & ~final, outcome, c.result),
                       # the loop ends at the solution's measurement (the accepted point's, kept in ``at``)
-                      final=final, at=jax.tree.map(lambda new, old: jnp.where(accept, new, old), (f, s_now, jf), c.at),
-                      have=c.have | accept, flux=jax.tree.map(lambda new, old: jnp.where(accept, new, old), flux, c.flux))
+                      final=final, at=at, have=c.have | accept, flux=flux)
 
     rows = prob.readings.x.shape[0]
     start = jnp.zeros((rows, width)) if width else None           # the first point's solve: from zero
