@@ -15,7 +15,7 @@ import pytest
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
 from ambfit.physics.circuit import MECParams, mec_axis_force, mec_forces, mec_solve, row_axis_force
 from ambfit.physics.circuit.network import _residual, _unpack
-from ambfit.physics.model import ideal_force
+from ambfit.physics.model import BearingParams, Readings, ideal_force
 
 BATCH = 8
 # An 8-pole bearing with a lamination B-H curve (the FEM development bearing's datasheet numbers).
@@ -37,6 +37,17 @@ def random_readings(seed, bias=1.5, reach=50e-6):
     i_vt, i_vb, i_wt, i_wb = (bias + rng.uniform(-0.9, 0.9, BATCH) for _ in range(4))
     dv, dw = rng.uniform(-reach, reach, BATCH), rng.uniform(-reach, reach, BATCH)
     return batch(i_vt, i_vb, i_wt, i_wb, dv, dw)
+
+def paired_rows(seed, n, bias):
+    """``n`` contract rows of both axes (the other axis' currents beside each) around ``bias`` on the FEM-like
+    bearing, and parameters for them: what a circuit effect evaluates."""
+    rng = np.random.default_rng(seed)
+    r = Readings.build(axis=np.arange(n) % 2, i_top=bias + rng.uniform(-0.9, 0.9, n),
+                       i_bottom=bias + rng.uniform(-0.9, 0.9, n), x=rng.uniform(-80e-6, 80e-6, n),
+                       y=rng.uniform(-80e-6, 80e-6, n), i_top_other=bias + rng.uniform(-0.9, 0.9, n),
+                       i_bottom_other=bias + rng.uniform(-0.9, 0.9, n))
+    return r, BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], FEM_BEARING.force_constant())
+
 
 
 @pytest.mark.parametrize("bearing", [PAPER_BEARING, FEM_BEARING], ids=["linear-iron", "bh-curve"])
@@ -365,15 +376,10 @@ def test_each_rows_fluxes_come_back_for_the_next_evaluation():
     from ambfit.estimation.core import IDEAL, Model
     from ambfit.physics.circuit import FLUX_WIDTH
     from ambfit.physics.effects import MagneticCircuit
-    from ambfit.physics.model import BearingParams, Readings, evaluate
+    from ambfit.physics.model import evaluate
 
-    rng = np.random.default_rng(5)
     n = 6
-    r = Readings.build(axis=np.arange(n) % 2, i_top=2.5 + rng.uniform(-0.9, 0.9, n),
-                       i_bottom=2.5 + rng.uniform(-0.9, 0.9, n), x=rng.uniform(-80e-6, 80e-6, n),
-                       y=rng.uniform(-80e-6, 80e-6, n), i_top_other=2.5 + rng.uniform(-0.9, 0.9, n),
-                       i_bottom_other=2.5 + rng.uniform(-0.9, 0.9, n))
-    params = BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], FEM_BEARING.force_constant())
+    r, params = paired_rows(5, n, bias=2.5)
     mec = MagneticCircuit()
     assert Model.of([mec], FEM_BEARING).flux_width == MagneticCircuit.FLUX_WIDTH == FLUX_WIDTH and IDEAL.flux_width == 0
     force, ctx = evaluate(params, r, [mec], bearing=FEM_BEARING)
@@ -394,15 +400,10 @@ def test_a_piece_off_idles_exactly_the_parameters_it_names():
     import equinox as eqx
 
     from ambfit.physics.effects import MagneticCircuit
-    from ambfit.physics.model import BearingParams, Readings, evaluate
+    from ambfit.physics.model import evaluate
 
-    rng = np.random.default_rng(7)
     n = 8
-    r = Readings.build(axis=np.arange(n) % 2, i_top=2.0 + rng.uniform(-0.9, 0.9, n),
-                       i_bottom=2.0 + rng.uniform(-0.9, 0.9, n), x=rng.uniform(-80e-6, 80e-6, n),
-                       y=rng.uniform(-80e-6, 80e-6, n), i_top_other=2.0 + rng.uniform(-0.9, 0.9, n),
-                       i_bottom_other=2.0 + rng.uniform(-0.9, 0.9, n))
-    params = BearingParams.from_values([775e-6, 763e-6], [33e-6, -11e-6], FEM_BEARING.force_constant())
+    r, params = paired_rows(7, n, bias=2.0)
     names = ("fringe_depth", "leakage", "iron_scale", "pole_area_ratio")
     at = tuple(jnp.asarray(v) for v in (2.5e-3, 0.45, 1.1, 0.8))
 
