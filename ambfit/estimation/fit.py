@@ -52,7 +52,7 @@ says which.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 
 import numpy as np
 import pandas as pd
@@ -71,10 +71,10 @@ from ambfit.estimation.core import (
     si_scale,
     to_theta,
 )
-from ambfit.estimation.covariance import result_at, results_at
+from ambfit.estimation.covariance import results_at
 from ambfit.estimation.debias import MAX_SHIFT, debiased
 from ambfit.estimation.identification import prior_shares
-from ambfit.estimation.outliers import screen, studentized
+from ambfit.estimation.outliers import Refit, run, screening, studentized
 from ambfit.estimation.problem import build_problems
 from ambfit.estimation.results import FitResult, Thresholds
 from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
@@ -302,9 +302,10 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
     fitted = [s for s in live if not isinstance(out[s], BaseException)]
     t: dict = {}
     if name_outliers and loss in ("auto", "linear") and alpha > 0 and not debias:
-        # the outlier test's residuals of every fit at once (a fit with outliers then refits alone)
+        # the outlier test's residuals of every fit at once (the fits with outliers then refit together)
         t = dict(zip(fitted, studentized([out[s] for s in fitted], [probs[s] for s in fitted],
                                          [built[s][1] for s in fitted])))
+    finishing = {}
     for s in fitted:
         res = out[s]
         base = np.asarray(probs[s].mask, dtype=float)
@@ -317,12 +318,31 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
             if flags:
                 out[s] = dataclasses.replace(res, implausible=tuple(flags))
             continue
-        try:
-            out[s] = _finish(out[s], probs[s], built[s][1], dfs[s], models[bearings[s]], thresholds, rows[s],
-                             loss=loss, alpha=alpha if name_outliers else 0.0, debias=debias, seed=seed,
-                             inherited=inherited[s], name_outliers=name_outliers, t=t.get(s))
-        except _FAILURES as exc:
-            out[s] = exc
+        finishing[s] = _finishing(out[s], probs[s], built[s][1], dfs[s], models[bearings[s]], rows[s], loss=loss,
+                                  alpha=alpha if name_outliers else 0.0, debias=debias, seed=seed,
+                                  thresholds=thresholds, inherited=inherited[s], name_outliers=name_outliers,
+                                  t=t.get(s))
+
+    def refits(asked: dict) -> list:
+        """The refits the screens ask for in one round, those of one bearing solved together."""
+        done = {}
+        for b, model in models.items():
+            mine = [s for s in asked if bearings[s] == b]
+            starts = {}
+            for s in mine:
+                try:
+                    starts[s] = _initial(asked[s].prob, built[s][1], model, asked[s].start)
+                except _FAILURES as exc:
+                    done[s] = exc
+            mine = list(starts)
+            if mine:
+                sols = solve_sets([starts[s][0] for s in mine], [asked[s].prob for s in mine], model, max_steps)
+                done.update(zip(mine, results_at(sols, [asked[s].prob for s in mine], [built[s][1] for s in mine],
+                                                 model, [starts[s][1] for s in mine], thresholds)))
+        return [done[s] for s in asked]
+
+    for s, res in run(finishing, refits, errors=_FAILURES).items():
+        out[s] = res
     if second_order:
         _subtract_bias(out, fitted, probs, {s: built[s][1] for s in fitted}, models, bearings, thresholds)
     for s in fitted:    # an effect these data do not determine makes the solver wander: say which, from the start
@@ -431,18 +451,15 @@ _AT_ESTIMATE = ("values", "std", "cov", "corr", "chi2", "dof", "residuals", "con
 """What a result measures at its estimate (the rest is the solve's record, the outlier test and the flags)."""
 
 
-def _finish(res, prob, meta, df, model, thresholds, rows, *, loss, alpha, debias, seed, inherited, name_outliers,
-            t=None):
+def _finishing(res, prob, meta, df, model, rows, *, loss, alpha, debias, seed, thresholds, inherited, name_outliers,
+               t=None) -> Generator[Refit, FitResult, FitResult]:
     """A data set's result after its solve: the bias correction, the outlier test (or the robust loss; ``t`` its
-    studentized residuals when measured with the other data sets') and the plausibility flags."""
+    studentized residuals when measured with the other data sets') and the plausibility flags.  A generator of the
+    refits the test asks for (:func:`ambfit.estimation.outliers.run`: a study's refit together)."""
     if debias and res.edm < EDM_MAX:
         res = debiased(res, prob, meta, model, thresholds, debias, seed)
-
-    def refit(p, start):
-        return _fit_once(p, meta, model, _initial(p, meta, model, start), thresholds)
-
     if name_outliers:
-        res = screen(res, prob, meta, df, model, refit, loss, alpha, rows, t)
+        res = yield from screening(res, prob, meta, df, model, loss, alpha, rows, t)
         more = {}
     else:
         more = dict(loss="linear", rows=rows, weights=np.asarray(prob.mask, dtype=float))
@@ -457,13 +474,6 @@ def _checked(values, n: int, name: str) -> np.ndarray:
     if values.shape != (n,):
         raise ValueError(f"{name} needs one value per row ({n}), got shape {values.shape}")
     return values
-
-
-def _fit_once(prob: Problem, meta: Meta, model: Model, start: tuple[np.ndarray, str],
-              thresholds: Thresholds) -> FitResult:
-    """One weighted least-squares fit of ``prob`` (its mask as row weights) from ``start = (theta, how)``."""
-    sol = solve_sets([start[0]], [prob], model, thresholds.max_steps)[0]
-    return result_at(sol, prob, meta, model, start[1], thresholds)
 
 
 def _require_k(meta: Meta):

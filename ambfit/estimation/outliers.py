@@ -4,11 +4,17 @@
 reading's studentized residual against a Bonferroni bound (false-alarm probability ``alpha`` per data set) on a fit
 the outliers cannot drag (Cauchy reweighting), leaves the outliers out and refits until no new reading is beyond the
 bound; ``huber``/``cauchy`` reweight by their loss (:mod:`ambfit.estimation.robust`).
+
+Both refit as they go.  :func:`screening` is the test written as a generator that yields each refit it needs, a
+:class:`Refit`, and is sent its result, so that a study's data sets with outliers refit together, one batched solve
+per round (:func:`run`), where each refitting alone would cost a solve's dispatch and its Python each time.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Generator
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -28,7 +34,19 @@ def _studentized(res: FitResult, prob: Problem, meta: Meta, model: Model) -> np.
     return robust.studentized(jac, res.residuals, w > 0, w, known_noise=not meta.noise_estimated)
 
 
-def _reweighted(res, prob, meta, model, refit, loss, base):
+class Refit(NamedTuple):
+    """A refit :func:`screening` asks for: ``prob`` (other row weights) from the result ``start``."""
+
+    prob: Problem
+    start: FitResult
+
+
+Screening = Generator[Refit, FitResult, FitResult]
+"""A screen under way: it yields refits, is sent their results (or thrown the error a refit raised) and returns the
+screened result."""
+
+
+def _reweighted(res, prob, meta, model, loss, base) -> Generator[Refit, FitResult, tuple]:
     """Iteratively reweighted least squares with the robust ``loss`` from ``res``: ``(result, weights)``."""
     w = base.copy()
     for _ in range(robust.MAX_ROUNDS):
@@ -37,15 +55,39 @@ def _reweighted(res, prob, meta, model, refit, loss, base):
         if np.max(np.abs(new - w)) < 1e-3:
             break
         w = new
-        res = refit(prob.with_mask(np.sqrt(w)), res)
+        res = yield Refit(prob.with_mask(np.sqrt(w)), res)
     return res, w
 
 
-def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: Model, refit, loss: str,
-           alpha: float, rows: np.ndarray, t: np.ndarray | None = None) -> FitResult:
-    """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``;
-    ``refit(prob, start)`` is the fit of ``prob`` (other row weights) from the result ``start``, ``rows`` the file
-    row of each row of ``df``; ``t``: the studentized residuals of ``res`` when already measured (:func:`studentized`).
+def run(screens: dict, refit_all: Callable[[dict], list], errors: tuple = ()) -> dict:
+    """Every screen of ``screens`` (key: generator, e.g. :func:`screening`) to its end, their refits in rounds:
+    ``refit_all({key: Refit})`` fits the refits asked for in one round and returns their results in that order (a
+    result may be the exception its fit raised: thrown into its screen).  Returns ``{key: result}``, or the
+    exception of ``errors`` a screen raised in its place."""
+    out, asked = {}, {}
+
+    def advance(key, gen, value=None):
+        try:
+            asked[key] = gen.throw(value) if isinstance(value, BaseException) else gen.send(value)
+        except StopIteration as stop:
+            out[key] = stop.value
+        except errors as exc:
+            out[key] = exc
+
+    for key, gen in screens.items():
+        advance(key, gen)
+    while asked:
+        now, asked = asked, {}
+        for key, value in zip(now, refit_all(now)):
+            advance(key, screens[key], value)
+    return out
+
+
+def screening(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: Model, loss: str, alpha: float,
+              rows: np.ndarray, t: np.ndarray | None = None) -> Screening:
+    """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``
+    (a generator of its refits, see :data:`Screening`); ``rows`` is the file row of each row of ``df``; ``t``: the
+    studentized residuals of ``res`` when already measured (:func:`studentized`).
 
     The test judges each reading against a fit the outliers cannot drag (Cauchy reweighting; one reading 17 σ
     off pulls plain least squares so far that its neighbours look off too), then leaves the outliers out and
@@ -58,7 +100,7 @@ def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: M
     # from it and are judged by their own convergence)
     plain = res
     if loss in ("huber", "cauchy"):
-        res, w = _reweighted(res, prob, meta, model, refit, loss, base)
+        res, w = yield from _reweighted(res, prob, meta, model, loss, base)
         return dataclasses.replace(res, loss=loss, weights=w, rows=rows, plain_shift=_shift(plain, res))
     if alpha <= 0:                                     # no outlier test
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)
@@ -68,7 +110,7 @@ def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: M
         t = _studentized(res, prob, meta, model)
     if not np.any(np.abs(t[fitted]) > limit):
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
-    anchor, _ = _reweighted(res, prob, meta, model, refit, "cauchy", base)
+    anchor, _ = yield from _reweighted(res, prob, meta, model, "cauchy", base)
     out = (np.abs(_studentized(anchor, prob.with_mask(base), meta, model)) > limit) & fitted
     cur = prob
     for _ in range(robust.MAX_ROUNDS):
@@ -80,7 +122,7 @@ def screen(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: M
         if loss == "linear" or not out.any():
             break
         cur = prob.with_mask(base * ~out)
-        res = refit(cur, res)
+        res = yield Refit(cur, res)
         # judged again against the fit without them (a left-out reading is tested as a prediction)
         new = (np.abs(_studentized(res, cur, meta, model)) > limit) & fitted
         if np.array_equal(new, out):
