@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import functools
 import hashlib
 
 import equinox as eqx
@@ -23,6 +24,19 @@ from ambfit._recent import Recent
 from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
 from ambfit.rows import clock, readings
+
+
+class _unbound:
+    """A method of an ``eqx.Module`` called like any other, but bound as a plain ``functools.partial``: Equinox binds
+    a method as a module of its own (``eqx.BoundMethod``, a pytree) at every attribute access, which costs twenty
+    microseconds, and an outlier test or a diagnosis' folds derive problems by the thousand."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        functools.update_wrapper(self, fn)
+
+    def __get__(self, obj, cls=None):
+        return self.fn if obj is None else functools.partial(self.fn, obj)
 
 
 class Problem(eqx.Module):
@@ -56,17 +70,32 @@ class Problem(eqx.Module):
     def n_loads(self) -> int:
         return int(np.max(np.asarray(self.gidx), initial=-1)) + 1
 
+    @_unbound
     def with_mask(self, mask) -> Problem:
         """The same problem with other row weights (``mask``: 0 leaves a row out; robust losses use sqrt(w))."""
-        return dataclasses.replace(self, mask=_leaf(mask))
+        return self._with(mask=_leaf(mask))
 
+    @_unbound
     def with_noise(self, s) -> Problem:
         """The same problem with each row's effective force noise std ``s`` [N] held (0 where it is propagated)."""
-        return dataclasses.replace(self, s_held=_leaf(s))
+        return self._with(s_held=_leaf(s))
 
+    @_unbound
+    def _with(self, **fields) -> Problem:
+        """The same problem with these fields replaced, made as JAX's unflattening makes a module: without its
+        ``__init__``, whose checks cost twenty times more (the fields' values are the problem's own kinds)."""
+        new, own = object.__new__(Problem), object.__getattribute__(self, "__dict__")
+        for name in _FIELDS:
+            object.__setattr__(new, name, fields[name] if name in fields else own[name])
+        return new
+
+    @_unbound
     def with_readings(self, i_top, i_bottom, x) -> Problem:
         """The same problem with other current and position readings (bootstrap, design)."""
         return eqx.tree_at(lambda p: (p.readings.i_top, p.readings.i_bottom, p.readings.x), self, (i_top, i_bottom, x))
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(Problem))
 
 
 def _leaf(values):

@@ -105,10 +105,13 @@ def robust_scale(z: np.ndarray, known_noise: bool = True) -> float:
 def _scales(z: np.ndarray, fitted: np.ndarray, known_noise: bool) -> np.ndarray:
     """:func:`robust_scale` of each row of ``z[sets, rows]`` over its ``fitted`` finite entries: array[sets]."""
     a = np.where(fitted & np.isfinite(z), np.abs(z), np.nan)
-    none = np.all(np.isnan(a), axis=1)
-    with np.errstate(invalid="ignore"):
-        med = np.nanmedian(np.where(none[:, None], 0.0, a), axis=1)
-    s = 1.4826 * med
+    # the median of each row's finite entries: sorted, NaN last (np.nanmedian takes a masked-array route that costs
+    # a quarter of a millisecond per call on rows this short)
+    n = np.sum(~np.isnan(a), axis=1)
+    none = n == 0
+    a = np.sort(a, axis=1)
+    lo, hi = (np.take_along_axis(a, np.maximum(i, 0)[:, None], axis=1)[:, 0] for i in ((n - 1) // 2, n // 2))
+    s = 1.4826 * np.where(none, 0.0, (lo + hi) / 2)
     return np.where(none, 1.0, np.maximum(1.0, s) if known_noise else np.maximum(s, 1e-300))
 
 
