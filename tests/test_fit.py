@@ -124,7 +124,6 @@ def test_fit_is_fit_many_of_one_and_many_fit_as_each_alone():
     np.testing.assert_allclose([r.error("g_v0") for r in many], [r.error("g_v0") for r in singles], rtol=1e-6)
 
 
-
 def test_outlier_tests_of_many_data_sets_refit_together_as_each_alone():
     """Data sets with outliers are screened in lockstep, each round's refits solved as one batch: the outliers
     named and the estimates are each data set's own, and a screen that fails stays with its data set."""
@@ -135,7 +134,16 @@ def test_outlier_tests_of_many_data_sets_refit_together_as_each_alone():
         d.loc[d.index[row], "i_top_A"] += size
         ds.append(d)
     singles = [fit.fit(d) for d in ds]
-    many = fit.fit_many(ds)
+    solves = []
+
+    def recorded(thetas, probs, *args, **kw):
+        solves.append(len(probs))
+        return solve_sets(thetas, probs, *args, **kw)
+
+    solve_sets = fit.solve_sets
+    with mock.patch.object(fit, "solve_sets", side_effect=recorded):
+        many = fit.fit_many(ds)
+    assert solves[0] == 4 and max(solves[1:]) == 3           # the three tests' refits, solved together
     assert [[o.row for o in r.outliers] for r in many] == [[o.row for o in r.outliers] for r in singles]
     assert [len(r.outliers) for r in many] == [1, 1, 0, 1]
     np.testing.assert_allclose([r.values for r in many], [r.values for r in singles], rtol=1e-7)
@@ -148,6 +156,7 @@ def test_outlier_tests_of_many_data_sets_refit_together_as_each_alone():
     assert [isinstance(r, fit.FitError) for r in failed] == [True, True, False, True]
     # (its bias correction then runs alone instead of in a batch of four: the same to round-off)
     np.testing.assert_allclose(failed[2].values, many[2].values, rtol=1e-12)
+
 
 def test_vectorised_closed_form_seed_matches_closed_form():
     from ambfit.estimation import closed_form, seeds

@@ -52,7 +52,7 @@ says which.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Generator, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
@@ -74,7 +74,7 @@ from ambfit.estimation.core import (
 from ambfit.estimation.covariance import results_at
 from ambfit.estimation.debias import MAX_SHIFT, debiased
 from ambfit.estimation.identification import prior_shares
-from ambfit.estimation.outliers import Refit, run, screening, studentized
+from ambfit.estimation.outliers import Screening, run_screens, screening, studentized
 from ambfit.estimation.problem import build_problems
 from ambfit.estimation.results import FitResult, Thresholds
 from ambfit.estimation.units import FORCE_CONSTANTS, GAPS, ORIGINS
@@ -312,7 +312,7 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
         used = base > 0
         if s in t and not inherited[s] and np.all(np.isfinite(res.residuals[used])) and \
                 not np.any(np.abs(t[s][used]) > robust.threshold(int(used.sum()), alpha, built[s][1].noise_estimated)):
-            # clean (the common case of a study): plain least squares, as screen finds it, without a refit
+            # clean (the common case of a study): plain least squares, as screening finds it, without a refit
             # (its loss, rows and weights were set as it was made)
             flags = plausibility.check_result(dict(zip(res.names, res.values)), models[bearings[s]].bearing)
             if flags:
@@ -324,24 +324,28 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
                                   t=t.get(s))
 
     def refits(asked: dict) -> list:
-        """The refits the screens ask for in one round, those of one bearing solved together."""
+        """The refits the screens ask for in one round, those of one bearing solved together (a batch that fails
+        fails each of its data sets, as their refits alone would)."""
         done = {}
         for b, model in models.items():
-            mine = [s for s in asked if bearings[s] == b]
-            starts = {}
-            for s in mine:
+            firsts = {}
+            for s in (s for s in asked if bearings[s] == b):
                 try:
-                    starts[s] = _initial(asked[s].prob, built[s][1], model, asked[s].start)
+                    firsts[s] = _initial(asked[s].prob, built[s][1], model, asked[s].start)
                 except _FAILURES as exc:
                     done[s] = exc
-            mine = list(starts)
-            if mine:
-                sols = solve_sets([starts[s][0] for s in mine], [asked[s].prob for s in mine], model, max_steps)
+            if not firsts:
+                continue
+            mine = list(firsts)
+            try:
+                sols = solve_sets([firsts[s][0] for s in mine], [asked[s].prob for s in mine], model, max_steps)
                 done.update(zip(mine, results_at(sols, [asked[s].prob for s in mine], [built[s][1] for s in mine],
-                                                 model, [starts[s][1] for s in mine], thresholds)))
+                                                 model, [firsts[s][1] for s in mine], thresholds)))
+            except _FAILURES as exc:
+                done.update(dict.fromkeys(mine, exc))
         return [done[s] for s in asked]
 
-    for s, res in run(finishing, refits, errors=_FAILURES).items():
+    for s, res in run_screens(finishing, refits, errors=_FAILURES).items():
         out[s] = res
     if second_order:
         _subtract_bias(out, fitted, probs, {s: built[s][1] for s in fitted}, models, bearings, thresholds)
@@ -452,10 +456,10 @@ _AT_ESTIMATE = ("values", "std", "cov", "corr", "chi2", "dof", "residuals", "con
 
 
 def _finishing(res, prob, meta, df, model, rows, *, loss, alpha, debias, seed, thresholds, inherited, name_outliers,
-               t=None) -> Generator[Refit, FitResult, FitResult]:
+               t=None) -> Screening:
     """A data set's result after its solve: the bias correction, the outlier test (or the robust loss; ``t`` its
     studentized residuals when measured with the other data sets') and the plausibility flags.  A generator of the
-    refits the test asks for (:func:`ambfit.estimation.outliers.run`: a study's refit together)."""
+    refits the test asks for (:func:`ambfit.estimation.outliers.run_screens`: a study's refit together)."""
     if debias and res.edm < EDM_MAX:
         res = debiased(res, prob, meta, model, thresholds, debias, seed)
     if name_outliers:

@@ -1,13 +1,12 @@
 """Outliers: the test that names readings a fit cannot explain, and the robust losses' reweighting.
 
-:func:`screen` runs after every least-squares fit (:func:`ambfit.estimation.fit.fit_many`).  ``auto`` judges each
+:func:`screening` runs after every least-squares fit (:func:`ambfit.estimation.fit.fit_many`).  ``auto`` judges each
 reading's studentized residual against a Bonferroni bound (false-alarm probability ``alpha`` per data set) on a fit
 the outliers cannot drag (Cauchy reweighting), leaves the outliers out and refits until no new reading is beyond the
 bound; ``huber``/``cauchy`` reweight by their loss (:mod:`ambfit.estimation.robust`).
 
-Both refit as they go.  :func:`screening` is the test written as a generator that yields each refit it needs, a
-:class:`Refit`, and is sent its result, so that a study's data sets with outliers refit together, one batched solve
-per round (:func:`run`), where each refitting alone would cost a solve's dispatch and its Python each time.
+Both refit as they go.  :func:`screening` yields each refit it needs, a :class:`Refit`, and is sent its result, so
+that the data sets of a study screen in lockstep, each round's refits solved as one batch (:func:`run_screens`).
 """
 
 from __future__ import annotations
@@ -59,7 +58,7 @@ def _reweighted(res, prob, meta, model, loss, base) -> Generator[Refit, FitResul
     return res, w
 
 
-def run(screens: dict, refit_all: Callable[[dict], list], errors: tuple = ()) -> dict:
+def run_screens(screens: dict, refit_all: Callable[[dict], list], errors: tuple = ()) -> dict:
     """Every screen of ``screens`` (key: generator, e.g. :func:`screening`) to its end, their refits in rounds:
     ``refit_all({key: Refit})`` fits the refits asked for in one round and returns their results in that order (a
     result may be the exception its fit raised: thrown into its screen).  Returns ``{key: result}``, or the
@@ -78,7 +77,7 @@ def run(screens: dict, refit_all: Callable[[dict], list], errors: tuple = ()) ->
         advance(key, gen)
     while asked:
         now, asked = asked, {}
-        for key, value in zip(now, refit_all(now)):
+        for key, value in zip(now, refit_all(now), strict=True):
             advance(key, screens[key], value)
     return out
 

@@ -28,8 +28,9 @@ from ambfit.rows import clock, readings
 
 class _unbound:
     """A method of an ``eqx.Module`` called like any other, but bound as a plain ``functools.partial``: Equinox binds
-    a method as a module of its own (``eqx.BoundMethod``, a pytree) at every attribute access, which costs twenty
-    microseconds, and an outlier test or a diagnosis' folds derive problems by the thousand."""
+    a method as a module of its own (``eqx.BoundMethod``, a pytree, built with the module's checks) at every attribute
+    access, and an outlier test or a diagnosis' folds derive problems by the thousand.  Such a method is not a pytree:
+    pass the problem to a jitted function, not its bound method."""
 
     def __init__(self, fn):
         self.fn = fn
@@ -82,8 +83,8 @@ class Problem(eqx.Module):
 
     @_unbound
     def _with(self, **fields) -> Problem:
-        """The same problem with these fields replaced, made as JAX's unflattening makes a module: without its
-        ``__init__``, whose checks cost twenty times more (the fields' values are the problem's own kinds)."""
+        """The same problem with these fields replaced, made as JAX's unflattening makes a module: without the
+        checks of its ``__init__`` (the fields' values are the problem's own kinds; it has no converters)."""
         new, own = object.__new__(Problem), object.__getattribute__(self, "__dict__")
         for name in _FIELDS:
             object.__setattr__(new, name, fields[name] if name in fields else own[name])

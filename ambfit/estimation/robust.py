@@ -105,10 +105,12 @@ def robust_scale(z: np.ndarray, known_noise: bool = True) -> float:
 def _scales(z: np.ndarray, fitted: np.ndarray, known_noise: bool) -> np.ndarray:
     """:func:`robust_scale` of each row of ``z[sets, rows]`` over its ``fitted`` finite entries: array[sets]."""
     a = np.where(fitted & np.isfinite(z), np.abs(z), np.nan)
-    # the median of each row's finite entries: sorted, NaN last (np.nanmedian takes a masked-array route that costs
-    # a quarter of a millisecond per call on rows this short)
     n = np.sum(~np.isnan(a), axis=1)
     none = n == 0
+    if not a.shape[1]:
+        return np.ones(len(a))
+    # the median of each row's finite entries: sorted, NaN last (np.nanmedian takes a masked-array route, many
+    # times slower on rows this short)
     a = np.sort(a, axis=1)
     lo, hi = (np.take_along_axis(a, np.maximum(i, 0)[:, None], axis=1)[:, 0] for i in ((n - 1) // 2, n // 2))
     s = 1.4826 * np.where(none, 0.0, (lo + hi) / 2)
