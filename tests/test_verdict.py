@@ -303,7 +303,7 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
         "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs",
-        "pair_verdict", "confident_var"}
+        "pair_verdict", "confident_var", "untested_siblings"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 
@@ -326,6 +326,34 @@ def test_a_widened_law_below_the_floor_sets_every_widened_law_aside():
     vague = dataclasses.replace(leaky, log_bayes={"coupling": 1.0})
     v = decide(Rules(), start, [vague, graded])
     assert v.name == "iron_reluctance" and v.unjudged == ()
+
+
+def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undecided_with_its_siblings():
+    """Its law beats its siblings' library laws, not their broader forms, which only the widened laws test."""
+    start = ideal(10.0)
+    leaky = dataclasses.replace(widened("cross_coupling", 0.0, 9.0, groups=("coupling", "control")),
+                                heldout_z=NOISE * 0.4)
+    offset, gain = law("current_offset", 0.0, start=start), law("current_gain", 2.0, start=start)
+    v = decide(Rules(), start, [leaky, offset, gain])
+    assert v.kind == "undecided" and v.candidates == ("current_offset", "current_gain")
+    assert v.untested == ("current_gain",) and v.unjudged == (leaky.label,) and v.law is offset
+    # the widened laws judged, or the rule off: named as before
+    assert decide(Rules(), start, [offset, gain]).name == "current_offset"
+    assert decide(Rules(untested_siblings=False), start, [leaky, offset, gain]).name == "current_offset"
+    # the flux families: the siblings by their laws' scores, those without one after
+    v = decide(Rules(), start, [leaky, law("saturation", 0.0, start=start), law("leakage", 1.0, start=start),
+                                law("fringing", 3.0, start=start)])
+    assert v.candidates[:3] == ("saturation", "leakage", "fringing") and v.candidates[3] == "iron_reluctance"
+    # a signature of its own (hysteresis), or a pair: nothing to add
+    assert decide(Rules(), start, [leaky, law("hysteresis", 0.0, start=start)]).name == "hysteresis"
+    pair = law("current_offset+hysteresis", 0.0, start=start)
+    assert decide(Rules(), start, [leaky, law("current_offset", 5.0, start=start), pair]).name == \
+        "current_offset+hysteresis"
+    one = types.SimpleNamespace(decision=v)
+    assert text.untested(one).startswith("saturation's law explains the data, but leakage, fringing and "
+                                         "iron_reluctance share its signature, and their broader forms")
+    assert text.untested(types.SimpleNamespace(decision=decide(Rules(), start, [leaky, offset, gain]))).endswith(
+        "these data cannot exclude it")
 
 
 def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_them():

@@ -144,6 +144,8 @@ class Diagnosis:
         }
         if self.decision.kind == "undecided":
             rec["candidates"] = list(self.decision.candidates)
+            if self.decision.untested:
+                rec["candidates_untested"] = {"models": list(self.decision.untested), "reason": text.untested(self)}
             if self.separation is not None:
                 rec["separate_by"] = self.separation.to_json()
         if self.decision.unjudged:

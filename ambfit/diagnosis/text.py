@@ -118,12 +118,23 @@ def unjudged(dg) -> str:
                "); a protocol with more loads or more readings per set-point would test them"))
 
 
+def untested(dg) -> str:
+    """Why an undecided verdict lists families whose laws do not explain the data as well as the first's."""
+    first, others = dg.decision.candidates[0], list(dg.decision.untested)
+    one = len(others) == 1
+    listed = others[0] if one else f"{', '.join(others[:-1])} and {others[-1]}"
+    return (f"{first}'s law explains the data, but {listed} {'shares' if one else 'share'} its signature, and "
+            f"{'its' if one else 'their'} broader forms, which only the widened laws test, cannot be tested on these "
+            f"data (every widened law set aside, below): these data cannot exclude {'it' if one else 'them'}")
+
+
 def findings(dg) -> list[str]:
     """What an undecided verdict cannot tell and what would; the grade, law and discrepancy findings (part of
     :func:`verdict`; the report shows them)."""
     out = []
     if dg.verdict == "undecided":
-        out.append(f"{', '.join(dg.decision.candidates)} explain the data alike: these data cannot tell them apart")
+        out.append(untested(dg) if dg.decision.untested else
+                   f"{', '.join(dg.decision.candidates)} explain the data alike: these data cannot tell them apart")
         sep = dg.separation
         if sep is not None:
             out.append(f"to tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
