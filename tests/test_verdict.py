@@ -335,7 +335,7 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
                                 heldout_z=NOISE * 0.4)
     offset, gain = law("current_offset", 0.0, start=start), law("current_gain", 2.0, start=start)
     v = decide(Rules(), start, [leaky, offset, gain])
-    assert v.kind == "undecided" and v.candidates == ("current_offset", "current_gain")
+    assert v.kind == "undecided" and v.candidates == ("current_offset", "current_gain") and v.families == ()
     assert v.untested == ("current_gain",) and v.unjudged == (leaky.label,) and v.law is offset
     # the widened laws judged, or the rule off: named as before
     assert decide(Rules(), start, [offset, gain]).name == "current_offset"
@@ -349,11 +349,24 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
     pair = law("current_offset+hysteresis", 0.0, start=start)
     assert decide(Rules(), start, [leaky, law("current_offset", 5.0, start=start), pair]).name == \
         "current_offset+hysteresis"
-    one = types.SimpleNamespace(decision=v)
-    assert text.untested(one).startswith("saturation's law explains the data, but leakage, fringing and "
-                                         "iron_reluctance share its signature, and their broader forms")
+    # one family cut from several pairs that share it: its own law does not explain the data, nothing to add
+    pairs = [law("current_offset+hysteresis", 0.0, start=start), law("current_offset+leakage", 0.0, start=start)]
+    cut = decide(Rules(untested_siblings=False), start, [leaky, law("current_offset", 4.0, start=start), *pairs])
+    assert cut.name == "current_offset" and cut.model.kind == "pair"
+    assert decide(Rules(), start, [leaky, law("current_offset", 4.0, start=start), *pairs]) == cut
+    # a law graded short of the floor is named as it was
+    far = ideal(100.0)
+    short = [leaky, law("saturation", 0.5, start=far)]
+    graded = decide(Rules(untested_siblings=False), far, short)
+    assert graded.name == "saturation" and not graded.grade.explains
+    assert decide(Rules(), far, short) == graded
+    assert text.untested(types.SimpleNamespace(decision=v)) == (
+        "saturation's law explains the data, but saturation shares its signature with leakage, fringing and "
+        "iron_reluctance, whose broader forms only the widened laws test, and every widened law was set aside on "
+        "these data: they cannot exclude them")
     assert text.untested(types.SimpleNamespace(decision=decide(Rules(), start, [leaky, offset, gain]))).endswith(
-        "these data cannot exclude it")
+        "current_offset shares its signature with current_gain, whose broader forms only the widened laws test, and "
+        "every widened law was set aside on these data: they cannot exclude it")
 
 
 def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_them():

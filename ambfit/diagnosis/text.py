@@ -123,9 +123,9 @@ def untested(dg) -> str:
     first, others = dg.decision.candidates[0], list(dg.decision.untested)
     one = len(others) == 1
     listed = others[0] if one else f"{', '.join(others[:-1])} and {others[-1]}"
-    return (f"{first}'s law explains the data, but {listed} {'shares' if one else 'share'} its signature, and "
-            f"{'its' if one else 'their'} broader forms, which only the widened laws test, cannot be tested on these "
-            f"data (every widened law set aside, below): these data cannot exclude {'it' if one else 'them'}")
+    return (f"{first}'s law explains the data, but {first} shares its signature with {listed}, whose broader forms "
+            "only the widened laws test, and every widened law was set aside on these data: they cannot exclude "
+            + ("it" if one else "them"))
 
 
 def findings(dg) -> list[str]:
