@@ -1,6 +1,7 @@
 """Name a family only when the data single it out (issue 31): clean data are ``none`` however many readings they
 have, and data two families explain alike are ``undecided``, with the protocol that would tell them apart."""
 
+import dataclasses
 import gzip
 import json
 from pathlib import Path
@@ -47,6 +48,14 @@ def test_two_families_that_explain_alike_are_undecided_with_what_would_separate_
     assert sep["separates"] and sep["expected_log_bayes"] > 5.0 > sep["on_these_data"]
     assert sep["expected_log_bayes"] == max(sep["protocols"].values())
     assert "these data cannot tell them apart" in ambfit.diagnosis.text.verdict(dg)
+    assert "candidates_untested" not in rec
+    # the same verdict reached with every widened law set aside: the siblings are said to be untested, and why
+    first, *others = dg.decision.candidates
+    untested = dataclasses.replace(dg, decision=dataclasses.replace(dg.decision, untested=tuple(others)))
+    said = untested.to_json()["candidates_untested"]
+    assert said["models"] == others and said["reason"].startswith(f"{first}'s law explains the data, but {first} "
+                                                                  f"shares its signature with {others[0]}")
+    assert said["reason"] in ambfit.diagnosis.text.verdict(untested)
 
 
 def test_design_discriminate_prints_the_protocols(alike, tmp_path):
