@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ambfit import rig
-from ambfit.estimation import core, fit
+from ambfit.estimation import core, fit, robust
 from ambfit.rig import protocol as P
 
 
@@ -140,10 +140,16 @@ def test_outlier_tests_of_many_data_sets_refit_together_as_each_alone():
         solves.append(len(probs))
         return solve_sets(thetas, probs, *args, **kw)
 
-    solve_sets = fit.solve_sets
-    with mock.patch.object(fit, "solve_sets", side_effect=recorded):
+    def measured(jac, *args, **kw):
+        measures.append(len(jac))
+        return studentized_many(jac, *args, **kw)
+
+    solve_sets, studentized_many, measures = fit.solve_sets, robust.studentized_many, []
+    with mock.patch.object(fit, "solve_sets", side_effect=recorded), \
+            mock.patch.object(robust, "studentized_many", side_effect=measured):
         many = fit.fit_many(ds)
     assert solves[0] == 4 and max(solves[1:]) == 3           # the three tests' refits, solved together
+    assert measures[0] == 4 and max(measures[1:]) == 3       # and their studentized residuals measured together
     assert [[o.row for o in r.outliers] for r in many] == [[o.row for o in r.outliers] for r in singles]
     assert [len(r.outliers) for r in many] == [1, 1, 0, 1]
     np.testing.assert_allclose([r.values for r in many], [r.values for r in singles], rtol=1e-7)

@@ -5,8 +5,9 @@ reading's studentized residual against a Bonferroni bound (false-alarm probabili
 the outliers cannot drag (Cauchy reweighting), leaves the outliers out and refits until no new reading is beyond the
 bound; ``huber``/``cauchy`` reweight by their loss (:mod:`ambfit.estimation.robust`).
 
-Both refit as they go.  :func:`screening` yields each refit it needs, a :class:`Refit`, and is sent its result, so
-that the data sets of a study screen in lockstep, each round's refits solved as one batch (:func:`run_screens`).
+Both refit as they go.  :func:`screening` yields each refit it needs (a :class:`Refit`) and each set of studentized
+residuals (a :class:`Studentize`), and is sent the result, so that the data sets of a study screen in lockstep,
+each round's refits solved as one batch and its residuals measured as one (:func:`run_screens`).
 """
 
 from __future__ import annotations
@@ -40,16 +41,48 @@ class Refit(NamedTuple):
     start: FitResult
 
 
-Screening = Generator[Refit, FitResult, FitResult]
-"""A screen under way: it yields refits, is sent their results (or thrown the error a refit raised) and returns the
-screened result."""
+class Studentize(NamedTuple):
+    """Studentized residuals :func:`screening` asks for: every row's at ``res`` (which holds the solve's row
+    Jacobian), with the fit weights of ``prob.mask`` and the noise ``known`` or estimated from the residuals."""
+
+    res: FitResult
+    prob: Problem
+    known: bool
 
 
-def _reweighted(res, prob, meta, model, loss, base) -> Generator[Refit, FitResult, tuple]:
+Screening = Generator[Refit | Studentize, FitResult | np.ndarray, FitResult]
+"""A screen under way: it yields refits and studentized residuals, is sent them (or thrown the error a refit
+raised) and returns the screened result."""
+
+
+def _t(res: FitResult, prob: Problem, meta: Meta, model: Model) -> Generator[Studentize, np.ndarray, np.ndarray]:
+    """:func:`_studentized`, asked of :func:`run_screens` (which measures a round's together) when ``res`` holds the
+    solve's row Jacobian."""
+    if res.jacobian_rows is None:
+        return _studentized(res, prob, meta, model)
+    return (yield Studentize(res, prob, not meta.noise_estimated))
+
+
+def _studentized_all(asked: dict) -> dict:
+    """Each :class:`Studentize` of ``asked`` measured, those of one shape and noise source at once (stacked: each
+    the same as measured alone)."""
+    out, groups = {}, {}
+    for key, r in asked.items():
+        groups.setdefault((np.shape(r.res.jacobian_rows), r.known), []).append(key)
+    for (_, known), keys in groups.items():
+        t = robust.studentized_many(np.stack([asked[k].res.jacobian_rows for k in keys]),
+                                    np.stack([asked[k].res.residuals for k in keys]),
+                                    np.stack([np.asarray(asked[k].prob.mask, dtype=float) ** 2 for k in keys]),
+                                    known_noise=known)
+        out.update(zip(keys, t))
+    return out
+
+
+def _reweighted(res, prob, meta, model, loss, base) -> Generator[Refit | Studentize, FitResult | np.ndarray, tuple]:
     """Iteratively reweighted least squares with the robust ``loss`` from ``res``: ``(result, weights)``."""
     w = base.copy()
     for _ in range(robust.MAX_ROUNDS):
-        t = _studentized(res, prob.with_mask(np.sqrt(w)), meta, model)
+        t = yield from _t(res, prob.with_mask(np.sqrt(w)), meta, model)
         new = base * robust.weights(t, loss)
         if np.max(np.abs(new - w)) < 1e-3:
             break
@@ -59,10 +92,10 @@ def _reweighted(res, prob, meta, model, loss, base) -> Generator[Refit, FitResul
 
 
 def run_screens(screens: dict, refit_all: Callable[[dict], list], errors: tuple = ()) -> dict:
-    """Every screen of ``screens`` (key: generator, e.g. :func:`screening`) to its end, their refits in rounds:
+    """Every screen of ``screens`` (key: generator, e.g. :func:`screening`) to its end, what they ask for in rounds:
     ``refit_all({key: Refit})`` fits the refits asked for in one round and returns their results in that order (a
-    result may be the exception its fit raised: thrown into its screen).  Returns ``{key: result}``, or the
-    exception of ``errors`` a screen raised in its place."""
+    result may be the exception its fit raised: thrown into its screen); the studentized residuals asked for are
+    measured together.  Returns ``{key: result}``, or the exception of ``errors`` a screen raised in its place."""
     out, asked = {}, {}
 
     def advance(key, gen, value=None):
@@ -77,8 +110,11 @@ def run_screens(screens: dict, refit_all: Callable[[dict], list], errors: tuple 
         advance(key, gen)
     while asked:
         now, asked = asked, {}
-        for key, value in zip(now, refit_all(now), strict=True):
-            advance(key, screens[key], value)
+        refits = {k: r for k, r in now.items() if isinstance(r, Refit)}
+        done = dict(zip(refits, refit_all(refits), strict=True)) if refits else {}
+        done.update(_studentized_all({k: r for k, r in now.items() if isinstance(r, Studentize)}))
+        for key in now:
+            advance(key, screens[key], done[key])
     return out
 
 
@@ -106,11 +142,11 @@ def screening(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model
     fitted = base > 0
     limit = robust.threshold(int(fitted.sum()), alpha, meta.noise_estimated)
     if t is None:
-        t = _studentized(res, prob, meta, model)
+        t = yield from _t(res, prob, meta, model)
     if not np.any(np.abs(t[fitted]) > limit):
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
     anchor, _ = yield from _reweighted(res, prob, meta, model, "cauchy", base)
-    out = (np.abs(_studentized(anchor, prob.with_mask(base), meta, model)) > limit) & fitted
+    out = (np.abs((yield from _t(anchor, prob.with_mask(base), meta, model))) > limit) & fitted
     cur = prob
     for _ in range(robust.MAX_ROUNDS):
         if out.sum() > robust.MAX_FRACTION * fitted.sum():
@@ -123,13 +159,13 @@ def screening(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model
         cur = prob.with_mask(base * ~out)
         res = yield Refit(cur, res)
         # judged again against the fit without them (a left-out reading is tested as a prediction)
-        new = (np.abs(_studentized(res, cur, meta, model)) > limit) & fitted
+        new = (np.abs((yield from _t(res, cur, meta, model))) > limit) & fitted
         if np.array_equal(new, out):
             break
         out = new
     if loss == "linear":
         res, cur = plain, prob
-    t = _studentized(res, cur, meta, model)
+    t = yield from _t(res, cur, meta, model)
     found = tuple(_outlier(j, t[j], df, res, prob, rows) for j in np.nonzero(out)[0])
     return dataclasses.replace(res, loss=loss, rows=rows, weights=np.asarray(cur.mask) ** 2, outliers=found,
                                plain_shift=_shift(plain, res) if found and loss == "auto" else None)
