@@ -61,3 +61,23 @@ def test_robust_scale_of_gaussian_residuals_is_their_sd():
     # known noise levels: never below 1, so a noise level stated too large does not make readings outliers
     assert robust.robust_scale(0.5 * rng.standard_normal(20000), known_noise=True) == 1.0
     assert robust.robust_scale(2.0 * rng.standard_normal(20000), known_noise=True) == pytest.approx(2.0, rel=0.04)
+
+
+def test_a_round_of_studentized_residuals_that_fails_fails_only_its_own_screens():
+    """The screens' studentized residuals are measured stacked; one data set whose measurement fails (a Jacobian
+    that is not finite) gets its own error, thrown into its screen, and the others their values, as if alone."""
+    import types
+
+    from ambfit.estimation import outliers
+
+    rng = np.random.default_rng(0)
+
+    def asked(jac):
+        return outliers.Studentize(types.SimpleNamespace(jacobian_rows=jac, residuals=rng.normal(size=6)),
+                                   types.SimpleNamespace(mask=np.ones(6)), True)
+
+    good, bad = asked(rng.normal(size=(6, 2))), asked(np.full((6, 2), np.nan))
+    out = outliers._studentized_all({"good": good, "bad": bad})
+    assert isinstance(out["bad"], np.linalg.LinAlgError)
+    alone = robust.studentized(good.res.jacobian_rows, good.res.residuals, np.ones(6, bool), np.ones(6))
+    np.testing.assert_array_equal(out["good"], alone)

@@ -65,16 +65,26 @@ def _t(res: FitResult, prob: Problem, meta: Meta, model: Model) -> Generator[Stu
 
 def _studentized_all(asked: dict) -> dict:
     """Each :class:`Studentize` of ``asked`` measured, those of one shape and noise source at once (stacked: each
-    the same as measured alone)."""
+    the same as measured alone).  A group that fails is measured one by one, and a screen whose own measurement
+    fails is given the error (thrown into it, as if it had measured alone)."""
+    def measured(keys, known):
+        return robust.studentized_many(np.stack([asked[k].res.jacobian_rows for k in keys]),
+                                       np.stack([asked[k].res.residuals for k in keys]),
+                                       np.stack([np.asarray(asked[k].prob.mask, dtype=float) ** 2 for k in keys]),
+                                       known_noise=known)
+
     out, groups = {}, {}
     for key, r in asked.items():
         groups.setdefault((np.shape(r.res.jacobian_rows), r.known), []).append(key)
     for (_, known), keys in groups.items():
-        t = robust.studentized_many(np.stack([asked[k].res.jacobian_rows for k in keys]),
-                                    np.stack([asked[k].res.residuals for k in keys]),
-                                    np.stack([np.asarray(asked[k].prob.mask, dtype=float) ** 2 for k in keys]),
-                                    known_noise=known)
-        out.update(zip(keys, t))
+        try:
+            out.update(zip(keys, measured(keys, known)))
+        except (ValueError, ArithmeticError):
+            for k in keys:
+                try:
+                    out[k] = measured([k], known)[0]
+                except (ValueError, ArithmeticError) as exc:
+                    out[k] = exc
     return out
 
 
