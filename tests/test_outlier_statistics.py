@@ -4,11 +4,13 @@ Each test checks the textbook property the outlier test rests on, so that a wron
 constant cannot pass unnoticed (the end-to-end robustness tests use small leverages, where neither shows).
 """
 
+import types
+
 import numpy as np
 import pytest
 from scipy.stats import norm
 
-from ambfit.estimation import robust
+from ambfit.estimation import outliers, robust
 
 
 def _linear_fits(rng, sets: int, held_out: int = 0):
@@ -65,11 +67,8 @@ def test_robust_scale_of_gaussian_residuals_is_their_sd():
 
 def test_a_round_of_studentized_residuals_that_fails_fails_only_its_own_screens():
     """The screens' studentized residuals are measured stacked; one data set whose measurement fails (a Jacobian
-    that is not finite) gets its own error, thrown into its screen, and the others their values, as if alone."""
-    import types
-
-    from ambfit.estimation import outliers
-
+    that is not finite) gets its own error, thrown into its screen, and the others their values, as if alone.  The
+    first measurement of a study's fits leaves the failing one to its screen."""
     rng = np.random.default_rng(0)
 
     def asked(jac):
@@ -81,3 +80,7 @@ def test_a_round_of_studentized_residuals_that_fails_fails_only_its_own_screens(
     assert isinstance(out["bad"], np.linalg.LinAlgError)
     alone = robust.studentized(good.res.jacobian_rows, good.res.residuals, np.ones(6, bool), np.ones(6))
     np.testing.assert_array_equal(out["good"], alone)
+    known = types.SimpleNamespace(noise_estimated=False)
+    first = outliers.studentized([good.res, bad.res], [good.prob, bad.prob], [known, known])
+    np.testing.assert_array_equal(first[0], alone)
+    assert first[1] is None

@@ -303,8 +303,8 @@ def fit_many(datasets: Sequence[Dataset | pd.DataFrame], effects: Sequence[Effec
     t: dict = {}
     if name_outliers and loss in ("auto", "linear") and alpha > 0 and not debias:
         # the outlier test's residuals of every fit at once (the fits with outliers then refit together)
-        t = dict(zip(fitted, studentized([out[s] for s in fitted], [probs[s] for s in fitted],
-                                         [built[s][1] for s in fitted])))
+        t = {s: v for s, v in zip(fitted, studentized([out[s] for s in fitted], [probs[s] for s in fitted],
+                                                      [built[s][1] for s in fitted])) if v is not None}
     finishing = {}
     for s in fitted:
         res = out[s]
@@ -459,7 +459,8 @@ def _finishing(res, prob, meta, df, model, rows, *, loss, alpha, debias, seed, t
                t=None) -> Screening:
     """A data set's result after its solve: the bias correction, the outlier test (or the robust loss; ``t`` its
     studentized residuals when measured with the other data sets') and the plausibility flags.  A generator of the
-    refits the test asks for (:func:`ambfit.estimation.outliers.run_screens`: a study's refit together)."""
+    refits and residuals the test asks for (:func:`ambfit.estimation.outliers.run_screens`: a study's measured
+    together)."""
     if debias and res.edm < EDM_MAX:
         res = debiased(res, prob, meta, model, thresholds, debias, seed)
     if name_outliers:

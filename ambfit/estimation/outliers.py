@@ -51,11 +51,11 @@ class Studentize(NamedTuple):
 
 
 Screening = Generator[Refit | Studentize, FitResult | np.ndarray, FitResult]
-"""A screen under way: it yields refits and studentized residuals, is sent them (or thrown the error a refit
-raised) and returns the screened result."""
+"""A screen under way: it yields refits and studentized residuals, is sent them (or thrown the error their
+measurement raised) and returns the screened result."""
 
 
-def _t(res: FitResult, prob: Problem, meta: Meta, model: Model) -> Generator[Studentize, np.ndarray, np.ndarray]:
+def _studentize(res: FitResult, prob: Problem, meta: Meta, model: Model) -> Generator[Studentize, np.ndarray, np.ndarray]:
     """:func:`_studentized`, asked of :func:`run_screens` (which measures a round's together) when ``res`` holds the
     solve's row Jacobian."""
     if res.jacobian_rows is None:
@@ -79,11 +79,11 @@ def _studentized_all(asked: dict) -> dict:
     for (_, known), keys in groups.items():
         try:
             out.update(zip(keys, measured(keys, known)))
-        except (ValueError, ArithmeticError):
+        except ValueError:                  # (numpy's LinAlgError among them)
             for k in keys:
                 try:
                     out[k] = measured([k], known)[0]
-                except (ValueError, ArithmeticError) as exc:
+                except ValueError as exc:
                     out[k] = exc
     return out
 
@@ -92,7 +92,7 @@ def _reweighted(res, prob, meta, model, loss, base) -> Generator[Refit | Student
     """Iteratively reweighted least squares with the robust ``loss`` from ``res``: ``(result, weights)``."""
     w = base.copy()
     for _ in range(robust.MAX_ROUNDS):
-        t = yield from _t(res, prob.with_mask(np.sqrt(w)), meta, model)
+        t = yield from _studentize(res, prob.with_mask(np.sqrt(w)), meta, model)
         new = base * robust.weights(t, loss)
         if np.max(np.abs(new - w)) < 1e-3:
             break
@@ -131,7 +131,7 @@ def run_screens(screens: dict, refit_all: Callable[[dict], list], errors: tuple 
 def screening(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model: Model, loss: str, alpha: float,
               rows: np.ndarray, t: np.ndarray | None = None) -> Screening:
     """The outlier test (``auto``, ``linear``) or the robust loss's reweighting, starting from the plain fit ``res``
-    (a generator of its refits, see :data:`Screening`); ``rows`` is the file row of each row of ``df``; ``t``: the
+    (a generator of the refits and residuals it needs, see :data:`Screening`); ``rows`` is the file row of each row of ``df``; ``t``: the
     studentized residuals of ``res`` when already measured (:func:`studentized`).
 
     The test judges each reading against a fit the outliers cannot drag (Cauchy reweighting; one reading 17 σ
@@ -152,11 +152,11 @@ def screening(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model
     fitted = base > 0
     limit = robust.threshold(int(fitted.sum()), alpha, meta.noise_estimated)
     if t is None:
-        t = yield from _t(res, prob, meta, model)
+        t = yield from _studentize(res, prob, meta, model)
     if not np.any(np.abs(t[fitted]) > limit):
         return dataclasses.replace(res, loss=loss, rows=rows, weights=base)          # clean: plain least squares
     anchor, _ = yield from _reweighted(res, prob, meta, model, "cauchy", base)
-    out = (np.abs((yield from _t(anchor, prob.with_mask(base), meta, model))) > limit) & fitted
+    out = (np.abs((yield from _studentize(anchor, prob.with_mask(base), meta, model))) > limit) & fitted
     cur = prob
     for _ in range(robust.MAX_ROUNDS):
         if out.sum() > robust.MAX_FRACTION * fitted.sum():
@@ -169,13 +169,13 @@ def screening(res: FitResult, prob: Problem, meta: Meta, df: pd.DataFrame, model
         cur = prob.with_mask(base * ~out)
         res = yield Refit(cur, res)
         # judged again against the fit without them (a left-out reading is tested as a prediction)
-        new = (np.abs((yield from _t(res, cur, meta, model))) > limit) & fitted
+        new = (np.abs((yield from _studentize(res, cur, meta, model))) > limit) & fitted
         if np.array_equal(new, out):
             break
         out = new
     if loss == "linear":
         res, cur = plain, prob
-    t = yield from _t(res, cur, meta, model)
+    t = yield from _studentize(res, cur, meta, model)
     found = tuple(_outlier(j, t[j], df, res, prob, rows) for j in np.nonzero(out)[0])
     return dataclasses.replace(res, loss=loss, rows=rows, weights=np.asarray(cur.mask) ** 2, outliers=found,
                                plain_shift=_shift(plain, res) if found and loss == "auto" else None)
@@ -209,18 +209,10 @@ def _outlier(j: int, t: float, df: pd.DataFrame, res: FitResult, prob: Problem, 
     return robust.Outlier(row=int(rows[j]), axis=ax, t=float(t), reading=reading, fits_with=alt)
 
 
-def studentized(results: list[FitResult], probs: list[Problem], metas: list[Meta]) -> list[np.ndarray]:
-    """The studentized residuals of many fits (each at its own row weights), measured together where the fits
-    are alike (:func:`ambfit.estimation.robust.studentized_many`)."""
-    out: list = [None] * len(results)
-    groups: dict = {}
-    for s, (res, meta) in enumerate(zip(results, metas)):
-        groups.setdefault((np.shape(res.jacobian_rows), meta.noise_estimated), []).append(s)
-    for (_, estimated), idx in groups.items():
-        t = robust.studentized_many(np.stack([results[s].jacobian_rows for s in idx]),
-                                    np.stack([results[s].residuals for s in idx]),
-                                    np.stack([np.asarray(probs[s].mask, dtype=float) ** 2 for s in idx]),
-                                    known_noise=not estimated)
-        for b, s in enumerate(idx):
-            out[s] = t[b]
-    return out
+def studentized(results: list[FitResult], probs: list[Problem], metas: list[Meta]) -> list[np.ndarray | None]:
+    """The studentized residuals of many fits (each at its own row weights, with the solve's row Jacobian), measured
+    together where the fits are alike (:func:`_studentized_all`); None for a fit whose own cannot be measured (its
+    screen measures them again and says why)."""
+    done = _studentized_all({s: Studentize(res, prob, not meta.noise_estimated)
+                             for s, (res, prob, meta) in enumerate(zip(results, probs, metas))})
+    return [None if isinstance(done[s], BaseException) else done[s] for s in range(len(results))]
