@@ -337,7 +337,7 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
     v = decide(Rules(), start, [leaky, offset, gain])
     assert v.kind == "undecided" and v.candidates == ("current_offset", "current_gain") and v.families == ()
     assert v.untested == ("current_gain",) and v.unjudged == (leaky.label,) and v.law is offset
-    # the widened laws judged, or the rule off: named as before
+    # the widened laws judged, or the rule off: named by its law
     assert decide(Rules(), start, [offset, gain]).name == "current_offset"
     assert decide(Rules(untested_siblings=False), start, [leaky, offset, gain]).name == "current_offset"
     # the flux families: the siblings by their laws' scores, those without one after
@@ -354,7 +354,7 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
     cut = decide(Rules(untested_siblings=False), start, [leaky, law("current_offset", 4.0, start=start), *pairs])
     assert cut.name == "current_offset" and cut.model.kind == "pair"
     assert decide(Rules(), start, [leaky, law("current_offset", 4.0, start=start), *pairs]) == cut
-    # a law graded short of the floor is named as it was
+    # a law graded short of the floor is named
     far = ideal(100.0)
     short = [leaky, law("saturation", 0.5, start=far)]
     graded = decide(Rules(untested_siblings=False), far, short)

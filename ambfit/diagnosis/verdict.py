@@ -123,8 +123,8 @@ class Rules:
         scores cannot tell a library law that is right from another family's widened law that mimics it: which
         to prefer is a prior, and this one is the user's.
     untested_siblings : bool
-        When the widened laws are set aside (:attr:`Verdict.unjudged`), a family named by its law alone is
-        ``undecided`` with the families that share its signature (the flux families; the current channels): its
+        When the widened laws are set aside (:attr:`Verdict.unjudged`), a family named by its law alone, at the
+        floor, is ``undecided`` with the families that share its signature (the flux families; the current channels): its
         law beats their library laws, not their broader forms, which only the widened laws test (a gain error in
         one coil's channel is an offset at one bias; a permeability that falls with flux density is a saturation).
         On the law zoo's stored scores (seeds 3131, 7373 and 8484, 712 draws) it turns wrong claims into
@@ -420,7 +420,7 @@ def _with_untested_siblings(verdict: Verdict, laws: list) -> Verdict:
 
     if verdict.kind != "named" or len(verdict.families) != 1 or getattr(verdict.model, "kind", None) != "law" or \
             verdict.grade is None or not verdict.grade.explains:
-        return verdict                  # (a family cut from several pairs, or graded short of the floor: as it was)
+        return verdict                  # (a family cut from several pairs, or graded short of the floor: named)
     (family,) = verdict.families
     siblings = [f for f, groups in FAMILY_GROUPS.items() if f != family and groups == FAMILY_GROUPS.get(family)]
     if not siblings:

@@ -109,8 +109,8 @@ def _scales(z: np.ndarray, fitted: np.ndarray, known_noise: bool) -> np.ndarray:
     none = n == 0
     if not a.shape[1]:
         return np.ones(len(a))
-    # the median of each row's finite entries: sorted, NaN last (np.nanmedian takes a masked-array route, many
-    # times slower on rows this short)
+    # the median of each row's finite entries: sorted, NaN last (np.nanmedian's masked-array route is slow on short
+    # rows)
     a = np.sort(a, axis=1)
     lo, hi = (np.take_along_axis(a, np.maximum(i, 0)[:, None], axis=1)[:, 0] for i in ((n - 1) // 2, n // 2))
     s = 1.4826 * np.where(none, 0.0, (lo + hi) / 2)
