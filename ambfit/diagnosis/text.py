@@ -102,10 +102,15 @@ def verdict(dg) -> str:
     return text
 
 
+def _listed(names) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    names = list(names)
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
 def unjudged(dg) -> str:
     """Why the widened laws took no part in the verdict, and what data would let them."""
-    names = list(dg.decision.unjudged)
-    listed = names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+    listed = _listed(dg.decision.unjudged)
     op = dg.operating
     loads = op["load_N"].round(9) if "load_N" in op else None
     per_axis = (loads.groupby(op["axis"]).nunique().reindex(op["axis"].unique(), fill_value=0)
@@ -120,12 +125,10 @@ def unjudged(dg) -> str:
 
 def untested(dg) -> str:
     """Why an undecided verdict lists families whose laws do not explain the data as well as the first's."""
-    first, others = dg.decision.candidates[0], list(dg.decision.untested)
-    one = len(others) == 1
-    listed = others[0] if one else f"{', '.join(others[:-1])} and {others[-1]}"
-    return (f"{first}'s law explains the data, but {first} shares its signature with {listed}, whose broader forms "
-            "only the widened laws test, and every widened law was set aside on these data: they cannot exclude "
-            + ("it" if one else "them"))
+    first, one = dg.decision.candidates[0], len(dg.decision.untested) == 1
+    return (f"{first}'s law explains the data, but {first} shares its signature with {_listed(dg.decision.untested)}, "
+            "whose broader forms only the widened laws test, and every widened law was set aside on these data: they "
+            "cannot exclude " + ("it" if one else "them"))
 
 
 def findings(dg) -> list[str]:
