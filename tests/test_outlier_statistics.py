@@ -84,3 +84,18 @@ def test_a_round_of_studentized_residuals_that_fails_fails_only_its_own_screens(
     first = outliers.studentized([good.res, bad.res], [good.prob, bad.prob], [known, known])
     np.testing.assert_array_equal(first[0], alone)
     assert first[1] is None
+
+
+def test_the_robust_scale_is_the_median_of_each_rows_finite_fitted_residuals():
+    """Exactly ``1.4826 median |z|`` over a row's fitted finite entries, odd and even counts, as ``np.median``
+    gives it (the scale sorts rather than calling ``np.nanmedian``); a row with none is 1."""
+    rng = np.random.default_rng(3)
+    z = 3.0 * rng.standard_normal((40, 9))
+    z[rng.random(z.shape) < 0.2] = np.nan
+    fitted = rng.random(z.shape) < 0.8
+    fitted[0] = False                                      # no reading of its own: scale 1
+    scales = robust._scales(z, fitted, known_noise=False)
+    for row, use, scale in zip(z, fitted, scales):
+        kept = np.abs(row[use & np.isfinite(row)])
+        assert scale == (1.4826 * np.median(kept) if len(kept) else 1.0)
+    assert len({int(np.sum(u & np.isfinite(r))) % 2 for r, u in zip(z, fitted)}) == 2     # odd and even counts
