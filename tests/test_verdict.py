@@ -222,13 +222,25 @@ def test_families_sharing_a_signature_cannot_be_told_apart_by_it():
                   ).name == "hysteresis"
 
 
-def test_what_every_rival_shares_is_named_and_what_none_singles_out_is_left_confounded():
+def test_pairs_sharing_a_family_are_undecided_and_say_what_they_share():
     start = ideal(30.0)
-    # saturation alone falls short; with any second effect it reaches the floor, and no second is clearly best
+    # saturation alone falls short; with any second effect it reaches the floor, and no second is clearly best:
+    # saturation's law does not explain the data, and the second effect is not singled out
     single = law("saturation", 0.35, start=start)
     pairs = [law(f"saturation+{other}", 0.0, start=start) for other in ("current_offset", "leakage", "hysteresis")]
     v = decide(Rules(), start, [single, *pairs, law("fringing", 3.0, start=start)])
-    assert v.kind == "named" and v.name == "saturation" and v.grade.by == "pair"
+    assert v.kind == "undecided" and v.shared == ("saturation",) and v.grade.by == "pair"
+    assert set(v.candidates) == {p.label for p in pairs}
+    from types import SimpleNamespace
+
+    from ambfit.diagnosis import text
+
+    assert text.shared(SimpleNamespace(decision=v)) == (
+        "every candidate holds saturation: the data want it and a second effect, which they cannot single out "
+        "(current_offset, leakage and hysteresis)")
+    # named on its own when the rule says so, what none singles out left confounded
+    v = decide(Rules(name_shared=True), start, [single, *pairs, law("fringing", 3.0, start=start)])
+    assert v.kind == "named" and v.name == "saturation" and v.grade.by == "pair" and v.shared == ()
     assert {"saturation+leakage", "saturation+hysteresis"} <= set(v.confounded_with)
     # a single not clearly worse than the pair: the pair's second effect is not singled out
     close = law("saturation", 0.02, start=start)
@@ -238,6 +250,7 @@ def test_what_every_rival_shares_is_named_and_what_none_singles_out_is_left_conf
     a, b = law("saturation+current_offset", 0.0, start=start), law("leakage+current_gain", 0.0, start=start)
     v = decide(Rules(), start, [law("saturation", 2.0, start=start), a, b])
     assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "leakage+current_gain"}
+    assert v.shared == ()
     # a candidate naming another's families and more is left out: the data do not single out its extra family
     near = law("saturation", 0.02, start=start)
     v = decide(Rules(occam=False), start, [near, a, b])
@@ -303,7 +316,7 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
         "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs",
-        "pair_verdict", "confident_var", "untested_siblings"}
+        "pair_verdict", "confident_var", "untested_siblings", "name_shared"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 
@@ -351,9 +364,11 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
         "current_offset+hysteresis"
     # one family cut from several pairs that share it: its own law does not explain the data, nothing to add
     pairs = [law("current_offset+hysteresis", 0.0, start=start), law("current_offset+leakage", 0.0, start=start)]
-    cut = decide(Rules(untested_siblings=False), start, [leaky, law("current_offset", 4.0, start=start), *pairs])
+    named = Rules(name_shared=True)
+    cut = decide(dataclasses.replace(named, untested_siblings=False), start,
+                 [leaky, law("current_offset", 4.0, start=start), *pairs])
     assert cut.name == "current_offset" and cut.model.kind == "pair"
-    assert decide(Rules(), start, [leaky, law("current_offset", 4.0, start=start), *pairs]) == cut
+    assert decide(named, start, [leaky, law("current_offset", 4.0, start=start), *pairs]) == cut
     # a law graded short of the floor is named
     far = ideal(100.0)
     short = [leaky, law("saturation", 0.5, start=far)]

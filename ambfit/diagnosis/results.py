@@ -146,6 +146,8 @@ class Diagnosis:
             rec["candidates"] = list(self.decision.candidates)
             if self.decision.untested:
                 rec["candidates_untested"] = {"models": list(self.decision.untested), "reason": text.untested(self)}
+            if self.decision.shared:
+                rec["candidates_share"] = {"families": list(self.decision.shared), "reason": text.shared(self)}
             if self.separation is not None:
                 rec["separate_by"] = self.separation.to_json()
         if self.decision.unjudged:

@@ -131,6 +131,14 @@ def untested(dg) -> str:
             "cannot exclude " + ("it" if one else "them"))
 
 
+def shared(dg) -> str:
+    """Why an undecided verdict between pairs does not name the family they share."""
+    common = dg.decision.shared
+    seconds = [f for c in dg.decision.candidates for f in c.split("+") if f not in common]
+    return (f"every candidate holds {_listed(common)}: the data want {'it' if len(common) == 1 else 'them'} and a "
+            f"second effect, which they cannot single out ({_listed(list(dict.fromkeys(seconds)))})")
+
+
 def findings(dg) -> list[str]:
     """What an undecided verdict cannot tell and what would; the grade, law and discrepancy findings (part of
     :func:`verdict`; the report shows them)."""
@@ -138,6 +146,8 @@ def findings(dg) -> list[str]:
     if dg.verdict == "undecided":
         out.append(untested(dg) if dg.decision.untested else
                    f"{', '.join(dg.decision.candidates)} explain the data alike: these data cannot tell them apart")
+        if dg.decision.shared:
+            out.append(shared(dg))
         sep = dg.separation
         if sep is not None:
             out.append(f"to tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
