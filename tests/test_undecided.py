@@ -56,6 +56,13 @@ def test_two_families_that_explain_alike_are_undecided_with_what_would_separate_
     assert said["models"] == others and said["reason"].startswith(f"{first}'s law explains the data, but {first} "
                                                                   f"shares its signature with {others[0]}")
     assert said["reason"] in ambfit.diagnosis.text.verdict(untested)
+    # undecided between pairs sharing a family: the family is said, with the second effects left open
+    pairs = dataclasses.replace(dg, decision=dataclasses.replace(
+        dg.decision, candidates=("saturation+leakage", "saturation+hysteresis"), shared=("saturation",)))
+    share = pairs.to_json()["candidates_share"]
+    assert share["families"] == ["saturation"] and share["reason"].endswith("(leakage and hysteresis)")
+    assert share["reason"] in ambfit.diagnosis.text.verdict(pairs)
+    assert "candidates_share" not in rec
 
 
 def test_design_discriminate_prints_the_protocols(alike, tmp_path):

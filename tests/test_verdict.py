@@ -231,11 +231,7 @@ def test_pairs_sharing_a_family_are_undecided_and_say_what_they_share():
     v = decide(Rules(), start, [single, *pairs, law("fringing", 3.0, start=start)])
     assert v.kind == "undecided" and v.shared == ("saturation",) and v.grade.by == "pair"
     assert set(v.candidates) == {p.label for p in pairs}
-    from types import SimpleNamespace
-
-    from ambfit.diagnosis import text
-
-    assert text.shared(SimpleNamespace(decision=v)) == (
+    assert text.shared(types.SimpleNamespace(decision=v)) == (
         "every candidate holds saturation: the data want it and a second effect, which they cannot single out "
         "(current_offset, leakage and hysteresis)")
     # named on its own when the rule says so, what none singles out left confounded
@@ -362,8 +358,13 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
     pair = law("current_offset+hysteresis", 0.0, start=start)
     assert decide(Rules(), start, [leaky, law("current_offset", 5.0, start=start), pair]).name == \
         "current_offset+hysteresis"
-    # one family cut from several pairs that share it: its own law does not explain the data, nothing to add
+    # pairs sharing a family: undecided between them, whose family is not a law explaining the data: nothing to add
     pairs = [law("current_offset+hysteresis", 0.0, start=start), law("current_offset+leakage", 0.0, start=start)]
+    both = decide(Rules(), start, [leaky, law("current_offset", 4.0, start=start), *pairs])
+    assert both.kind == "undecided" and both.shared == ("current_offset",) and both.untested == ()
+    assert both.unjudged == (leaky.label,)
+    # with Rules.name_shared, one family cut from several pairs that share it: its own law does not explain the
+    # data, nothing to add
     named = Rules(name_shared=True)
     cut = decide(dataclasses.replace(named, untested_siblings=False), start,
                  [leaky, law("current_offset", 4.0, start=start), *pairs])

@@ -135,8 +135,10 @@ def shared(dg) -> str:
     """Why an undecided verdict between pairs does not name the family they share."""
     common = dg.decision.shared
     seconds = [f for c in dg.decision.candidates for f in c.split("+") if f not in common]
+    short = dg.decision.grade is not None and not dg.decision.grade.explains
     return (f"every candidate holds {_listed(common)}: the data want {'it' if len(common) == 1 else 'them'} and a "
-            f"second effect, which they cannot single out ({_listed(list(dict.fromkeys(seconds)))})")
+            f"second effect, which they cannot single out ({_listed(list(dict.fromkeys(seconds)))})"
+            + ("; none of them reaches the noise floor" if short else ""))
 
 
 def findings(dg) -> list[str]:

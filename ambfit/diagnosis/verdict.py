@@ -135,10 +135,10 @@ class Rules:
         explains the data: they want that family and a second effect they cannot single out), name that family
         (True), or leave the verdict ``undecided`` between the pairs, which share it (:attr:`Verdict.shared`; the
         default).  Named, the verdict claims a family whose law alone did not explain the data, and misses the
-        second effect when there is one: on
-        the law zoo's stored scores (seeds 3131, 7373 and 8484, 712 draws) naming it is right in 5 draws where the
-        truth is that family alone, and a wrong claim in 7 (a pair named by one of its families, or a flux family
-        named for another); undecided, all 12 list the truth among the candidates (``reports/gap/rules.md``).
+        second effect when there is one: on the law zoo's stored scores (seeds 3131, 7373 and 8484, 712 draws)
+        naming it is right in 5 draws where the truth is that family alone, and a wrong claim in 7 (a pair named by
+        one of its families, or a flux family named for another); undecided, all 12 list the truth among the
+        candidates (``reports/gap/rules.md``).
     pairs : bool
         Try pairs of effects when no single one explains the data.
     pair_verdict : bool
