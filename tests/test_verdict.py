@@ -210,7 +210,7 @@ def test_families_sharing_a_signature_cannot_be_told_apart_by_it():
     # ... also when the other family's own law scores a little lower than its widened law (its best model is then
     # the law, clearly worse than the top, but its widened law explains on the same signature)
     top = widened("current_gain", 0.0, 3.0, groups=("current_sensor",), start=start)
-    other = widened("current_offset", 0.12, 0.05, groups=("current_sensor",), start=start)
+    other = widened("current_offset", 0.15, 0.08, groups=("current_sensor",), start=start)
     judge = Judge(N, start.score)
     assert other.law.score < other.score and judge.explains(other)
     assert judge.clearly_better(top, other.law) and judge.clearly_better(top, other)
@@ -303,8 +303,9 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     a = law("saturation", 0.2, start=start)                         # a little above 1 + 3 se
     assert not decide(Rules(), start, [a]).grade.at_floor
     assert decide(Rules(floor_se=6.0), start, [a]).name == "saturation"
-    b, c = law("saturation", 0.0, start=start), law("leakage", 0.15, start=start)
+    b, c = law("saturation", 0.0, start=start), law("leakage", 0.2, start=start)
     assert decide(Rules(), start, [b, c]).name == "saturation"
+    assert decide(Rules(margin_se=6.0), start, [b, c]).kind == "undecided"
     assert decide(Rules(margin_se=50.0), start, [b, c]).kind == "undecided"
     weak = ideal(0.25)
     assert decide(Rules(), weak, [law("fringing", 0.2, start=weak)]).kind == "none"
