@@ -306,6 +306,10 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     b, c = law("saturation", 0.0, start=start), law("leakage", 0.2, start=start)
     assert decide(Rules(), start, [b, c]).name == "saturation"
     assert decide(Rules(margin_se=6.0), start, [b, c]).kind == "undecided"
+    # 3.3 paired standard errors apart: named at a margin of 3, not at the default 4
+    near = law("leakage", 0.15, start=start)
+    assert decide(Rules(margin_se=3.0), start, [b, near]).name == "saturation"
+    assert decide(Rules(), start, [b, near]).kind == "undecided"
     assert decide(Rules(margin_se=50.0), start, [b, c]).kind == "undecided"
     weak = ideal(0.25)
     assert decide(Rules(), weak, [law("fringing", 0.2, start=weak)]).kind == "none"
