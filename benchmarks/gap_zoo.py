@@ -18,7 +18,11 @@ Each verdict is scored against the truth:
 | no_claim | ``none``, ``unexplained`` or ``undecided`` without the truth, for a true effect (or not ``none`` without naming a family, for no effect); ``error``: the diagnosis stopped with a fit's error (its reason is kept) |
 | wrong_claim | a named verdict that does not name every truth family, or any family named on no-effect or no-family data |
 
-A draw is *visible* when the ideal law's held-out excess (``heldout_excess_before``) is above one noise unit.
+A wrong claim naming one family of a pair is looked at further: the pair's other family is simulated alone (the
+readings' noise drawn anew) and the ideal law's held-out excess recorded (``missed_alone_excess``); the summary
+counts the wrong claims whose missed family alone stays within a noise unit of the floor, which no verdict on these
+data could have named.  A draw is *visible* when the ideal law's held-out excess (``heldout_excess_before``) is
+above one noise unit.
 The summaries give each category's fraction overall, over visible draws, over the draws not looked at while the
 diagnosis was developed (:data:`DEVELOPED_ON`), per family (every draw whose truth
 holds it), per protocol, per kind of case and per law class; the confusion matrix has a row per truth (family, pair, none,
@@ -88,14 +92,48 @@ def one_draw(item: int, seed) -> dict:
     seconds = time.perf_counter() - t0
     candidates = rec.get("candidates", [])
     grade = rec.get("grade")
+    category = score(case.truth, rec["verdict"], candidates)
+    named = set() if rec["verdict"] in NOT_NAMED else set(rec["verdict"].split("+"))
+    missed = sorted(set(case.truth) - named) if category == "wrong_claim" and named < set(case.truth) else []
     return {"index": item, "kind": case.kind, "truth": case.label, "families": list(case.truth),
+            "missed_alone_excess": {f: alone_excess(case, f, item) for f in missed} or None,
             "laws": case.describe()["laws"], "protocol": case.protocol_kind, "rows": len(data),
             "dropped": list(case.dropped), "verdict": rec["verdict"], "candidates": candidates,
-            "confounded_with": rec["confounded_with"], "category": score(case.truth, rec["verdict"], candidates),
+            "confounded_with": rec["confounded_with"], "category": category,
             "excess_before": rec["heldout_excess_before"], "shrink": rec["shrink"], "error": rec.get("error"),
             "grade": None if grade is None else {k: grade[k] for k in ("model", "by", "removes", "remainder",
                                                                          "at_floor", "explains")},
             "seconds": seconds}
+
+
+def alone_excess(case, family: str, seed: int) -> float | None:
+    """The ideal law's held-out excess on ``case`` with the laws of ``family`` alone (its other laws removed; the
+    readings' noise drawn anew from ``seed``): whether that family, missed by a verdict naming the other, could have
+    been seen at all (None when the rig cannot run it so)."""
+    import dataclasses
+
+    import jax
+
+    import ambfit
+    from ambfit.rig import zoo
+    from ambfit.rig.virtual import RigError
+
+    others = {law.family for law in case.laws} - {family}
+    effects = tuple(e for e in case.effects if getattr(e, "family", None) not in others)
+    try:
+        data = zoo.simulate_case(dataclasses.replace(case, effects=effects), seed)
+        return float(ambfit.diagnose(data, candidates=[], check_force=False, discrepancy=False).heldout_excess_before)
+    except (RigError, ambfit.FitError):
+        return None
+    finally:
+        jax.clear_caches()
+
+
+def unseeable(draw: dict) -> bool:
+    """A wrong claim naming one family of a pair whose other family, alone, leaves the ideal law within a noise unit
+    of the floor: no verdict on these data could have named it."""
+    alone = draw.get("missed_alone_excess") or {}
+    return bool(alone) and all(x is not None and x <= 1.0 for x in alone.values())
 
 
 def visible(draw: dict) -> bool:
@@ -126,11 +164,19 @@ def summarise(draws: list, seed: int = DEVELOPED_SEED) -> dict:
         row[d["verdict"]] += 1
     none = [d for d in draws if d["kind"] == "none"]
     times = [d["seconds"] for d in draws]
+    wrong = [d for d in draws if d["category"] == "wrong_claim"]
     return {"overall": {g: fractions(x) for g, x in groups.items()}, "per_family": per_family,
+            "wrong_claims_unseeable": {"n": sum(unseeable(d) for d in wrong), "of": len(wrong),
+                                       "share_of_draws": sum(unseeable(d) for d in wrong) / max(len(draws), 1)},
             "per_protocol": per_protocol, "per_kind": per_kind, "per_law": per_law,
             "confusion": {t: dict(c) for t, c in sorted(confusion.items())},
             "no_effect_none": {"none": sum(d["verdict"] == "none" for d in none), "of": len(none)},
             "targets": TARGETS, "seconds_median": float(np.median(times)), "seconds_max": float(np.max(times))}
+
+
+def _missed(draw: dict) -> str:
+    alone = draw.get("missed_alone_excess") or {}
+    return "".join(f"; {f} alone: excess {'-' if x is None else f'{x:.2f}'}" for f, x in alone.items())
 
 
 def _pct(x) -> str:
@@ -171,6 +217,11 @@ def markdown(summary: dict, draws: list, args) -> list[str]:
                      f"{_pct(unseen['right'])}, right or undecided with the truth "
                      f"{_pct(_sum(unseen, 'right', 'undecided_with_truth'))}, wrong claims "
                      f"{_pct(unseen['wrong_claim'])}."]
+    left = s["wrong_claims_unseeable"]
+    md += [f"Of the {left['of']} wrong claims, {left['n']} name one family of a pair whose other family, simulated "
+           "alone, leaves the ideal law within a noise unit of the floor: no verdict on these data could name it "
+           "(`missed_alone_excess`); without them the wrong claims are "
+           f"{100 * (all_['wrong_claim'] - left['share_of_draws']):.1f} % of the draws.", ""]
     md += _table("draws", s["overall"]) + _table("kind", s["per_kind"]) + _table("protocol", s["per_protocol"])
     md += _table("family (every draw holding it)", s["per_family"]) + _table("law class", s["per_law"])
     verdicts = sorted({v for row in s["confusion"].values() for v in row})
@@ -180,7 +231,7 @@ def markdown(summary: dict, draws: list, args) -> list[str]:
     wrong = [d for d in draws if d["category"] == "wrong_claim"]
     md += ["", "## Wrong claims", ""] + ([f"- #{d['index']} truth `{d['truth']}` ({_law(d)}, {d['protocol']}, "
                                           f"excess {d['excess_before'] or 0:.2f}): verdict `{d['verdict']}`"
-                                          for d in wrong] or ["None."])
+                                          + _missed(d) for d in wrong] or ["None."])
     md += ["", "## Draws", "", "| # | truth | laws | protocol | rows | dropped | verdict | category | excess before "
            "| seconds |", "|---|---|---|---|---|---|---|---|---|---|"]
     md += [f"| {d['index']} | {d['truth']} | {_law(d)} | {d['protocol']} | {d['rows']} | "

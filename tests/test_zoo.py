@@ -75,3 +75,24 @@ def test_cases_cover_every_kind_of_truth():
     for c in cases:     # each case is within the bearing's back-up clearance, its laws of its truth's families
         assert not limit_violations(c.spec, c.protocol, c.effects)
         assert tuple(sorted({law.family or "no_family" for law in c.laws})) == tuple(sorted(c.truth))
+
+
+def test_the_zoo_study_scores_a_verdict_and_says_which_wrong_claims_no_verdict_could_avoid():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "gap_zoo.py"
+    spec = importlib.util.spec_from_file_location("gap_zoo", path)
+    gap_zoo = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gap_zoo)
+    pair = ("saturation", "current_offset")
+    assert gap_zoo.score(pair, "saturation") == "wrong_claim"
+    assert gap_zoo.score(pair, "undecided", ("saturation+current_offset", "saturation+leakage")) == \
+        "undecided_with_truth"
+    assert gap_zoo.score(pair, "current_offset+saturation") == "right"
+    # the missed family, alone, within a noise unit of the floor: no verdict could name it
+    assert gap_zoo.unseeable({"missed_alone_excess": {"current_offset": 0.4}})
+    assert not gap_zoo.unseeable({"missed_alone_excess": {"current_offset": 1.4}})
+    assert not gap_zoo.unseeable({"missed_alone_excess": {"current_offset": None}})
+    assert not gap_zoo.unseeable({"missed_alone_excess": None})
+    assert not gap_zoo.unseeable({})
