@@ -56,9 +56,14 @@ TARGETS = {"right": 0.85, "wrong_claim": 0.02}
 """What the product is judged on: right at least, wrong claims at most (and every no-effect file ``none``)."""
 
 
+def named_families(verdict: str) -> set:
+    """The families ``verdict`` names (none for ``none``, ``unexplained``, ``undecided`` or ``error``)."""
+    return set() if verdict in NOT_NAMED else set(verdict.split("+"))
+
+
 def score(truth: tuple, verdict: str, candidates=()) -> str:
     """The category (:data:`CATEGORIES`) of ``verdict`` for ``truth`` (families, ``()`` or ``("no_family",)``)."""
-    named = set() if verdict in NOT_NAMED else set(verdict.split("+"))
+    named = named_families(verdict)
     if not truth:
         return "right" if verdict == "none" else ("wrong_claim" if named else "no_claim")
     if truth == ("no_family",):
@@ -93,7 +98,7 @@ def one_draw(item: int, seed) -> dict:
     candidates = rec.get("candidates", [])
     grade = rec.get("grade")
     category = score(case.truth, rec["verdict"], candidates)
-    named = set() if rec["verdict"] in NOT_NAMED else set(rec["verdict"].split("+"))
+    named = named_families(rec["verdict"])
     missed = sorted(set(case.truth) - named) if category == "wrong_claim" and named < set(case.truth) else []
     return {"index": item, "kind": case.kind, "truth": case.label, "families": list(case.truth),
             "missed_alone_excess": {f: alone_excess(case, f, item) for f in missed} or None,
@@ -165,9 +170,10 @@ def summarise(draws: list, seed: int = DEVELOPED_SEED) -> dict:
     none = [d for d in draws if d["kind"] == "none"]
     times = [d["seconds"] for d in draws]
     wrong = [d for d in draws if d["category"] == "wrong_claim"]
+    unseen_missed = sum(unseeable(d) for d in wrong)
     return {"overall": {g: fractions(x) for g, x in groups.items()}, "per_family": per_family,
-            "wrong_claims_unseeable": {"n": sum(unseeable(d) for d in wrong), "of": len(wrong),
-                                       "share_of_draws": sum(unseeable(d) for d in wrong) / max(len(draws), 1)},
+            "wrong_claims_unseeable": {"n": unseen_missed, "of": len(wrong),
+                                       "share_of_draws": unseen_missed / max(len(draws), 1)},
             "per_protocol": per_protocol, "per_kind": per_kind, "per_law": per_law,
             "confusion": {t: dict(c) for t, c in sorted(confusion.items())},
             "no_effect_none": {"none": sum(d["verdict"] == "none" for d in none), "of": len(none)},

@@ -105,10 +105,10 @@ def robust_scale(z: np.ndarray, known_noise: bool = True) -> float:
 def _scales(z: np.ndarray, fitted: np.ndarray, known_noise: bool) -> np.ndarray:
     """:func:`robust_scale` of each row of ``z[sets, rows]`` over its ``fitted`` finite entries: array[sets]."""
     a = np.where(fitted & np.isfinite(z), np.abs(z), np.nan)
-    n = np.sum(~np.isnan(a), axis=1)
-    none = n == 0
     if not a.shape[1]:
         return np.ones(len(a))
+    n = np.sum(~np.isnan(a), axis=1)
+    none = n == 0
     # the median of each row's finite entries: sorted, NaN last (np.nanmedian's masked-array route is slow on short
     # rows)
     a = np.sort(a, axis=1)
