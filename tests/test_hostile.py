@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -179,6 +180,7 @@ def test_the_crash_log_never_follows_a_planted_link(tmp_path, monkeypatch):
     victim.write_text("precious")
     (home / ".cache" / "ambfit" / "last-error.txt").symlink_to(victim)
     monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))         # the private file is left here, not in /tmp
     try:
         raise RuntimeError("a bug")
     except RuntimeError:
@@ -193,6 +195,7 @@ def test_the_crash_log_goes_to_a_private_file_when_the_cache_cannot_be_made(tmp_
     home.mkdir()
     (home / ".cache").write_text("a file where the folder should be")
     monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     try:
         raise ValueError("another bug")
     except ValueError:
