@@ -70,6 +70,35 @@ def play_states(df: pd.DataFrame, column: str, widths) -> np.ndarray:
     return out
 
 
+def fading_states(df: pd.DataFrame, column: str, memories, widths) -> np.ndarray:
+    """How far each reading's coil current sits from a fading memory of its recent course: array[n, m * w],
+    ``clip((i - q) / width, -1, 1)`` for each memory (outer) and half-width (inner).
+
+    ``q`` follows the current through each run's readings in file order (:func:`runs`), ``q = a q_prev + (1 - a) i``
+    with ``a = exp(-1 / memory)`` (``memory`` in readings), from zero current before the run's first reading, as the
+    plays start: the coils were energised from zero, and a memory not yet relaxed by the first reading lags it as
+    after a rise.  Where a
+    play (:func:`play_states`) forgets nothing until the current turns by its width, this forgets the past at a fixed
+    rate: the lag of a magnetisation that relaxes towards the current (eddy currents in solid iron, magnetic
+    after-effect; Bertotti, *Hysteresis in Magnetism*, 1998, ch. 9), linear in ``i - q`` for a wide width and a
+    direction for a narrow one.
+    """
+    memories, widths = np.asarray(memories, dtype=float), np.asarray(widths, dtype=float)
+    out = np.zeros((len(df), len(memories) * len(widths)))
+    if len(df) == 0:
+        return out
+    order, first = runs(df)
+    i = df[column].to_numpy(float)[order]
+    a = np.exp(-1.0 / memories)
+    q = np.zeros(len(memories))
+    for r, (now, new) in enumerate(zip(i, first)):       # a recursion: each output needs the one before
+        if new:
+            q = np.zeros(len(memories))
+        q = a * q + (1.0 - a) * now
+        out[order[r]] = np.clip((now - q)[:, None] / widths[None, :], -1.0, 1.0).reshape(-1)
+    return out
+
+
 def other_axis_currents(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """The other axis' ``(i_top_A, i_bottom_A)`` read at the same moment as each row (NaN where none).
 

@@ -239,6 +239,26 @@ def test_play_states_follow_the_play_operator():
     np.testing.assert_allclose(s[:, 1], R.approach_direction(df, "i_top_A", threshold=1e-9))
 
 
+def test_fading_states_follow_an_exponential_memory_of_the_current():
+    # memories of 1 and 3 readings, half-widths 0.2 A and 10 A (memory outer, width inner); run (a, v) steps 0 ->
+    # 1.0 -> 1.0 -> 0.5 (from zero current), a w row between its readings runs on its own, experiment b starts again
+    df = pd.DataFrame({"axis": ["v", "w", "v", "v", "v"], "experiment": ["a", "a", "a", "a", "b"],
+                       "i_top_A": [1.0, 0.2, 1.0, 0.5, 0.3]})
+    s = R.fading_states(df, "i_top_A", [1.0, 3.0], [0.2, 10.0])
+    for k, memory in enumerate((1.0, 3.0)):
+        a = np.exp(-1.0 / memory)
+        q, want = 0.0, []
+        for i in (1.0, 1.0, 0.5):
+            q = a * q + (1.0 - a) * i
+            want.append(i - q)
+        want = np.array(want)
+        for j, width in enumerate((0.2, 10.0)):
+            col = s[:, 2 * k + j]
+            np.testing.assert_allclose(col[[0, 2, 3]], np.clip(want / width, -1.0, 1.0))
+            np.testing.assert_allclose(col[[1, 4]], np.clip(np.array([0.2, 0.3]) * a / width, -1.0, 1.0))
+    assert s[3, 0] < 0.0 < s[3, 2]       # after the fall the current sits below a short memory; a long one still rises
+
+
 def test_a_spreadsheet_export_is_read_and_said(tmp_path):
     # a German Excel's "CSV": semicolons, decimal commas, a blank row of separators; the same numbers as the
     # contract's file, and what was taken in stride said as notes

@@ -29,6 +29,7 @@ def _simulate(design, law, seed=7):
 CASES = [
     (laws.ExponentialTimeDrift, "thermal_drift", [E.ThermalDrift()]),
     (laws.MinorLoopHysteresis, "hysteresis", [E.Hysteresis()]),
+    (laws.RelaxingHysteresis, "hysteresis", [E.Hysteresis()]),
     (laws.PositionNonlinearity(gain=np.array([0.04, -0.03]), curve=np.array([0.05, -0.06])), "position_gain", []),
     (laws.ChannelCalibration, "current_offset", []),
     (laws.CurrentCoupling, "cross_coupling", [E.CrossCoupling()]),
@@ -88,12 +89,25 @@ def test_the_drift_basis_follows_the_readings_clock(design):
     assert first.any() and np.all(m[first] == 0) and np.any(m[~first] != 0)
 
 
-def test_the_memory_basis_needs_the_order_of_readings(design):
+@pytest.mark.parametrize("group", ["memory", "fading"])
+def test_the_path_bases_need_the_order_of_readings(design, group):
     data = _simulate(design, laws.MinorLoopHysteresis)
     from ambfit.rows import readings
 
-    with pytest.raises(ValueError, match="memory"):
-        Basis.of(PAPER_BEARING, ("memory",)).matrix(readings(data))
+    with pytest.raises(ValueError, match=group):
+        Basis.of(PAPER_BEARING, (group,)).matrix(readings(data))
+
+
+def test_every_groups_terms_name_its_columns(design):
+    from ambfit.data import zero_based
+    from ambfit.estimation.basis import ALL_GROUPS
+    from ambfit.rows import readings
+
+    df = zero_based(_simulate(design, laws.RelaxingHysteresis))
+    r = readings(df)
+    for group in ALL_GROUPS:
+        basis = Basis.of(PAPER_BEARING, (group,), r)
+        assert len(basis.terms()) == basis.matrix(r, df).shape[1] > 0, group
 
 
 def test_memory_hysteresis_is_named_by_its_signature(design):

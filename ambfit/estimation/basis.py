@@ -18,6 +18,8 @@ coupling           the same times the other axis' mean squared current; powers o
 control            the other axis' signed control current times this axis' current stiffness
 hysteresis         ``b^p xi^q`` times the direction from which each coil current was approached
 memory             each coil's state in plays of several widths (the path over several readings)
+fading             each coil's departure from fading memories of its current, of several lengths and widths (a flux
+                   that relaxes towards the current over the next readings)
 drift              each coil's ``b^2``, ``b^2 xi`` times smooth functions of time: powers and settling curves
                    (and of temperature when read: powers and the temperature lagged through first-order lags)
 current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
@@ -51,13 +53,13 @@ GROUPS = ("shape", "coupling", "hysteresis")
 (saturation, iron, fringing, leakage); what depends on the other axis (its currents and position: coupling through
 the stator); what depends on the direction from which each coil current was approached (hysteresis).  Each group
 has its own prior scale."""
-SIGNATURE_GROUPS = ("control", "memory", "drift", "current_sensor", "position_sensor", "position_spline")
+SIGNATURE_GROUPS = ("control", "memory", "fading", "drift", "current_sensor", "position_sensor", "position_spline")
 """Further groups, each the signature of one family (see the module docstring)."""
 ALL_GROUPS = GROUPS + SIGNATURE_GROUPS
 
 FAMILY_GROUPS = {
     "saturation": ("shape",), "iron_reluctance": ("shape",), "fringing": ("shape",), "leakage": ("shape",),
-    "cross_coupling": ("coupling", "control"), "hysteresis": ("hysteresis", "memory"),
+    "cross_coupling": ("coupling", "control"), "hysteresis": ("hysteresis", "memory", "fading"),
     "thermal_drift": ("drift",), "current_offset": ("current_sensor",),
     "current_gain": ("current_sensor",), "position_gain": ("position_sensor", "position_spline"),
 }
@@ -80,6 +82,18 @@ PLAY_WIDTHS = (0.005, 0.01, 0.02, 0.035, 0.05, 0.07, 0.1, 0.15)
 """Half-widths of the memory group's plays, as fractions of ``I_max`` (15-450 mA on the paper's rig: from the
 library's narrow play to the perturbation's span, about geometric; the narrowest limit is the hysteresis group's
 direction).  A play's state is not linear in its width: a law between two widths is expressed by their mix."""
+
+FADING_MEMORIES = (0.5, 1.0, 2.0, 4.0, 8.0)
+"""Lengths of the fading group's memories, in readings (``q = a q_prev + (1 - a) i``, ``a = exp(-1 /
+memory)``, :func:`ambfit.rows.fading_states`): from a lag behind the last step alone to one over a run of several
+steps, about geometric; a length between two is expressed by their mix."""
+
+FADING_WIDTHS = (0.01, 0.025, 0.06, 0.15)
+"""Half-widths of the fading group's states, as fractions of ``I_max`` (30-450 mA on the paper's rig): a state
+``clip((i - q) / width, -1, 1)`` is a direction for a narrow width and linear in ``i - q`` for a wide one.  Each
+state enters per coil as ``b`` and ``b xi`` (a lag of the magnetising current changes a horseshoe's force by its
+current stiffness, ``b / (1 -+ xi)``).  A group of its own, with its own prior scale: in the memory group the plays'
+scale would be the fading states' too."""
 
 SPLINE_INTERVALS = 24
 """Most knot intervals of the position_spline group's cubic B-splines over the position readings' span: a ripple of
@@ -181,6 +195,12 @@ class Basis:
                 cols += [("memory", f"play {w:g} I_max {coil} b{extra}", v)
                          for coil, s, b, x in (("top", st, bt, xi), ("bottom", sb, bb, -xi))
                          for extra, v in (("", s * b), ("^2", s * b**2), (" xi", s * b * x))]
+        if "fading" in self.groups:
+            for j, (m, w) in enumerate((m, w) for m in FADING_MEMORIES for w in FADING_WIDTHS):
+                st, sb = f["fade_top"][:, j], f["fade_bottom"][:, j]
+                cols += [("fading", f"fading {m:g} readings {w:g} I_max {coil} b{extra}", v)
+                         for coil, s, b, x in (("top", st, bt, xi), ("bottom", sb, bb, -xi))
+                         for extra, v in (("", s * b), (" xi", s * b * x))]
         if "drift" in self.groups:
             clocks = ([(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)]
                       + [(f"1 - exp(-t / {s:g} t_run)", -np.expm1(-f["tau"] / s)) for s in SETTLE]
@@ -228,6 +248,14 @@ class Basis:
             widths = np.asarray(PLAY_WIDTHS) * self.i_ref
             f |= {"play_top": play_states(frame, "i_top_A", widths),
                   "play_bottom": play_states(frame, "i_bottom_A", widths)}
+        if "fading" in self.groups:
+            from ambfit.rows import fading_states
+
+            if frame is None:
+                raise ValueError("the discrepancy's 'fading' group needs the table of the readings (their order)")
+            widths = np.asarray(FADING_WIDTHS) * self.i_ref
+            f |= {f"fade_{coil}": fading_states(frame, f"i_{coil}_A", FADING_MEMORIES, widths)
+                  for coil in ("top", "bottom")}
         return f
 
     def terms(self) -> list[tuple[str, str]]:
@@ -237,6 +265,8 @@ class Basis:
                                             "theta")}
                             | {f"theta_lag{j}": z for j in range(len(SETTLE))}
                             | {"play_top": np.zeros((1, len(PLAY_WIDTHS))), "play_bottom": np.zeros((1, len(PLAY_WIDTHS))),
+                               "fade_top": np.zeros((1, len(FADING_MEMORIES) * len(FADING_WIDTHS))),
+                               "fade_bottom": np.zeros((1, len(FADING_MEMORIES) * len(FADING_WIDTHS))),
                                "u_spline": np.zeros((1, self.u_intervals + 3))})
         return [(g, f"{ax}: {t}") for ax in AXES for g, t, _ in one]
 
@@ -246,8 +276,8 @@ class Basis:
     @classmethod
     def from_json(cls, record: dict) -> Basis:
         """The basis of a saved discrepancy; one saved with other constants (:data:`P_MAX`, :data:`Q_MAX`,
-        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`) would compute other columns
-        under the same coefficients, and is refused."""
+        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`, :data:`FADING_MEMORIES`,
+        :data:`FADING_WIDTHS`) would compute other columns under the same coefficients, and is refused."""
         if "p_max" in record:
             record = {"shape_p_min": 0} | record       # saved before the shape group left out b^0
         for key, value in _constants().items():
@@ -259,7 +289,8 @@ class Basis:
 
     def matrix(self, readings, frame=None) -> np.ndarray:
         """Force [N] of each basis function (unit coefficient) at each reading: array[n, m], axis by axis.
-        ``frame``: the table the readings were made from (the memory group follows each coil's path through it).
+        ``frame``: the table the readings were made from (the memory and fading groups follow each coil's path
+        through it).
 
         The last few readings' matrices are kept, by the readings' identity (a built problem's readings are
         shared by every fit of its table: a diagnosis fits the discrepancy on one table many times)."""
@@ -283,7 +314,8 @@ class Basis:
 def _constants() -> dict:
     """The module's constants that shape the columns, as a saved basis records them."""
     return {"p_max": P_MAX, "q_max": Q_MAX, "shape_p_min": SHAPE_P_MIN, "x_scale": X_SCALE, "settle": list(SETTLE),
-            "play_widths": list(PLAY_WIDTHS)}
+            "play_widths": list(PLAY_WIDTHS), "fading_memories": list(FADING_MEMORIES),
+            "fading_widths": list(FADING_WIDTHS)}
 
 
 def _splines(u: np.ndarray, lo: float, hi: float, intervals: int) -> np.ndarray:

@@ -92,7 +92,7 @@ class Discrepancy:
 
         ``sensitivity``: ``dF/d(parameter)`` [N per SI unit] of the physical model at those readings, one
         column per entry of :attr:`names` (the projection needs it); ``frame``: their table, when the basis
-        follows each coil's path (its memory group).
+        follows each coil's path (its memory and fading groups).
         """
         g = self.basis.matrix(readings, frame) - np.asarray(sensitivity) @ self.projection
         return g @ self.coef, np.sqrt(np.maximum(np.sum((g @ self.cov) * g, axis=1), 0.0))
