@@ -77,11 +77,10 @@ def fading_states(df: pd.DataFrame, column: str, memories, widths) -> np.ndarray
     ``q`` follows the current through each run's readings in file order (:func:`runs`), ``q = a q_prev + (1 - a) i``
     with ``a = exp(-1 / memory)`` (``memory`` in readings), from zero current before the run's first reading, as the
     plays start: the coils were energised from zero, and a memory not yet relaxed by the first reading lags it as
-    after a rise.  Where a
-    play (:func:`play_states`) forgets nothing until the current turns by its width, this forgets the past at a fixed
-    rate: the lag of a magnetisation that relaxes towards the current (eddy currents in solid iron, magnetic
-    after-effect; Bertotti, *Hysteresis in Magnetism*, 1998, ch. 9), linear in ``i - q`` for a wide width and a
-    direction for a narrow one.
+    after a rise.  Where a play (:func:`play_states`) forgets nothing until the current turns by its width, this
+    forgets the past at a fixed rate: the lag of a magnetisation that relaxes towards the current (eddy currents in
+    solid iron, magnetic after-effect; Bertotti, *Hysteresis in Magnetism*, Academic Press, 1998), linear in
+    ``i - q`` for a wide width and a direction for a narrow one.
     """
     memories, widths = np.asarray(memories, dtype=float), np.asarray(widths, dtype=float)
     out = np.zeros((len(df), len(memories) * len(widths)))

@@ -186,8 +186,8 @@ class RelaxingHysteresis(Effect):
     current turns.  A 0.2 A step lags by ``fraction a 0.2 A``: 4-19 mA over ``RANGES``, about the library's range.
 
     The rig carries ``q`` as the coil's state; without one (a fit, which the library never offers this law) ``q = i``
-    and the law does nothing.  It reads the coil currents, so it must come after every other coil stage of a rig's
-    list.
+    and the law does nothing.  Its coil stage sets the coils' states from their currents, discarding what earlier
+    coil stages set: it must be the last effect of a rig's list.
     """
 
     memory: jnp.ndarray = eqx.field(default_factory=lambda: jnp.asarray(2.0))
