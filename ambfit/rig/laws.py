@@ -14,7 +14,28 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ambfit.physics.effects.magnetic import play_coils
+from ambfit.physics.model import horseshoe_force
 from ambfit.physics.stages import Effect, _ax, _set
+
+
+def with_magnetising(ctx, force, m_top, m_bottom):
+    """The force with the square law at the coils' states ``ctx.m_*`` replaced by the square law at the
+    magnetising currents ``m_*`` [A] (a stateful law's force stage: the stages before computed it at its states)."""
+    return (force + horseshoe_force(ctx.k_top, m_top, ctx.g_top, ctx.k_bottom, m_bottom, ctx.g_bottom)
+            - horseshoe_force(ctx.k_top, ctx.m_top, ctx.g_top, ctx.k_bottom, ctx.m_bottom, ctx.g_bottom))
+
+
+def magnetising(i, state, fraction):
+    """The magnetising current [A] of coil current ``i`` and a hysteresis state ``state`` [A] felt in part:
+    ``i + fraction (state - i)``."""
+    return i + fraction * (state - i)
+
+
+def felt_in_part(ctx, force, fraction):
+    """:func:`with_magnetising` at each coil's state felt in part (``fraction``, scalar or per axis)."""
+    f = _ax(fraction, ctx.axis)
+    return with_magnetising(ctx, force, magnetising(ctx.i_top, ctx.m_top, f),
+                            magnetising(ctx.i_bottom, ctx.m_bottom, f))
 
 
 class RayleighHysteresis(Effect):
@@ -162,16 +183,11 @@ class MinorLoopHysteresis(Effect):
 
     def magnetising(self, i, p, axis):
         """The magnetising current [A] of coil current ``i`` and play output ``p`` [A]."""
-        return i + _ax(self.fraction, axis) * (p - i)
+        return magnetising(i, p, _ax(self.fraction, axis))
 
     def force(self, ctx, force):
-        from ambfit.physics.model import horseshoe_force
-
         # The stages before have put the play outputs in m_*; the coil currents are recovered from the context.
-        mt = self.magnetising(ctx.i_top, ctx.m_top, ctx.axis)
-        mb = self.magnetising(ctx.i_bottom, ctx.m_bottom, ctx.axis)
-        return (force + horseshoe_force(ctx.k_top, mt, ctx.g_top, ctx.k_bottom, mb, ctx.g_bottom)
-                - horseshoe_force(ctx.k_top, ctx.m_top, ctx.g_top, ctx.k_bottom, ctx.m_bottom, ctx.g_bottom))
+        return felt_in_part(ctx, force, self.fraction)
 
 
 class RelaxingHysteresis(Effect):
@@ -206,12 +222,7 @@ class RelaxingHysteresis(Effect):
         return _set(ctx, m_top=one(ctx.i_top, ctx.m_prev_top), m_bottom=one(ctx.i_bottom, ctx.m_prev_bottom))
 
     def force(self, ctx, force):
-        from ambfit.physics.model import horseshoe_force
-
-        f = _ax(self.fraction, ctx.axis)
-        mt, mb = ctx.i_top + f * (ctx.m_top - ctx.i_top), ctx.i_bottom + f * (ctx.m_bottom - ctx.i_bottom)
-        return (force + horseshoe_force(ctx.k_top, mt, ctx.g_top, ctx.k_bottom, mb, ctx.g_bottom)
-                - horseshoe_force(ctx.k_top, ctx.m_top, ctx.g_top, ctx.k_bottom, ctx.m_bottom, ctx.g_bottom))
+        return felt_in_part(ctx, force, self.fraction)
 
 
 class CurrentCoupling(Effect):

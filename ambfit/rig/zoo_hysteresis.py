@@ -15,16 +15,10 @@ from typing import ClassVar
 import jax.numpy as jnp
 import numpy as np
 
-from ambfit.physics.model import horseshoe_force
 from ambfit.physics.stages import _set
+from ambfit.rig.laws import magnetising, with_magnetising
 from ambfit.rig.zoo_magnetic import I_REF
 from ambfit.rig.zoo_shapes import Shape, ZooLaw, log_uniform, random_shape
-
-
-def _with_magnetising(ctx, force, m_top, m_bottom):
-    """The force with the square law at the states ``ctx.m_*`` replaced by the square law at ``m_*`` [A]."""
-    return (force + horseshoe_force(ctx.k_top, m_top, ctx.g_top, ctx.k_bottom, m_bottom, ctx.g_bottom)
-            - horseshoe_force(ctx.k_top, ctx.m_top, ctx.g_top, ctx.k_bottom, ctx.m_bottom, ctx.g_bottom))
 
 
 class PlayHysteresis(ZooLaw):
@@ -60,8 +54,8 @@ class PlayHysteresis(ZooLaw):
 
     def force(self, ctx, force):
         f = self.fraction
-        return _with_magnetising(ctx, force, ctx.i_top + f * (ctx.m_top - ctx.i_top),
-                                 ctx.i_bottom + f * (ctx.m_bottom - ctx.i_bottom))
+        return with_magnetising(ctx, force, magnetising(ctx.i_top, ctx.m_top, f),
+                                magnetising(ctx.i_bottom, ctx.m_bottom, f))
 
     @classmethod
     def _draw(cls, rng, duration_s):
@@ -103,7 +97,7 @@ class MemoryHysteresis(ZooLaw):
         def m(i, q):
             return i - self.lag * jnp.tanh((i - q) / self.scale)
 
-        return _with_magnetising(ctx, force, m(ctx.i_top, ctx.m_top), m(ctx.i_bottom, ctx.m_bottom))
+        return with_magnetising(ctx, force, m(ctx.i_top, ctx.m_top), m(ctx.i_bottom, ctx.m_bottom))
 
     @classmethod
     def _draw(cls, rng, duration_s):
