@@ -23,10 +23,11 @@ import dataclasses
 import numpy as np
 import pandas as pd
 
-from ambfit.data import Dataset
+from ambfit.data import Dataset, file_rows
 from ambfit.diagnosis.checks import Pair, fold_fits, force_checks
 from ambfit.diagnosis.circuit_families import circuit_families
 from ambfit.diagnosis.discrepancy import ceiling
+from ambfit.diagnosis.heldout import gross_errors
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
@@ -137,8 +138,13 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     # score: the ideal law and every candidate at once; the candidates' "before" is the ideal law's held-out excess
     scorer.expect(1 + len(cands))
     ideal, *singles = scorer.laws([()] + [(e,) for e in cands])
+    # readings no model fits (rare gross errors: a spike of a sensor) count in no score
+    gross = gross_errors([ideal, *singles])
+    if gross.any():
+        ideal, *singles = scorer.leave_out(gross, [ideal, *singles])
+        ideal = dataclasses.replace(ideal, before=ideal.after)
     singles = [dataclasses.replace(c, before=ideal.after) for c in singles]
-    loc = where(df, base, alpha=rules.structure_alpha)
+    loc = where(df, base, alpha=rules.structure_alpha, rows=scorer.scored)
     structured = bool(loc.regions)
     pairs = []
     if needs_pairs(rules, ideal, singles, structured):
@@ -162,7 +168,8 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     # check
     law = verdict.law
     verdict_fit = law.fit if law is not None else None
-    ceil = ceiling(df, ideal, law, ideal.after, noise, scorer.progress, each) if discrepancy else None
+    ceil = ceiling(df, ideal, law, ideal.after, noise, scorer.progress, each, scored=scorer.scored) \
+        if discrepancy else None
     families = None
     if verdict.name == "magnetic_circuit":
         # the circuit is physics, the verdict names its families: each piece's contribution, largest first
@@ -183,6 +190,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         ranking=ranking, decision=verdict, rules=rules, verdict_fit=verdict_fit,
         operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
         best_pair=best_pair, families=families, ceiling=ceil, signatures=sigs or None, separation=separation,
+        left_out=tuple(int(r) for r in file_rows(df)[gross]),
         force_check=force_checks(df, base, verdict_fit, bearing, noise, discrepancy, scorer.max_steps,
                                  fold_fits([ideal] + ranking, ceil), each, best=verdict.best)
         if check_force else None)

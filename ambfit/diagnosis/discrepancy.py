@@ -68,16 +68,17 @@ class Ceiling:
 
 
 def ceiling(df, ideal: Candidate, verdict: Candidate | None, before: float, noise, progress=None,
-            each=None) -> Ceiling:
+            each=None, scored=None) -> Ceiling:
     """The discrepancy's held-out shrink on the ideal law (the ceiling) and on the verdict's model, and the
     correction fitted on every row of the verdict's model (the ideal law's when there is none).  ``each``: how
-    the independent pieces are run (:class:`_Each`; default one after the other)."""
+    the independent pieces are run (:class:`_Each`; default one after the other); ``scored``: the readings that
+    count (:func:`~ambfit.diagnosis.signatures.widened`)."""
     from ambfit.estimation.basis import GROUPS
 
     host = verdict if verdict is not None and verdict.fit.effects else ideal
     models = [ideal] if host is ideal else [ideal, host]
-    done = (each or _Each(1))(lambda task: task(), [functools.partial(widened, c, df, GROUPS, noise, wanted=False)
-                                                   for c in models])
+    done = (each or _Each(1))(lambda task: task(), [functools.partial(widened, c, df, GROUPS, noise, wanted=False,
+                                                                      scored=scored) for c in models])
     wide = {c.effect: w for c, w in zip(models, done)}
     z_in = ideal.fit.residuals
     kept = ideal.fit.fitted_rows

@@ -87,6 +87,28 @@ def shrink(before: float, after: float) -> float:
     return 1.0 - after / before if before > 0 else 0.0
 
 
+GROSS_SHARE = 0.02
+"""The largest share of the readings :func:`gross_errors` leaves out of the held-out scores.  Readings that no
+model fits are gross errors when they are rare (a position reading spiking by micrometres on a sensor good to a
+tenth); when more than this share of the readings is beyond every model, that is a finding the scores must keep."""
+
+
+def gross_errors(models, share: float = GROSS_SHARE) -> np.ndarray:
+    """The readings (bool per row) that every model's fit of every row named outliers, when they are at most
+    ``share`` of the readings (else none).  Fits that did not converge have no say (their outlier test did not run).
+
+    A reading no model fits predicts nothing about which model is right, yet one standardized residual of 30
+    outweighs a thousand readings at the noise floor in a mean square: left in, a few spikes make clean data look
+    unexplained.  Such readings are left out of every held-out score and of what the widened laws learn from; a
+    fold's refit never used them (it uses its model's other readings only)."""
+    rows = [np.asarray(m.fit.fitted_rows[:len(m.fit.residuals)]) for m in models
+            if m.fit is not None and m.fit.converged]
+    if not rows:
+        return np.zeros(0, bool)
+    out = ~np.logical_or.reduce(rows)
+    return out if out.sum() <= share * len(out) else np.zeros_like(out)
+
+
 def heldout_residuals(fitted: FitResult, data: pd.DataFrame, test: np.ndarray, groups=None) -> np.ndarray:
     """Standardized residuals of the ``test`` rows (bool mask) under a fit that held them out.
 

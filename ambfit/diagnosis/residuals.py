@@ -115,8 +115,9 @@ class Where:
 
 
 def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins: int = 6,
-          alpha: float = 0.01, bearing: Bearing = PAPER_BEARING) -> Where:
-    """Where the baseline fit's standardized residuals are structured (see the module docstring)."""
+          alpha: float = 0.01, bearing: Bearing = PAPER_BEARING, rows=None) -> Where:
+    """Where the baseline fit's standardized residuals are structured (see the module docstring); ``rows`` (bool
+    per row, default every row): the readings searched."""
     # chi2.sf and norm.isf from scipy.special: scipy.stats alone takes 0.6 s to import
     from scipy.special import chdtrc, ndtri
 
@@ -127,7 +128,7 @@ def where(data: Dataset | pd.DataFrame, result: FitResult | None = None, *, bins
     tests, cells = [], []
     for var in [c for c in ov.columns if c != "axis"]:
         for ax in AXES:
-            m = (ov["axis"] == ax).to_numpy()
+            m = (ov["axis"] == ax).to_numpy() & (True if rows is None else np.asarray(rows, bool))
             if m.sum() < 2 * bins:
                 continue
             vals, zz = ov.loc[m, var].to_numpy(float), z[m]

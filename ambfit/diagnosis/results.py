@@ -58,6 +58,9 @@ class Diagnosis:
         Every family's law widened by its signature, best first, when no single law explained the data.
     separation : Separation or None
         ``undecided``: the protocol that would tell the candidates apart.
+    left_out : tuple of int
+        Data rows (from 1) that no model fits, left out of every held-out score
+        (:func:`ambfit.diagnosis.heldout.gross_errors`).
     """
 
     baseline: FitResult
@@ -77,6 +80,7 @@ class Diagnosis:
     ceiling: Ceiling | None = None
     signatures: list | None = None
     separation: Separation | None = None
+    left_out: tuple = ()
 
     @property
     def verdict(self) -> str:
@@ -137,6 +141,9 @@ class Diagnosis:
             "ranking": [c.to_json(self.ideal) for c in self.ranking], "verdict": self.verdict,
             "confounded_with": self.confounded_with, "shrink": self.shrink,
             "heldout_excess_before": self.heldout_excess_before,
+            **({"heldout_left_out": {"rows": list(self.left_out),
+                                     "why": "every model fitted to every row named them outliers: gross errors, left "
+                                            "out of every held-out score"}} if self.left_out else {}),
             "parameters_baseline": {n: self.baseline.value(n) for n in self.baseline.names if not n.startswith("load[")},
             "goodness_of_fit": self.baseline.goodness_of_fit(),
             "parameter_gap": self.parameter_gap,

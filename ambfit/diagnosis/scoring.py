@@ -15,6 +15,7 @@ the slower route (``benchmarks/diagnose_speed.py`` measures both).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -63,7 +64,22 @@ class Scorer:
         self.max_steps, self.each, self.progress = max_steps, each, progress
         self.fold_name, self.tests = folds(df, scheme)
         self.groups = load_groups(df).to_numpy()
+        self.scored = np.ones(len(df), bool)
         self.done = self.total = 0
+
+    def leave_out(self, rows: np.ndarray, models: list[Candidate]) -> list[Candidate]:
+        """Score without ``rows`` (bool per row) from now on: ``models`` scored again on their folds' other held-out
+        readings (their fits never used these rows: every fit of every row named them outliers, and a fold's refit
+        uses only its model's other rows)."""
+        self.scored = ~np.asarray(rows, bool)
+        return [dataclasses.replace(c, **self._scores(c.folds)) for c in models]
+
+    def _scores(self, fitted) -> dict:
+        """Held-out residuals and predictive variances of ``fitted`` (``(test mask, fit)`` per fold) on the scored
+        rows of each fold, pooled."""
+        tests = [(test & self.scored, f) for test, f in fitted]
+        return {"heldout_z": np.concatenate([heldout_residuals(f, self.df, test, self.groups) for test, f in tests]),
+                "heldout_var": np.concatenate([1.0 + predictive_variance(f, test) for test, f in tests])}
 
     def expect(self, models: int) -> None:
         """Announce ``models`` more models to the progress count."""
@@ -103,12 +119,11 @@ class Scorer:
         out = []
         for k, effects in enumerate(effect_sets):
             fitted = [first] + [f.result() for f in queued[0]] if k == 0 else [f.result() for f in queued[k]]
-            var = np.concatenate([1.0 + predictive_variance(f, test) for test, f in zip(self.tests, fitted)])
-            z = np.concatenate([heldout_residuals(f, self.df, test, self.groups) for test, f in zip(self.tests, fitted)])
+            scores = self._scores(tuple(zip(self.tests, fitted)))
             kind = "ideal" if not effects else "pair" if len(effects) > 1 else "law"
-            out.append(Candidate("+".join(type(e).name for e in effects) or "ideal", z,
-                                 excess(z) if before is None else before, full[k], tuple(zip(self.tests, fitted)),
-                                 kind=kind, heldout_var=var))
+            out.append(Candidate("+".join(type(e).name for e in effects) or "ideal", scores["heldout_z"],
+                                 excess(scores["heldout_z"]) if before is None else before, full[k],
+                                 tuple(zip(self.tests, fitted)), kind=kind, heldout_var=scores["heldout_var"]))
             self.done += 1
             if self.progress is not None:
                 self.progress("candidate effects", self.done, self.total)
@@ -119,5 +134,6 @@ class Scorer:
         from ambfit.estimation.basis import FAMILY_GROUPS
 
         own = [c for c in laws if c.effect in FAMILY_GROUPS and c.folds]
-        tasks = [functools.partial(widened, c, self.df, FAMILY_GROUPS[c.effect], self.noise) for c in own]
+        tasks = [functools.partial(widened, c, self.df, FAMILY_GROUPS[c.effect], self.noise, scored=self.scored)
+                 for c in own]
         return sorted(self.each(lambda task: task(), tasks), key=lambda s: s.score)

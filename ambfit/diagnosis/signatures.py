@@ -100,10 +100,12 @@ class Signature:
                 "largest_terms": self.full.largest(3)}
 
 
-def widened(law: Candidate, df, groups, noise, *, wanted: bool = True) -> Signature:
+def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=None) -> Signature:
     """``law`` widened by the discrepancy ``groups``: fitted on each fold's other rows (every reading with a finite
     residual, the law's outliers among them, its parameters refitted to them, linearised), scored on the fold; and
-    on the rows the law's fit of every row used (``full``, the saved correction).
+    on the rows the law's fit of every row used (``full``, the saved correction).  ``scored`` (bool per row, default
+    every row): the readings that count, in the corrections and the scores (:func:`ambfit.diagnosis.heldout.
+    gross_errors` leaves out those no model fits).
 
     ``log_bayes`` (how much the data want the signature) is measured on the rows the folds' corrections learn from,
     the outliers too, so that it asks of the signature what the held-out test does; ``wanted=False`` skips that
@@ -114,17 +116,19 @@ def widened(law: Candidate, df, groups, noise, *, wanted: bool = True) -> Signat
 
     zs, vs, folds_ = [], [], []
     loads = load_groups(df).to_numpy()
+    scored = np.ones(len(df), bool) if scored is None else np.asarray(scored, bool)
     for test, f in law.folds:
-        d = fit_discrepancy(f, df, groups=groups, mask=seen_rows(f, ~test), **noise)
-        zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, test,
+        d = fit_discrepancy(f, df, groups=groups, mask=seen_rows(f, ~test & scored), **noise)
+        held = test & scored
+        zs.append(heldout_residuals(dataclasses.replace(f, residuals=f.residuals + d.row_correction), df, held,
                                     loads))
         # the law's parameters and the correction's coefficients both widen the prediction
-        vs.append(1.0 + predictive_variance(f, test) + d.row_variance[test])
+        vs.append(1.0 + predictive_variance(f, held) + d.row_variance[held])
         folds_.append((test, f, d))
     # on the rows the law's fit used: its saved correction is its law's parameters and these coefficients alone
     full = fit_discrepancy(law.fit, df, groups=groups, **noise)
     n = len(df)
-    seen = seen_rows(law.fit, np.ones(n, bool)).astype(float)
+    seen = seen_rows(law.fit, scored).astype(float)
     if wanted and not np.allclose(seen, law.fit.row_weights[:n]):
         # the law's outliers are where another law departs from it most (a play hysteresis' widest loops)
         log_bayes = fit_discrepancy(law.fit, df, groups=groups, mask=seen, **noise).log_bayes

@@ -162,6 +162,11 @@ def findings(dg) -> list[str]:
                            "operating point; shuffle the order of the set-points and biases")
     if dg.decision.unjudged:
         out.append(unjudged(dg))
+    if dg.left_out:
+        rows = ", ".join(map(str, dg.left_out[:10])) + (f" and {len(dg.left_out) - 10} more" if len(dg.left_out) > 10
+                                                        else "")
+        out.append(f"{len(dg.left_out)} reading(s) that no model fits (data rows {rows}: every model named them "
+                   "outliers) are gross errors, left out of every held-out score; check the sensors there")
     if dg.grade is not None:
         g = dg.grade
         out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "
