@@ -15,6 +15,7 @@ import pandas as pd
 
 from ambfit.data import load_groups, zero_based
 from ambfit.estimation.results import FitResult
+from ambfit.estimation.robust import MAX_FRACTION
 from ambfit.estimation.units import HEAD
 
 FOLDS = 4
@@ -87,10 +88,11 @@ def shrink(before: float, after: float) -> float:
     return 1.0 - after / before if before > 0 else 0.0
 
 
-GROSS_SHARE = 0.02
-"""The largest share of the readings :func:`gross_errors` leaves out of the held-out scores.  Readings that no
-model fits are gross errors when they are rare (a position reading spiking by micrometres on a sensor good to a
-tenth); when more than this share of the readings is beyond every model, that is a finding the scores must keep."""
+GROSS_SHARE = MAX_FRACTION
+"""The largest share of the readings :func:`gross_errors` leaves out of the held-out scores: the fit's own limit
+between a few bad readings and a model that does not fit (:data:`ambfit.estimation.robust.MAX_FRACTION`).  Readings
+that no model fits are gross errors when they are that few (a position reading spiking by micrometres on a sensor
+good to a tenth); more beyond every model is a finding the scores must keep."""
 
 
 def gross_errors(models, share: float = GROSS_SHARE) -> np.ndarray:
