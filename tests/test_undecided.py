@@ -54,7 +54,26 @@ def test_clean_data_with_position_spikes_are_none_and_the_spikes_are_named():
     assert len(dg.ideal.heldout_z) == len(data) - len(spikes)
 
 
+def test_spikes_beside_an_effect_teach_no_widened_law():
+    """The rig's current offset (rich protocol, 280 readings) with four position spikes: the offset is named and the
+    spikes left out; the widened laws, scored beside it, learn without them (learning from them, they reach the
+    current gain's signature as well and the verdict is ``undecided``)."""
+    from ambfit.physics import effects as E
+
+    data = rig.simulate(rig.PAPER_RIG, protocol.rich(), [E.CurrentOffset()], seed=5).data
+    spikes = {6: 7.0, 185: -4.0, 223: 9.0, 226: -5.0}
+    for row, size in spikes.items():
+        data.loc[row, f"{data.loc[row, 'axis']}_um"] += size
+    dg = ambfit.diagnose(data)
+    assert dg.verdict == "current_offset", str(dg)
+    assert dg.left_out == tuple(r + 1 for r in spikes)
+    n = len(data) - len(spikes)
+    assert dg.signatures and all(len(s.heldout_z) == n for s in dg.signatures)
+    assert dg.ceiling is not None and np.isfinite(dg.ceiling.ideal.shrink)
+
+
 def test_gross_errors_are_the_readings_every_converged_fit_names_outliers():
+    """:func:`gross_errors` on hand-made fits: the rows every converged fit left out, within the cap."""
     from types import SimpleNamespace
 
     from ambfit.diagnosis.heldout import gross_errors

@@ -90,19 +90,21 @@ def shrink(before: float, after: float) -> float:
 
 GROSS_SHARE = MAX_FRACTION
 """The largest share of the readings :func:`gross_errors` leaves out of the held-out scores: the fit's own limit
-between a few bad readings and a model that does not fit (:data:`ambfit.estimation.robust.MAX_FRACTION`).  Readings
-that no model fits are gross errors when they are that few (a position reading spiking by micrometres on a sensor
-good to a tenth); more beyond every model is a finding the scores must keep."""
+between a few bad readings and a model that does not fit (:data:`ambfit.estimation.robust.MAX_FRACTION`; a fit that
+finds more keeps every reading, so a diagnosis' fits hold to it already).  Readings that no model fits are gross
+errors when they are that few (a position reading spiking by micrometres on a sensor good to a tenth); more beyond
+every model is a finding the scores must keep."""
 
 
 def gross_errors(models, share: float = GROSS_SHARE) -> np.ndarray:
-    """The readings (bool per row) that every model's fit of every row named outliers, when they are at most
-    ``share`` of the readings (else none).  Fits that did not converge have no say (their outlier test did not run).
+    """The readings (bool per row) that every converged model's fit of every row named outliers, when they are at
+    most ``share`` of the readings (else none).  A fit that did not converge has no say: its outlier test judged
+    residuals short of the fit's minimum.
 
     A reading no model fits predicts nothing about which model is right, yet one standardized residual of 30
-    outweighs a thousand readings at the noise floor in a mean square: left in, a few spikes make clean data look
+    weighs as much as 900 readings at the noise floor in a mean square: left in, a few spikes make clean data look
     unexplained.  Such readings are left out of every held-out score and of what the widened laws learn from; a
-    fold's refit never used them (it uses its model's other readings only)."""
+    converged model's fold refits never used them (each uses its model's other readings only)."""
     rows = [np.asarray(m.fit.fitted_rows[:len(m.fit.residuals)]) for m in models
             if m.fit is not None and m.fit.converged]
     if not rows:

@@ -68,9 +68,9 @@ class Scorer:
         self.done = self.total = 0
 
     def leave_out(self, rows: np.ndarray, models: list[Candidate]) -> list[Candidate]:
-        """Score without ``rows`` (bool per row) from now on: ``models`` scored again on their folds' other held-out
-        readings (their fits never used these rows: every fit of every row named them outliers, and a fold's refit
-        uses only its model's other rows)."""
+        """Every later score without ``rows`` (bool per row, :func:`ambfit.diagnosis.heldout.gross_errors`), and
+        ``models`` scored again on their folds' other held-out readings, from the fold fits they hold (a converged
+        model's fit of every row named these rows outliers, and its fold refits use only its other rows)."""
         self.scored = ~np.asarray(rows, bool)
         return [dataclasses.replace(c, **self._scores(c.folds)) for c in models]
 

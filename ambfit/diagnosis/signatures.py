@@ -126,8 +126,11 @@ def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=No
         vs.append(1.0 + predictive_variance(f, held) + d.row_variance[held])
         folds_.append((test, f, d))
     # on the rows the law's fit used: its saved correction is its law's parameters and these coefficients alone
-    full = fit_discrepancy(law.fit, df, groups=groups, **noise)
+    # (a law whose fit kept gross errors in, one that did not converge, has them left out here)
     n = len(df)
+    own = np.asarray(law.fit.row_weights[:n], dtype=float)
+    full = fit_discrepancy(law.fit, df, groups=groups, mask=None if not np.any(own[~scored] > 0)
+                           else np.sqrt(own) * scored, **noise)
     seen = seen_rows(law.fit, scored).astype(float)
     if wanted and not np.allclose(seen, law.fit.row_weights[:n]):
         # the law's outliers are where another law departs from it most (a play hysteresis' widest loops)

@@ -165,8 +165,8 @@ def findings(dg) -> list[str]:
     if dg.left_out:
         rows = ", ".join(map(str, dg.left_out[:10])) + (f" and {len(dg.left_out) - 10} more" if len(dg.left_out) > 10
                                                         else "")
-        out.append(f"{len(dg.left_out)} reading(s) that no model fits (data rows {rows}: every model named them "
-                   "outliers) are gross errors, left out of every held-out score; check the sensors there")
+        out.append(f"{len(dg.left_out)} reading(s) that no model fits (data rows {rows}: every converged model's fit "
+                   "named them outliers) are gross errors, left out of every held-out score; check the sensors there")
     if dg.grade is not None:
         g = dg.grade
         out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "
