@@ -72,20 +72,25 @@ def test_spikes_beside_an_effect_teach_no_widened_law():
     assert dg.ceiling is not None and np.isfinite(dg.ceiling.ideal.shrink)
 
 
-def test_gross_errors_are_the_readings_every_converged_fit_names_outliers():
-    """:func:`gross_errors` on hand-made fits: the rows every converged fit left out, within the cap."""
+def test_gross_errors_are_the_readings_every_model_at_the_floor_names_outliers():
+    """:func:`gross_errors` on hand-made fits: the rows every converged fit at the floor left out, within the cap."""
     from types import SimpleNamespace
 
     from ambfit.diagnosis.heldout import gross_errors
 
-    def model(outliers, converged=True, n=200):
-        rows = np.ones(n)
+    noise = np.random.default_rng(0).normal(size=200)
+
+    def model(outliers, converged=True, scale=1.0):
+        rows = np.ones(200)
         rows[list(outliers)] = 0.0
-        return SimpleNamespace(fit=SimpleNamespace(row_weights=rows, fitted_rows=rows > 0, residuals=np.zeros(n),
-                                                   converged=converged))
+        return SimpleNamespace(fit=SimpleNamespace(row_weights=rows, fitted_rows=rows > 0, residuals=scale * noise,
+                                                   converged=converged, noise_estimated=False))
 
     got = gross_errors([model({3, 7, 9}), model({3, 9, 50}), model({1, 2, 3, 4, 5}, converged=False), model({3, 9})])
     assert np.flatnonzero(got).tolist() == [3, 9]       # a fit that did not converge has no say
+    # nor one that misfits the bulk: its residuals' robust scale is twice the noise's
+    assert np.flatnonzero(gross_errors([model({3, 9}), model(set(), scale=2.0)])).tolist() == [3, 9]
+    assert not gross_errors([model(set(), scale=2.0)]).any()                      # no model at the floor: none
     assert gross_errors([model(range(20)), model(range(20))]).sum() == 20          # 10 %: bad readings
     assert not gross_errors([model(range(21)), model(range(21))]).any()   # more: a model that does not fit, kept
     assert not gross_errors([model({3}), model(set())]).any()

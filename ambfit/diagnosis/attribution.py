@@ -71,8 +71,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
     Every model is scored on held-out folds (block cross-validation over operating regions, and over time when
-    the readings have a clock; readings every converged fit names outliers, :func:`ambfit.diagnosis.heldout.
-    gross_errors`, count in no score) and the verdict decided from the scores by :func:`ambfit.diagnosis.verdict.decide`,
+    the readings have a clock; readings every model at the noise floor names outliers, :func:`ambfit.diagnosis.
+    heldout.gross_errors`, count in no score) and the verdict decided from the scores by :func:`ambfit.diagnosis.verdict.decide`,
     every threshold a field of ``rules`` (default :class:`Rules`; ``floor_tolerance``, ``pairs`` and
     ``pair_verdict`` set those fields of it).
 

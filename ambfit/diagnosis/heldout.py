@@ -96,19 +96,41 @@ errors when they are that few (a position reading spiking by micrometres on a se
 every model is a finding the scores must keep."""
 
 
+FLOOR_SCALE_SE = 3.0
+"""A fit is at the floor on the readings it used when their standardized residuals' robust scale (``1.4826 median
+|z|``, :func:`ambfit.estimation.robust.robust_scale`) is within this many of its standard errors of 1 (``1.166 /
+sqrt(n)`` for Gaussian noise)."""
+
+
+def at_the_floor(fit: FitResult) -> bool:
+    """Whether ``fit`` describes the bulk of the readings it used to the noise (:data:`FLOOR_SCALE_SE`): a model
+    that misfits them reads every residual against a larger scale and names few outliers, whatever they are."""
+    from ambfit.estimation.robust import robust_scale
+
+    used = np.asarray(fit.fitted_rows[:len(fit.residuals)])
+    z = np.asarray(fit.residuals)[used]
+    z = z[np.isfinite(z)]
+    return bool(z.size) and robust_scale(z, known_noise=not fit.noise_estimated) <= \
+        1.0 + FLOOR_SCALE_SE * 1.166 / np.sqrt(z.size)
+
+
 def gross_errors(models, share: float = GROSS_SHARE) -> np.ndarray:
-    """The readings (bool per row) that every converged model's fit of every row named outliers, when they are at
-    most ``share`` of the readings (else none).  A fit that did not converge has no say: its outlier test judged
-    residuals short of the fit's minimum.
+    """The readings (bool per row) that every model at the floor names outliers in its fit of every row (a
+    converged fit describing the bulk of the readings to the noise, :func:`at_the_floor`), when they are at most
+    ``share`` of the readings (else none).  A fit that did not converge has no say (its outlier test judged residuals
+    short of the fit's minimum), nor has one that misfits the bulk (beside an effect it lacks, the spikes hide in
+    its own misfit); with no model at the floor, none is a gross error.
 
     A reading no model fits predicts nothing about which model is right, yet one standardized residual of 30
     weighs as much as 900 readings at the noise floor in a mean square: left in, a few spikes make clean data look
     unexplained.  Such readings are left out of every held-out score and of what the widened laws learn from; a
-    converged model's fold refits never used them (each uses its model's other readings only)."""
-    rows = [np.asarray(m.fit.fitted_rows[:len(m.fit.residuals)]) for m in models
-            if m.fit is not None and m.fit.converged]
+    model that named them never fitted them in its folds either (a fold refit uses its model's other readings
+    only)."""
+    n = max((len(m.fit.residuals) for m in models if m.fit is not None), default=0)
+    rows = [np.asarray(m.fit.fitted_rows[:n]) for m in models
+            if m.fit is not None and m.fit.converged and at_the_floor(m.fit)]
     if not rows:
-        return np.zeros(0, bool)
+        return np.zeros(n, bool)
     out = ~np.logical_or.reduce(rows)
     return out if out.sum() <= share * len(out) else np.zeros_like(out)
 

@@ -59,7 +59,7 @@ class Diagnosis:
     separation : Separation or None
         ``undecided``: the protocol that would tell the candidates apart.
     left_out : tuple of int
-        Data rows (from 1) that every converged model's fit named outliers, left out of every held-out score
+        Data rows (from 1) that every model at the noise floor named outliers, left out of every held-out score
         (:func:`ambfit.diagnosis.heldout.gross_errors`).
     """
 
@@ -142,8 +142,10 @@ class Diagnosis:
             "confounded_with": self.confounded_with, "shrink": self.shrink,
             "heldout_excess_before": self.heldout_excess_before,
             **({"heldout_left_out": {"rows": list(self.left_out),
-                                     "why": "every converged model's fit of every row named them outliers: gross "
-                                            "errors, left out of every held-out score"}} if self.left_out else {}),
+                                     "why": "every model describing the other readings at the noise floor named "
+                                            "them outliers: a sensor's gross errors, or an effect that no library "
+                                            "law holds, confined to them; left out of every held-out score"}}
+               if self.left_out else {}),
             "parameters_baseline": {n: self.baseline.value(n) for n in self.baseline.names if not n.startswith("load[")},
             "goodness_of_fit": self.baseline.goodness_of_fit(),
             "parameter_gap": self.parameter_gap,
