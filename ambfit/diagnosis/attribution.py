@@ -139,7 +139,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     # score: the ideal law and every candidate at once; the candidates' "before" is the ideal law's held-out excess
     scorer.expect(1 + len(cands))
     ideal, *singles = scorer.laws([()] + [(e,) for e in cands])
-    # readings no model fits (rare gross errors: a spike of a sensor) count in no score
+    # readings no model at the noise floor fits (a sensor's spikes) count in no score
     gross = gross_errors([ideal, *singles])
     if gross.any():
         ideal, *singles = scorer.leave_out(gross, [ideal, *singles])

@@ -126,7 +126,7 @@ def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=No
         vs.append(1.0 + predictive_variance(f, held) + d.row_variance[held])
         folds_.append((test, f, d))
     # on the rows the law's fit used: its saved correction is its law's parameters and these coefficients alone
-    # (a law whose fit kept gross errors in, one that did not converge, has them left out here)
+    # (a law whose fit kept the left-out readings in, one that did not converge or misfits the bulk, without them)
     n = len(df)
     own = np.asarray(law.fit.row_weights[:n], dtype=float)
     full = fit_discrepancy(law.fit, df, groups=groups, mask=None if not np.any(own[~scored] > 0)
