@@ -52,6 +52,26 @@ def test_clean_data_with_position_spikes_are_none_and_the_spikes_are_named():
     assert dg.to_json()["heldout_left_out"]["rows"] == [r + 1 for r in spikes]
     assert "gross errors" in ambfit.diagnosis.text.verdict(dg)
     assert len(dg.ideal.heldout_z) == len(data) - len(spikes)
+    # without std columns the noise is estimated from the residuals: the best fit's scale is the floor
+    bare = data.drop(columns=["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"])
+    dg = ambfit.diagnose(bare, check_force=False, discrepancy=False)
+    assert dg.baseline.noise_estimated and dg.verdict == "none", str(dg)
+    assert dg.left_out == tuple(r + 1 for r in spikes)
+
+
+def test_spikes_beside_an_effect_a_model_misfits_are_left_out():
+    """The rig's saturation (rich protocol, 280 readings) with five position spikes: the laws that lack a knee misfit
+    the bulk and name no spike, so only the laws at the floor are asked; the verdict is the one without the spikes."""
+    from ambfit.physics import effects as E
+
+    data = rig.simulate(rig.PAPER_RIG, protocol.rich(), [E.Saturation()], seed=5).data
+    clean = ambfit.diagnose(data, check_force=False, discrepancy=False)
+    spikes = {6: 6.0, 131: -3.0, 185: 8.0, 222: -5.0, 225: 4.0}
+    for row, size in spikes.items():
+        data.loc[row, f"{data.loc[row, 'axis']}_um"] += size
+    dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
+    assert dg.left_out == tuple(r + 1 for r in spikes)
+    assert (dg.verdict, dg.decision.candidates) == (clean.verdict, clean.decision.candidates), str(dg)
 
 
 def test_spikes_beside_an_effect_teach_no_widened_law():
@@ -76,21 +96,28 @@ def test_gross_errors_are_the_readings_every_model_at_the_floor_names_outliers()
     """:func:`gross_errors` on hand-made fits: the rows every converged fit at the floor left out, within the cap."""
     from types import SimpleNamespace
 
-    from ambfit.diagnosis.heldout import gross_errors
+    from ambfit.diagnosis.heldout import at_the_floor, gross_errors
 
     noise = np.random.default_rng(0).normal(size=200)
+    noise /= 1.4826 * np.median(np.abs(noise))                  # robust scale 1 exactly: the floor's
 
-    def model(outliers, converged=True, scale=1.0):
+    def model(outliers, converged=True, scale=1.0, estimated=False):
         rows = np.ones(200)
         rows[list(outliers)] = 0.0
         return SimpleNamespace(fit=SimpleNamespace(row_weights=rows, fitted_rows=rows > 0, residuals=scale * noise,
-                                                   converged=converged, noise_estimated=False))
+                                                   converged=converged, noise_estimated=estimated))
 
     got = gross_errors([model({3, 7, 9}), model({3, 9, 50}), model({1, 2, 3, 4, 5}, converged=False), model({3, 9})])
     assert np.flatnonzero(got).tolist() == [3, 9]       # a fit that did not converge has no say
     # nor one that misfits the bulk: its residuals' robust scale is twice the noise's
     assert np.flatnonzero(gross_errors([model({3, 9}), model(set(), scale=2.0)])).tolist() == [3, 9]
-    assert not gross_errors([model(set(), scale=2.0)]).any()                      # no model at the floor: none
+    assert not gross_errors([model({3, 9}, scale=2.0)]).any()                     # no model at the floor: none
+    # the floor's margin: 3 standard errors of the robust scale, sqrt(1.36 / 198) = 0.083 each (198 rows used)
+    assert at_the_floor([model({3, 9}, scale=1.24).fit, model({3, 9}, scale=1.26).fit]) == [True, False]
+    # noise estimated from the residuals: the smallest scale among the fits is the floor
+    fits = [model({3, 9}, scale=0.5, estimated=True).fit, model({3, 9}, scale=0.62, estimated=True).fit,
+            model({3, 9}, scale=0.63, estimated=True).fit]
+    assert at_the_floor(fits) == [True, True, False]
     assert gross_errors([model(range(20)), model(range(20))]).sum() == 20          # 10 %: bad readings
     assert not gross_errors([model(range(21)), model(range(21))]).any()   # more: a model that does not fit, kept
     assert not gross_errors([model({3}), model(set())]).any()

@@ -71,8 +71,9 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     """Where the ideal model fails, which candidate effect explains it on held-out data, how far the gap shrinks.
 
     Every model is scored on held-out folds (block cross-validation over operating regions, and over time when
-    the readings have a clock; readings every model at the noise floor names outliers, :func:`ambfit.diagnosis.
-    heldout.gross_errors`, count in no score) and the verdict decided from the scores by :func:`ambfit.diagnosis.verdict.decide`,
+    the readings have a clock; readings every model at the noise floor names outliers,
+    :func:`ambfit.diagnosis.heldout.gross_errors`, count in no score) and the verdict decided from the scores by
+    :func:`ambfit.diagnosis.verdict.decide`,
     every threshold a field of ``rules`` (default :class:`Rules`; ``floor_tolerance``, ``pairs`` and
     ``pair_verdict`` set those fields of it).
 
@@ -139,7 +140,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     # score: the ideal law and every candidate at once; the candidates' "before" is the ideal law's held-out excess
     scorer.expect(1 + len(cands))
     ideal, *singles = scorer.laws([()] + [(e,) for e in cands])
-    # readings no model at the noise floor fits (a sensor's spikes) count in no score
+    # readings no model at the noise floor fits (a sensor's spikes, or an effect confined to them) count in no score
     gross = gross_errors([ideal, *singles])
     if gross.any():
         ideal, *singles = scorer.leave_out(gross, [ideal, *singles])

@@ -91,27 +91,38 @@ def shrink(before: float, after: float) -> float:
 GROSS_SHARE = MAX_FRACTION
 """The largest share of the readings :func:`gross_errors` leaves out of the held-out scores: the fit's own limit
 between a few bad readings and a model that does not fit (:data:`ambfit.estimation.robust.MAX_FRACTION`; a fit that
-finds more keeps every reading, so a diagnosis' fits hold to it already).  Readings that no model fits are gross
-errors when they are that few (a position reading spiking by micrometres on a sensor good to a tenth); more beyond
-every model is a finding the scores must keep."""
+finds more keeps every reading, so a diagnosis' fits hold to it already).  Readings that no model at the floor fits
+are left out when they are that few (a position reading spiking by micrometres on a sensor good to a tenth); more is
+a finding the scores must keep."""
 
 
 FLOOR_SCALE_SE = 3.0
 """A fit is at the floor on the readings it used when their standardized residuals' robust scale (``1.4826 median
-|z|``, :func:`ambfit.estimation.robust.robust_scale`) is within this many of its standard errors of 1 (``1.166 /
-sqrt(n)`` for Gaussian noise)."""
+|z|``, :func:`ambfit.estimation.robust.robust_scale`) exceeds the floor's by at most this many of its standard errors
+(``sqrt(1.36 / n)`` relative for Gaussian noise, :data:`ambfit.estimation.robust.MAD_DOF`)."""
 
 
-def at_the_floor(fit: FitResult) -> bool:
-    """Whether ``fit`` describes the bulk of the readings it used to the noise (:data:`FLOOR_SCALE_SE`): a model
-    that misfits them reads every residual against a larger scale and names few outliers, whatever they are."""
+def _scale(fit: FitResult) -> tuple[float, int]:
+    """The robust scale of ``fit``'s standardized residuals on the rows it used, and how many there are."""
     from ambfit.estimation.robust import robust_scale
 
     used = np.asarray(fit.fitted_rows[:len(fit.residuals)])
     z = np.asarray(fit.residuals)[used]
     z = z[np.isfinite(z)]
-    return bool(z.size) and robust_scale(z, known_noise=not fit.noise_estimated) <= \
-        1.0 + FLOOR_SCALE_SE * 1.166 / np.sqrt(z.size)
+    return (robust_scale(z, known_noise=not fit.noise_estimated) if z.size else np.inf), int(z.size)
+
+
+def at_the_floor(fits: list) -> list[bool]:
+    """Whether each fit describes the bulk of the readings it used to the noise (:data:`FLOOR_SCALE_SE`): its robust
+    scale is at most ``1 + FLOOR_SCALE_SE sqrt(1.36 / n)`` times the floor's, 1 with the noise known; with the noise
+    estimated from the residuals (no absolute floor), the smallest of the fits'.  A model that misfits the bulk reads
+    every residual against a larger scale and names few outliers, whatever they are."""
+    from ambfit.estimation.robust import MAD_DOF
+
+    scales = [_scale(f) for f in fits]
+    estimated = any(f.noise_estimated for f in fits)
+    floor = min((s for s, _ in scales), default=np.inf) if estimated else 1.0
+    return [bool(n) and s <= floor * (1.0 + FLOOR_SCALE_SE * np.sqrt(MAD_DOF / 2.0 / n)) for s, n in scales]
 
 
 def gross_errors(models, share: float = GROSS_SHARE) -> np.ndarray:
@@ -119,16 +130,15 @@ def gross_errors(models, share: float = GROSS_SHARE) -> np.ndarray:
     converged fit describing the bulk of the readings to the noise, :func:`at_the_floor`), when they are at most
     ``share`` of the readings (else none).  A fit that did not converge has no say (its outlier test judged residuals
     short of the fit's minimum), nor has one that misfits the bulk (beside an effect it lacks, the spikes hide in
-    its own misfit); with no model at the floor, none is a gross error.
+    its own misfit); with no model at the floor, none is left out.
 
-    A reading no model fits predicts nothing about which model is right, yet one standardized residual of 30
-    weighs as much as 900 readings at the noise floor in a mean square: left in, a few spikes make clean data look
-    unexplained.  Such readings are left out of every held-out score and of what the widened laws learn from; a
-    model that named them never fitted them in its folds either (a fold refit uses its model's other readings
-    only)."""
+    A reading that no model at the floor fits predicts nothing about which of them is right, yet one standardized
+    residual of 30 weighs as much as 900 readings at the noise floor in a mean square: left in, a few spikes make
+    clean data look unexplained.  Such readings are left out of every held-out score and of what the widened laws
+    learn from.  They are a sensor's gross errors, or an effect that no library law holds, confined to them."""
     n = max((len(m.fit.residuals) for m in models if m.fit is not None), default=0)
-    rows = [np.asarray(m.fit.fitted_rows[:n]) for m in models
-            if m.fit is not None and m.fit.converged and at_the_floor(m.fit)]
+    fits = [m.fit for m in models if m.fit is not None and m.fit.converged]
+    rows = [np.asarray(f.fitted_rows[:n]) for f, ok in zip(fits, at_the_floor(fits)) if ok]
     if not rows:
         return np.zeros(n, bool)
     out = ~np.logical_or.reduce(rows)

@@ -70,7 +70,8 @@ class Scorer:
     def leave_out(self, rows: np.ndarray, models: list[Candidate]) -> list[Candidate]:
         """Every later score without ``rows`` (bool per row, :func:`ambfit.diagnosis.heldout.gross_errors`), and
         ``models`` scored again on their folds' other held-out readings, from the fold fits they hold (a model whose
-        fit of every row named these rows outliers uses only its other rows in its fold refits)."""
+        fit of every row named these rows outliers left them out of its fold refits; one that kept them, not at the
+        floor, learnt from them there)."""
         self.scored = ~np.asarray(rows, bool)
         return [dataclasses.replace(c, **self._scores(c.folds)) for c in models]
 

@@ -105,7 +105,7 @@ def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=No
     residual, the law's outliers among them, its parameters refitted to them, linearised), scored on the fold; and
     on the rows the law's fit of every row used (``full``, the saved correction).  ``scored`` (bool per row, default
     every row): the readings that count, in the corrections and the scores (:func:`ambfit.diagnosis.heldout.
-    gross_errors` leaves out those no model fits).
+    gross_errors` leaves out those no model at the floor fits).
 
     ``log_bayes`` (how much the data want the signature) is measured on the rows the folds' corrections learn from,
     the outliers too, so that it asks of the signature what the held-out test does; ``wanted=False`` skips that
