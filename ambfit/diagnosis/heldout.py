@@ -15,7 +15,7 @@ import pandas as pd
 
 from ambfit.data import load_groups, zero_based
 from ambfit.estimation.results import FitResult
-from ambfit.estimation.robust import MAX_FRACTION
+from ambfit.estimation.robust import MAD_DOF, MAX_FRACTION, robust_scale
 from ambfit.estimation.units import HEAD
 
 FOLDS = 4
@@ -104,8 +104,6 @@ FLOOR_SCALE_SE = 3.0
 
 def _scale(fit: FitResult) -> tuple[float, int]:
     """The robust scale of ``fit``'s standardized residuals on the rows it used, and how many there are."""
-    from ambfit.estimation.robust import robust_scale
-
     used = np.asarray(fit.fitted_rows[:len(fit.residuals)])
     z = np.asarray(fit.residuals)[used]
     z = z[np.isfinite(z)]
@@ -117,8 +115,6 @@ def at_the_floor(fits: list) -> list[bool]:
     scale is at most ``1 + FLOOR_SCALE_SE sqrt(1.36 / n)`` times the floor's, 1 with the noise known; with the noise
     estimated from the residuals (no absolute floor), the smallest of the fits'.  A model that misfits the bulk reads
     every residual against a larger scale and names few outliers, whatever they are."""
-    from ambfit.estimation.robust import MAD_DOF
-
     scales = [_scale(f) for f in fits]
     estimated = any(f.noise_estimated for f in fits)
     floor = min((s for s, _ in scales), default=np.inf) if estimated else 1.0

@@ -165,7 +165,7 @@ def findings(dg) -> list[str]:
     if dg.left_out:
         rows = ", ".join(map(str, dg.left_out[:10])) + (f" and {len(dg.left_out) - 10} more" if len(dg.left_out) > 10
                                                         else "")
-        share = len(dg.left_out) / max(len(dg.ideal.heldout_z) + len(dg.left_out), 1)
+        share = len(dg.left_out) / max(len(dg.baseline.residuals), 1)
         out.append(f"{len(dg.left_out)} reading(s) ({100 * share:.1f} %) that no model at the noise floor fits (data "
                    f"rows {rows}: every one named them outliers) are left out of every held-out score: a sensor's "
                    "gross errors, or an effect that no library law holds, confined to them; check the sensors there")
