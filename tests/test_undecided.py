@@ -202,3 +202,23 @@ def test_a_protocol_at_many_biases_names_their_number_and_range():
     # a random protocol's biases are many: the advice says how many and where, not each one
     assert separation._listed(np.array([1.0, 1.2, 1.4])) == "1, 1.2, 1.4"
     assert separation._listed(np.round(np.linspace(0.9, 1.8, 48), 3)) == "48 of them, 0.9-1.8"
+
+
+def test_a_drift_widened_in_time_is_judged_while_the_widened_laws_of_the_readings_are_set_aside():
+    """One load per axis: a correction in the readings' own variables learns how their noise moves the force
+    (a widened law predicts the held-out readings better than their noise) and every such widened law is set aside.
+    A drift's correction, slow in time and temperature, cannot follow a reading's noise: it is still judged, and a
+    drift whose law is not the library's is named by it."""
+    from ambfit.diagnosis.verdict import decide
+    from ambfit.rig import zoo
+
+    case, df = zoo.draw(np.random.default_rng(np.random.SeedSequence(4242).spawn(121)[120]))
+    laws = [law["law"] for law in case.describe()["laws"]]
+    assert laws == ["zoo_drift_time"] and (df.groupby("axis")["load_N"].nunique() == 1).all()
+    dg = ambfit.diagnose(df, check_force=False, discrepancy=False)
+    assert dg.decision.unjudged and not any(u.startswith("thermal_drift") for u in dg.decision.unjudged), str(dg)
+    assert dg.verdict == "thermal_drift" and dg.grade.by == "signature" and dg.grade.explains, str(dg)
+    assert dg.to_json()["widened_laws_not_judged"]["reason"].startswith("the widened laws whose terms follow")
+    # every widened law set aside: nothing the library holds reaches the floor
+    every = decide(dataclasses.replace(dg.rules, set_aside="all"), dg.ideal, dg.ranking + dg.signatures)
+    assert every.kind == "unexplained"

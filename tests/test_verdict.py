@@ -317,13 +317,14 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
         "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs",
-        "pair_verdict", "confident_var", "untested_siblings", "name_shared"}
+        "pair_verdict", "confident_var", "untested_siblings", "name_shared", "set_aside"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 
-def test_a_widened_law_below_the_floor_sets_every_widened_law_aside():
+def test_a_widened_law_below_the_floor_sets_aside_every_widened_law_that_follows_the_readings():
     """A widened law that predicts held-out readings better than their noise has learnt the noise (one load per
-    axis lets a correction flatten the law): no widened law's score is then a test of it."""
+    axis lets a correction flatten the law): no score of a widened law whose terms follow the readings is then a
+    test of it.  A law widened by slow terms alone (time, temperature) cannot follow a reading's noise: judged."""
     start = ideal(10.0)
     leaky = dataclasses.replace(widened("cross_coupling", 0.0, 9.0, groups=("coupling", "control")),
                                 heldout_z=NOISE * 0.4)
@@ -340,6 +341,21 @@ def test_a_widened_law_below_the_floor_sets_every_widened_law_aside():
     vague = dataclasses.replace(leaky, log_bayes={"coupling": 1.0})
     v = decide(Rules(), start, [vague, graded])
     assert v.name == "iron_reluctance" and v.unjudged == ()
+    # a drift widened by its time and temperature terms is still judged, and named; with set_aside "all" it is not
+    drift = widened("thermal_drift", 0.05, 8.0, groups=("drift",), start=start)
+    v = decide(Rules(), start, [leaky, graded, drift])
+    assert v.name == "thermal_drift" and v.model is drift and v.unjudged == (leaky.label,)
+    v = decide(Rules(set_aside="all"), start, [leaky, graded, drift])
+    assert v.kind == "unexplained" and v.unjudged == (leaky.label,)
+    # a widened law whose groups hold a slow one beside one that follows the readings is set aside
+    mixed = widened("thermal_drift", 0.05, 8.0, groups=("drift", "shape"), start=start)
+    assert decide(Rules(), start, [leaky, mixed]).kind == "unexplained"
+    # a slow widened law below the floor itself is no candidate
+    low = dataclasses.replace(drift, heldout_z=NOISE * 0.4)
+    v = decide(Rules(), start, [low, graded])
+    assert v.kind == "unexplained" and v.unjudged == (low.label,)
+    with pytest.raises(ValueError, match="set_aside"):
+        Rules(set_aside="some")
 
 
 def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undecided_with_its_siblings():
@@ -383,23 +399,25 @@ def test_a_family_named_by_its_law_while_the_widened_laws_are_set_aside_is_undec
     assert decide(Rules(), far, short) == graded
     assert text.untested(types.SimpleNamespace(decision=v)) == (
         "saturation's law explains the data, but saturation shares its signature with leakage, fringing and "
-        "iron_reluctance, whose broader forms only the widened laws test, and every widened law was set aside on "
+        "iron_reluctance, whose broader forms only the widened laws test, and those widened laws were set aside on "
         "these data: they cannot exclude them")
     assert text.untested(types.SimpleNamespace(decision=decide(Rules(), start, [leaky, offset, gain]))).endswith(
         "current_offset shares its signature with current_gain, whose broader forms only the widened laws test, and "
-        "every widened law was set aside on these data: they cannot exclude it")
+        "those widened laws were set aside on these data: they cannot exclude it")
 
 
 def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_them():
     decision = Verdict("unexplained", unjudged=("leakage widened by its shape signature",
                                                 "current_gain widened by its current_sensor signature"))
 
-    def said(operating):
-        return text.unjudged(types.SimpleNamespace(decision=decision, operating=operating))
+    def said(operating, rules=Rules()):
+        return text.unjudged(types.SimpleNamespace(decision=decision, operating=operating, rules=rules))
 
     one = pd.DataFrame({"axis": ["v", "w", "v", "w"], "load_N": [7.0, 7.0, 7.0, 7.0]})
     line = said(one)
-    assert line.startswith("every widened law set aside: leakage widened by its shape signature and current_gain")
+    assert line.startswith("the widened laws whose terms follow the readings set aside (those of time and temperature "
+                           "alone are still judged): leakage widened by its shape signature and current_gain")
+    assert said(one, Rules(set_aside="all")).startswith("every widened law set aside: leakage widened")
     assert "fewer than two known loads on an axis" in line and line.endswith("several known loads per axis would "
                                                                              "test them")
     several = one.assign(load_N=[7.0, 7.0, 0.0, 0.0])

@@ -87,7 +87,7 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
       (:mod:`ambfit.diagnosis.signatures`: the discrepancy's groups of the variables the family acts through),
       whose signature the data must want clearly.  ``law`` then says how much the library's own law leaves.
     - ``undecided``: several families explain the data and these data cannot tell them apart: ``candidates``
-      lists them, best first.  Or, with every widened law set aside, one family's law explains them and the
+      lists them, best first.  Or, with the widened laws set aside, one family's law explains them and the
       families sharing its signature, whose broader forms these data cannot test, follow it
       (``candidates_untested``).
     - ``unexplained``: nothing reaches the floor; the model that removes most is reported (``grade``, and its

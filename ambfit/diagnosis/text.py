@@ -116,7 +116,9 @@ def unjudged(dg) -> str:
     per_axis = (loads.groupby(op["axis"]).nunique().reindex(op["axis"].unique(), fill_value=0)
                 if loads is not None else None)
     few = per_axis is None or not len(per_axis) or int(per_axis.min()) < 2
-    return (f"every widened law set aside: {listed} predicted the held-out readings better than their noise (a "
+    which = ("the widened laws whose terms follow the readings set aside (those of time and temperature alone are "
+             "still judged)" if dg.rules.set_aside == "readings" else "every widened law set aside")
+    return (f"{which}: {listed} predicted the held-out readings better than their noise (a "
             "correction learnt how the readings' noise moves the force"
             + ("; with fewer than two known loads on an axis the force's change across loads is not observed, and "
                "a correction can flatten the law there); several known loads per axis would test them" if few else
@@ -127,7 +129,7 @@ def untested(dg) -> str:
     """Why an undecided verdict lists families whose laws do not explain the data as well as the first's."""
     first, one = dg.decision.candidates[0], len(dg.decision.untested) == 1
     return (f"{first}'s law explains the data, but {first} shares its signature with {_listed(dg.decision.untested)}, "
-            "whose broader forms only the widened laws test, and every widened law was set aside on these data: they "
+            "whose broader forms only the widened laws test, and those widened laws were set aside on these data: they "
             "cannot exclude " + ("it" if one else "them"))
 
 

@@ -67,6 +67,10 @@ FAMILY_GROUPS = {
 could add (the flux families: flux density and gap per coil; hysteresis: the direction and path of each coil
 current; drift: time and temperature; the sensors: their readings)."""
 
+SLOW_GROUPS = ("drift",)
+"""The groups whose terms are the force's own flux terms scaled by smooth functions of time and temperature: a
+correction of them is alike for readings close in time, and cannot follow each reading's noise."""
+
 X_SCALE = 0.05
 """Scale of the position polynomials of the coupling and position sensor groups, as a fraction of the nominal
 gap (38 µm on the paper's bearing, about the largest displacement a protocol reaches): ``u = x / (X_SCALE g)``
