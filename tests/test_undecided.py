@@ -4,9 +4,11 @@ have, and data two families explain alike are ``undecided``, with the protocol t
 import dataclasses
 import gzip
 import json
+import types
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
@@ -52,10 +54,10 @@ def test_clean_data_with_position_spikes_are_none_and_the_spikes_are_named():
     assert dg.to_json()["heldout_left_out"]["rows"] == [r + 1 for r in spikes]
     assert "gross errors" in ambfit.diagnosis.text.verdict(dg)
     assert len(dg.ideal.heldout_z) == len(data) - len(spikes)
-    # without std columns the noise is estimated from the residuals: the best fit's scale is the floor
+    # without std columns the noise comes from neighbouring readings (the spikes' pairs left out of it)
     bare = data.drop(columns=["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"])
     dg = ambfit.diagnose(bare, check_force=False, discrepancy=False)
-    assert dg.baseline.noise_estimated and dg.verdict == "none", str(dg)
+    assert dg.noise_estimate is not None and dg.noise_estimate.left_out >= len(spikes) and dg.verdict == "none", str(dg)
     assert dg.left_out == tuple(r + 1 for r in spikes)
 
 
@@ -222,3 +224,75 @@ def test_a_drift_widened_in_time_is_judged_while_the_widened_laws_of_the_reading
     # every widened law set aside: nothing the library holds reaches the floor
     every = decide(dataclasses.replace(dg.rules, set_aside="all"), dg.ideal, dg.ranking + dg.signatures)
     assert every.kind == "unexplained"
+
+
+def _noisy(proto, current, seed=0):
+    """Clean rig data whose coil currents carry ``current(i)`` [A] of noise and positions 0.1 µm, with no std columns
+    (the noise is the data's to tell)."""
+    data = rig.simulate(rig.PAPER_RIG, proto, noise=rig.NOISE_FREE, seed=seed).data
+    rng = np.random.default_rng(seed)
+    for col in ("i_top_A", "i_bottom_A"):
+        i = data[col].to_numpy()
+        data[col] = i + rng.normal(0.0, 1.0, len(i)) * current(i)
+    for col in ("v_um", "w_um"):
+        data[col] = data[col] + rng.normal(0.0, 0.1, len(data))
+    return data.drop(columns=[c for c in data if "_std_" in c])
+
+
+@pytest.mark.parametrize("current", [lambda i: np.full_like(i, 1.5e-3), lambda i: 0.3e-3 + 1e-3 * np.abs(i)],
+                         ids=["1.5 mA", "growing with the current"])
+def test_clean_data_without_std_columns_are_none_at_their_own_noise(current):
+    """Without std columns a fit standardizes by a unit 1 mA and estimates the level from its χ², which holds the
+    model's error too.  The diagnosis takes the level from neighbouring readings instead: clean data are ``none``
+    whatever their noise, and the level found is the readings' own."""
+    spec = rig.PAPER_RIG
+    data = _noisy(protocol.rich(center=(-spec.x0[0], -spec.x0[1])), current)
+    dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
+    assert dg.verdict == "none", str(dg)
+    rms = np.sqrt(np.mean(current(data[["i_top_A", "i_bottom_A"]].to_numpy()) ** 2))
+    assert dg.noise_estimate is not None and abs(dg.noise_estimate.sigma_i / rms - 1) < 0.2, dg.noise_estimate
+    assert dg.noise_floor.source.startswith(f"current {dg.noise_estimate.sigma_i * 1e3:.3g} mA estimated from")
+    assert dg.to_json()["noise_estimate"]["readings"] == dg.noise_estimate.readings
+    assert "came from the readings themselves" in ambfit.diagnosis.text.headline(dg)
+    # with the level declared, or std columns, nothing is estimated
+    assert ambfit.diagnose(data, check_force=False, discrepancy=False, sigma_i=1.5e-3).noise_estimate is None
+
+
+def test_an_effect_without_std_columns_is_seen_at_the_readings_noise():
+    """Saturating rig data with their std columns dropped: the neighbours' level is the readings' noise, not the
+    fit's χ² level (which the saturation inflates fifty-fold), and the verdict is the one the std columns give."""
+    data = pd.read_csv(HERE / "data" / "diagnosis" / "rig_saturation.csv.gz")
+    bare = data.drop(columns=[c for c in data if "_std_" in c])
+    dg = ambfit.diagnose(bare, check_force=False, discrepancy=False)
+    assert dg.verdict == "saturation", str(dg)
+    declared = float(data["i_top_std_A"].median())
+    assert abs(dg.noise_estimate.sigma_i / declared - 1) < 0.25
+    assert dg.noise_estimate.fit_estimate > 10 * declared
+
+
+def test_the_noise_from_neighbours_is_their_differences_mean_square():
+    """Replicated readings give the noise itself; a smooth error of the model barely moves it; a gross error is
+    left out; too few pairs estimate nothing."""
+    from ambfit.diagnosis.noise import MIN_READINGS, UNIT_A, from_neighbours
+
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.paper_table2(iterations=20, center=(-spec.x0[0], -spec.x0[1])), seed=3).data
+    data = data.drop(columns=[c for c in data if "_std_" in c])
+    rng = np.random.default_rng(0)
+
+    def estimate(z):
+        return from_neighbours(data, types.SimpleNamespace(residuals=z, reduced_chi2=float(np.mean(z**2))))
+
+    z = rng.normal(0.0, 0.7, len(data))
+    plain = estimate(z)
+    assert abs(plain.sigma_i / (0.7 * UNIT_A) - 1) < 0.15 and plain.left_out == 0
+    # a model error that varies smoothly over the operating points, 5 noise units per standard deviation of the
+    # position: the neighbours share most of it (those at other set-points not all), the fit's χ² all of it
+    smooth = z + 5.0 * (data["v_um"].to_numpy() - data["v_um"].mean()) / data["v_um"].std()
+    assert abs(estimate(smooth).sigma_i / plain.sigma_i - 1) < 0.15
+    assert estimate(smooth).fit_estimate > 5 * plain.sigma_i
+    spiked = z.copy()
+    spiked[7] += 40.0
+    assert estimate(spiked).left_out >= 1 and abs(estimate(spiked).sigma_i / plain.sigma_i - 1) < 0.05
+    few = data.iloc[: MIN_READINGS]
+    assert from_neighbours(few, types.SimpleNamespace(residuals=z[: MIN_READINGS], reduced_chi2=1.0)) is None

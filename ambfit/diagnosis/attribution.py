@@ -28,6 +28,7 @@ from ambfit.diagnosis.checks import Pair, fold_fits, force_checks
 from ambfit.diagnosis.circuit_families import circuit_families
 from ambfit.diagnosis.discrepancy import ceiling
 from ambfit.diagnosis.heldout import gross_errors
+from ambfit.diagnosis.noise import NoiseEstimate, from_neighbours
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
@@ -93,6 +94,10 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     - ``unexplained``: nothing reaches the floor; the model that removes most is reported (``grade``, and its
       force check as ``force_check.best``).
 
+    **The noise.**  The std columns', or the declared ``sigma_i`` / ``sigma_x`` (``noise``).  Without a current
+    noise, from each reading against its neighbours (:mod:`ambfit.diagnosis.noise`, in the residuals of the law that
+    fits every row best), and every fit of the diagnosis is given that level (``noise_estimate``).
+
     ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit; ``baseline`` is the ideal fit of these
     data when the caller already has it.  ``progress``, if given, is called as ``progress("candidate effects",
     done, total)`` after each model's held-out fits.  ``threads``: how many fits run at once (each compiled solve
@@ -117,9 +122,37 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     with compiled_together([Model.of((), bearing)] + [Model.of((e,), bearing) for e in cands]), owned(df), \
             _Each(threads) as each, contextlib.ExitStack() as later:
         base = baseline if baseline is not None else _baseline(df, bearing, noise)
+        estimate = None
+        if base.noise_estimated and noise.get("sigma_i") is None:
+            # a noise level the model's error does not enter, from neighbouring readings; the diagnosis then runs as
+            # with that level declared (against the fit's own estimate every model would sit on the floor)
+            estimate = _noise_from_neighbours(df, base, cands, bearing, max_steps, each)
+            if estimate is not None:
+                noise = {**noise, "sigma_i": estimate.sigma_i}
+                base = _baseline(df, bearing, noise)
         scorer = Scorer(df, base, bearing=bearing, noise=noise, max_steps=max_steps, each=each, progress=progress,
                         scheme=folds)
-        return _diagnose(scorer, cands, rules, check_force=check_force, discrepancy=discrepancy, later=later)
+        return _diagnose(scorer, cands, rules, check_force=check_force, discrepancy=discrepancy, later=later,
+                         estimate=estimate)
+
+
+def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, bearing: Bearing, max_steps: int,
+                           each: _Each) -> NoiseEstimate | None:
+    """The current noise from each reading against its neighbours (:mod:`ambfit.diagnosis.noise`), in the residuals
+    of the model that fits every row best at the unit noise (the smallest χ² per degree of freedom of the ideal law
+    and each candidate's law that converged): it leaves the neighbours the least of the model's error, which they
+    cancel only where it is smooth."""
+    from ambfit.diagnosis.noise import UNIT_A
+    from ambfit.diagnosis.scoring import step_budget
+
+    def law(effect):
+        return fit(df, (effect,), bearing=bearing, start_from=base, max_steps=step_budget((effect,), max_steps),
+                   throw=False, debias="none")
+
+    fits = [base] + [f for f in each(law, cands) if f.converged and np.isfinite(f.reduced_chi2)]
+    estimate = from_neighbours(df, min(fits, key=lambda f: f.reduced_chi2))
+    return None if estimate is None else dataclasses.replace(
+        estimate, fit_estimate=UNIT_A * float(np.sqrt(base.reduced_chi2)))
 
 
 def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:
@@ -132,7 +165,7 @@ def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:
 
 
 def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, discrepancy: bool,
-              later) -> Diagnosis:
+              later, estimate: NoiseEstimate | None = None) -> Diagnosis:
     from ambfit.estimation.core import Model
     from ambfit.estimation.lm import compiled_together
 
@@ -188,7 +221,8 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     best_pair = next((Pair(c.effect, c.after, c.shrink, bool(judge.explains(c))) for c in ranking if c.kind == "pair"),
                      None)
     return Diagnosis(
-        baseline=base, noise_floor=noise_floor(base), where=loc, folds=scorer.fold_name, ideal=ideal,
+        baseline=base, noise_floor=noise_floor(base, estimate), noise_estimate=estimate, where=loc,
+        folds=scorer.fold_name, ideal=ideal,
         ranking=ranking, decision=verdict, rules=rules, verdict_fit=verdict_fit,
         operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),
         best_pair=best_pair, families=families, ceiling=ceil, signatures=sigs or None, separation=separation,

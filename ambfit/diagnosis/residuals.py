@@ -50,9 +50,14 @@ class NoiseFloor:
                 "excess": self.excess, "n_rows": self.n_rows, "n_params": self.n_params}
 
 
-def noise_floor(result: FitResult) -> NoiseFloor:
+def noise_floor(result: FitResult, estimate=None) -> NoiseFloor:
+    """``result``'s residuals against their noise; ``estimate`` (:class:`ambfit.diagnosis.noise.NoiseEstimate`): the
+    current noise ``result`` was given came from neighbouring readings, which the source then says."""
     z = result.residuals
-    return NoiseFloor(source=result.noise_source, mean_z2=float(np.mean(z**2)),
+    source = result.noise_source
+    if estimate is not None:
+        source = "; ".join([estimate.describe(), *source.split("; ")[1:]])
+    return NoiseFloor(source=source, mean_z2=float(np.mean(z**2)),
                       expected_mean_z2=result.dof / len(z), n_rows=len(z), n_params=len(z) - result.dof)
 
 

@@ -61,6 +61,9 @@ class Diagnosis:
     left_out : tuple of int
         Data rows (from 1) that every model at the noise floor named outliers, left out of every held-out score
         (:func:`ambfit.diagnosis.heldout.gross_errors`).
+    noise_estimate : NoiseEstimate or None
+        The current noise from neighbouring readings, when the data state none and none was declared
+        (:mod:`ambfit.diagnosis.noise`): every fit of the diagnosis was given it.
     """
 
     baseline: FitResult
@@ -81,6 +84,7 @@ class Diagnosis:
     signatures: list | None = None
     separation: Separation | None = None
     left_out: tuple = ()
+    noise_estimate: object = None
 
     @property
     def verdict(self) -> str:
@@ -136,7 +140,9 @@ class Diagnosis:
         from ambfit.estimation.model_file import stamp
 
         rec = {
-            "baseline": "ideal", "noise_floor": self.noise_floor.to_json(), "folds": self.folds,
+            "baseline": "ideal", "noise_floor": self.noise_floor.to_json(),
+            **({"noise_estimate": self.noise_estimate.to_json()} if self.noise_estimate is not None else {}),
+            "folds": self.folds,
             "where": [r.to_json() for r in self.where.regions[:20]],
             "ranking": [c.to_json(self.ideal) for c in self.ranking], "verdict": self.verdict,
             "confounded_with": self.confounded_with, "shrink": self.shrink,

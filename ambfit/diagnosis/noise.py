@@ -1,0 +1,156 @@
+"""The readings' noise when the data do not state it: from each reading against its neighbours.
+
+Without std columns or a declared level, a fit takes a unit current noise (:data:`UNIT_A`) and estimates the level
+from its residuals' χ² per degree of freedom, which holds whatever the model misses as well: against that level
+every model sits on the floor, and against the unit level a noisy sensor looks like a model error.  A diagnosis
+needs a level the model's error does not enter.  Each reading's standardized residual is predicted from its
+:data:`NEIGHBOURS` nearest neighbours (one axis, one load group, one approach direction of each coil current;
+nearest in bias, set-points and time) by a local linear fit; the model's error, smooth over the operating points,
+cancels to first order, and what is left is noise, of variance ``sigma^2 (1 + |w|^2)`` for the prediction's
+weights ``w``: the local-linear pseudo-residuals of difference-based variance estimation (Gasser, Sroka and
+Jennen-Steinmetz 1986, *Biometrika* 73, 625), in the operating variables.  Repeated set-points give exact
+neighbours; an error that varies faster than the neighbours are apart makes the estimate cautious (larger).
+
+The mean square, not a robust scale, is what the held-out scores compare with the floor, so the estimate is a mean
+square too (a noise that grows with the current is then right on average); pseudo-residuals beyond :data:`GROSS`
+robust scales (a spiking reading and its neighbours') are left out of it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+
+from ambfit.data import load_groups
+from ambfit.estimation.results import FitResult
+from ambfit.rows import approach_direction
+
+UNIT_A = 1e-3
+"""The current noise [A] a problem without a current noise level standardizes its residuals by
+(:func:`ambfit.estimation.problem.build_problem`)."""
+
+MIN_READINGS = 20
+"""Fewer pseudo-residuals than this estimate nothing: the fit's own estimate stands."""
+
+NEIGHBOURS = 12
+"""Neighbours each reading is predicted from (a group of readings too small for them and the local linear fit is
+skipped)."""
+
+GROSS = 5.0
+"""A pseudo-residual beyond this many robust scales (``1.4826 median |e|``, each over its own standard deviation)
+holds a gross error and is left out of the mean square."""
+
+FEATURES = ("bias_A", "v_set_um", "w_set_um", "time_s")
+"""The operating variables neighbours are near in, each in units of its spread over the data (a column absent or
+constant is skipped; the clock makes readings close in time the nearer, so that a drift adds little).  Commanded
+values, not readings: neighbours chosen by nearness in noisy readings would be those whose noise is alike, and
+their differences too small (among repeated set-points, markedly).  Without set-point columns the positions read
+stand in for them (:data:`READ_FEATURES`)."""
+
+READ_FEATURES = ("bias_A", "v_um", "w_um", "time_s")
+"""The operating variables when the data hold no (complete) set-point columns."""
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseEstimate:
+    """The current noise estimated from neighbouring readings.
+
+    Attributes
+    ----------
+    sigma_i : float
+        Standard deviation of each coil current reading [A] (with the position noise the fit was given, 0 without
+        a std column, the positions' noise is folded into it).
+    readings : int
+        Readings it rests on (their pseudo-residuals).
+    left_out : int
+        Readings without a pseudo-residual in the estimate: holding a gross error, or in a group too small.
+    fit_estimate : float
+        The fit's own estimate from its residuals' χ² per degree of freedom [A], model error included.
+    """
+
+    sigma_i: float
+    readings: int
+    left_out: int
+    fit_estimate: float
+
+    def describe(self) -> str:
+        return (f"current {self.sigma_i * 1e3:.3g} mA estimated from {self.readings} readings against their "
+                f"neighbours (the ideal fit's χ²/dof gives {self.fit_estimate * 1e3:.3g} mA, its error included)")
+
+    def to_json(self) -> dict:
+        return {"current_mA": self.sigma_i * 1e3, "readings": self.readings, "readings_left_out": self.left_out,
+                "fit_chi2_estimate_mA": self.fit_estimate * 1e3,
+                "method": f"local-linear pseudo-residuals: each reading's standardized residual against its "
+                          f"{NEIGHBOURS} nearest neighbours' (one axis, load group and approach direction; nearest "
+                          "in bias, set-points and time), over its standard deviation; their mean square"}
+
+
+def _operating_points(df: pd.DataFrame) -> np.ndarray:
+    """The readings in :data:`FEATURES` (or :data:`READ_FEATURES`), each in units of its spread: array[n, d]."""
+    commanded = all(c in df and pd.to_numeric(df[c], errors="coerce").notna().all() for c in ("v_set_um", "w_set_um"))
+    cols = []
+    for name in FEATURES if commanded else READ_FEATURES:
+        if name in df:
+            x = pd.to_numeric(df[name], errors="coerce").to_numpy(float)
+            spread = np.nanstd(x) if np.isfinite(x).any() else 0.0
+            if np.isfinite(x).all() and spread > 0:
+                cols.append((x - np.mean(x)) / spread)
+    return np.column_stack(cols) if cols else np.zeros((len(df), 0))
+
+
+def pseudo_residuals(df: pd.DataFrame, z: np.ndarray) -> np.ndarray:
+    """Each reading's residual ``z`` less the local linear prediction from its :data:`NEIGHBOURS` nearest neighbours
+    among the readings of its axis, load group and approach direction of both coil currents, over the standard
+    deviation that leaves to unit noise (``sqrt(1 + |w|^2)``): array[n], NaN where a reading's group is too small or
+    a residual is not finite."""
+    from scipy.spatial import cKDTree
+
+    n = len(df)
+    out = np.full(n, np.nan)
+    points = _operating_points(df)
+    k = NEIGHBOURS
+    if n < k + 1:
+        return out
+    key = (load_groups(df).astype(str) + "|" + pd.Series(approach_direction(df, "i_top_A"), index=df.index)
+           .astype(str) + "|" + pd.Series(approach_direction(df, "i_bottom_A"), index=df.index).astype(str))
+    codes = pd.factorize(key)[0]
+    finite = np.isfinite(z)
+    for c in np.unique(codes):
+        rows = np.nonzero((codes == c) & finite)[0]
+        if len(rows) < max(k, points.shape[1] + 2) + 1:
+            continue
+        _, near = cKDTree(points[rows]).query(points[rows], k=k + 1)
+        for a, nb in zip(rows, rows[near[:, 1:]]):
+            # the local linear fit's value at the reading: an intercept and slopes in the operating variables
+            w = np.linalg.pinv(np.column_stack([np.ones(k), points[nb] - points[a]]))[0]
+            out[a] = (z[a] - w @ z[nb]) / np.sqrt(1.0 + w @ w)
+    return out
+
+
+def from_neighbours(df: pd.DataFrame, fit: FitResult) -> NoiseEstimate | None:
+    """The current noise of ``df`` from its readings against their neighbours (module docstring), given ``fit``, a
+    fit of every row at the unit current noise (:data:`UNIT_A`, as a fit without a noise level makes).  None when
+    fewer than :data:`MIN_READINGS` readings have a pseudo-residual."""
+    n = len(df)
+    df = df.reset_index(drop=True)
+    z = np.array(fit.residuals, dtype=float)[:n]
+    gross = _gross(pseudo_residuals(df, z))
+    # a gross error moves its neighbours' pseudo-residuals too: the readings found are taken out of every
+    # neighbourhood and the rest predicted again
+    z[gross] = np.nan
+    e = pseudo_residuals(df, z)
+    e[_gross(e)] = np.nan
+    e = e[np.isfinite(e)]
+    if len(e) < MIN_READINGS:
+        return None
+    return NoiseEstimate(sigma_i=UNIT_A * float(np.sqrt(np.mean(e**2))), readings=len(e), left_out=int(n - len(e)),
+                         fit_estimate=UNIT_A * float(np.sqrt(fit.reduced_chi2)))
+
+
+def _gross(e: np.ndarray) -> np.ndarray:
+    """Where a pseudo-residual exceeds :data:`GROSS` robust scales of them all."""
+    finite = np.isfinite(e)
+    scale = 1.4826 * float(np.median(np.abs(e[finite]))) if finite.any() else 0.0
+    return finite & (np.abs(np.where(finite, e, 0.0)) > GROSS * scale) if scale > 0 else np.zeros(len(e), bool)
