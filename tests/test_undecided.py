@@ -57,7 +57,8 @@ def test_clean_data_with_position_spikes_are_none_and_the_spikes_are_named():
     # without std columns the noise comes from neighbouring readings (the spikes' pairs left out of it)
     bare = data.drop(columns=["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"])
     dg = ambfit.diagnose(bare, check_force=False, discrepancy=False)
-    assert dg.noise_estimate is not None and dg.noise_estimate.left_out >= len(spikes) and dg.verdict == "none", str(dg)
+    assert dg.verdict == "none", str(dg)
+    assert 0.55e-3 < dg.noise_estimate.sigma_i < 0.75e-3, dg.noise_estimate     # 0.6 mA, the positions' folded in
     assert dg.left_out == tuple(r + 1 for r in spikes)
 
 
@@ -254,7 +255,7 @@ def test_clean_data_without_std_columns_are_none_at_their_own_noise(current):
     assert dg.noise_floor.source.startswith(f"current {dg.noise_estimate.sigma_i * 1e3:.3g} mA estimated from")
     assert dg.to_json()["noise_estimate"]["readings"] == dg.noise_estimate.readings
     assert "came from the readings themselves" in ambfit.diagnosis.text.headline(dg)
-    # with the level declared, or std columns, nothing is estimated
+    # with the level declared nothing is estimated
     assert ambfit.diagnose(data, check_force=False, discrepancy=False, sigma_i=1.5e-3).noise_estimate is None
 
 
@@ -270,9 +271,9 @@ def test_an_effect_without_std_columns_is_seen_at_the_readings_noise():
     assert dg.noise_estimate.fit_estimate > 10 * declared
 
 
-def test_the_noise_from_neighbours_is_their_differences_mean_square():
+def test_the_noise_from_neighbours_is_their_pseudo_residuals_mean_square():
     """Replicated readings give the noise itself; a smooth error of the model barely moves it; a gross error is
-    left out; too few pairs estimate nothing."""
+    left out; too few readings estimate nothing."""
     from ambfit.diagnosis.noise import MIN_READINGS, UNIT_A, from_neighbours
 
     spec = rig.PAPER_RIG
@@ -280,19 +281,44 @@ def test_the_noise_from_neighbours_is_their_differences_mean_square():
     data = data.drop(columns=[c for c in data if "_std_" in c])
     rng = np.random.default_rng(0)
 
-    def estimate(z):
-        return from_neighbours(data, types.SimpleNamespace(residuals=z, reduced_chi2=float(np.mean(z**2))))
+    def estimate(z, df=data):
+        return from_neighbours(df, types.SimpleNamespace(residuals=z, reduced_chi2=float(np.mean(z**2))))
 
     z = rng.normal(0.0, 0.7, len(data))
     plain = estimate(z)
     assert abs(plain.sigma_i / (0.7 * UNIT_A) - 1) < 0.15 and plain.left_out == 0
+    assert plain.features == "bias, set-points and time"
     # a model error that varies smoothly over the operating points, 5 noise units per standard deviation of the
-    # position: the neighbours share most of it (those at other set-points not all), the fit's χ² all of it
+    # position (its root mean square 7 times the noise's): the neighbours share most of it (those at other
+    # set-points not all)
     smooth = z + 5.0 * (data["v_um"].to_numpy() - data["v_um"].mean()) / data["v_um"].std()
     assert abs(estimate(smooth).sigma_i / plain.sigma_i - 1) < 0.15
-    assert estimate(smooth).fit_estimate > 5 * plain.sigma_i
     spiked = z.copy()
     spiked[7] += 40.0
     assert estimate(spiked).left_out >= 1 and abs(estimate(spiked).sigma_i / plain.sigma_i - 1) < 0.05
-    few = data.iloc[: MIN_READINGS]
-    assert from_neighbours(few, types.SimpleNamespace(residuals=z[: MIN_READINGS], reduced_chi2=1.0)) is None
+    # without set-point columns the positions read stand in, to half a micrometre
+    bare = data.drop(columns=["v_set_um", "w_set_um"])
+    assert estimate(z, bare).features.startswith("bias, positions read")
+    assert abs(estimate(z, bare).sigma_i / plain.sigma_i - 1) < 0.1
+    # one group of readings (one axis and load, both currents rising): a pseudo-residual each, the estimate only
+    # from MIN_READINGS of them
+    def ramp(n):
+        k = np.arange(n, dtype=float)
+        return pd.DataFrame({"axis": "v", "load_id": "L", "experiment": "e", "iteration": k.astype(int),
+                             "bias_A": 1.0, "i_top_A": 1.0 + 0.01 * k, "i_bottom_A": 0.5 + 0.01 * k,
+                             "v_um": k, "w_um": 0.0, "v_set_um": k, "w_set_um": 0.0, "time_s": k})
+    assert estimate(z[:MIN_READINGS - 1], ramp(MIN_READINGS - 1)) is None
+    assert estimate(z[:MIN_READINGS], ramp(MIN_READINGS)).readings == MIN_READINGS
+
+
+def test_the_current_noise_beside_a_known_position_noise():
+    """Position std columns without current ones: the residuals' scale holds both noises, and the current noise is
+    the level at which a refit's readings scatter as their noise says (a quiet 0.2 mA, to which the positions' 0.1
+    µm adds about as much)."""
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), noise=rig.Noise(0.2e-3, 0.1e-6),
+                        seed=2).data
+    dg = ambfit.diagnose(data.drop(columns=["i_top_std_A", "i_bottom_std_A"]), check_force=False, discrepancy=False)
+    assert dg.verdict == "none", str(dg)
+    assert abs(dg.noise_estimate.sigma_i / 0.2e-3 - 1) < 0.15, dg.noise_estimate
+    assert "position from the std columns" in dg.noise_floor.source

@@ -350,9 +350,12 @@ def test_a_widened_law_below_the_floor_sets_aside_every_widened_law_that_follows
     # a widened law whose groups hold a slow one beside one that follows the readings is set aside
     mixed = widened("thermal_drift", 0.05, 8.0, groups=("drift", "shape"), start=start)
     assert decide(Rules(), start, [leaky, mixed]).kind == "unexplained"
-    # a slow widened law below the floor itself is no candidate
+    # a slow widened law below the floor is no candidate, and sets nothing aside (it cannot have learnt the noise);
+    # with set_aside "all" it sets every widened law aside
     low = dataclasses.replace(drift, heldout_z=NOISE * 0.4)
     v = decide(Rules(), start, [low, graded])
+    assert v.name == "iron_reluctance" and v.unjudged == ()
+    v = decide(Rules(set_aside="all"), start, [low, graded])
     assert v.kind == "unexplained" and v.unjudged == (low.label,)
     with pytest.raises(ValueError, match="set_aside"):
         Rules(set_aside="some")

@@ -28,7 +28,7 @@ from ambfit.diagnosis.checks import Pair, fold_fits, force_checks
 from ambfit.diagnosis.circuit_families import circuit_families
 from ambfit.diagnosis.discrepancy import ceiling
 from ambfit.diagnosis.heldout import gross_errors
-from ambfit.diagnosis.noise import NoiseEstimate, from_neighbours
+from ambfit.diagnosis.noise import UNESTIMATED, NoiseEstimate, from_neighbours
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
@@ -99,7 +99,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
     fits every row best), and every fit of the diagnosis is given that level (``noise_estimate``).
 
     ``max_steps`` is the Levenberg-Marquardt budget of each candidate fit; ``baseline`` is the ideal fit of these
-    data when the caller already has it.  ``progress``, if given, is called as ``progress("candidate effects",
+    data when the caller already has it (fitted again at the current noise from the neighbours when it estimated
+    its noise from its residuals).  ``progress``, if given, is called as ``progress("candidate effects",
     done, total)`` after each model's held-out fits.  ``threads``: how many fits run at once (each compiled solve
     releases the interpreter while it runs; 1: one after another, the same results to round-off).  A model's fold
     refits leave out the readings its fit of every row named outliers (one outlier test per model; that fit saw
@@ -125,9 +126,10 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
         estimate = None
         if base.noise_estimated and noise.get("sigma_i") is None:
             # a noise level the model's error does not enter, from neighbouring readings; the diagnosis then runs as
-            # with that level declared (against the fit's own estimate every model would sit on the floor)
-            estimate = _noise_from_neighbours(df, base, cands, bearing, max_steps, each)
-            if estimate is not None:
+            # with that level declared (against the fit's own estimate every model would sit on the floor); too few
+            # readings for it leave the unit level, which the record says
+            estimate = _noise_from_neighbours(df, base, cands, bearing, noise, max_steps, each) or UNESTIMATED
+            if estimate is not UNESTIMATED:
                 noise = {**noise, "sigma_i": estimate.sigma_i}
                 base = _baseline(df, bearing, noise)
         scorer = Scorer(df, base, bearing=bearing, noise=noise, max_steps=max_steps, each=each, progress=progress,
@@ -136,23 +138,47 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
                          estimate=estimate)
 
 
-def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, bearing: Bearing, max_steps: int,
-                           each: _Each) -> NoiseEstimate | None:
+def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, bearing: Bearing, noise: dict,
+                           max_steps: int, each: _Each) -> NoiseEstimate | None:
     """The current noise from each reading against its neighbours (:mod:`ambfit.diagnosis.noise`), in the residuals
     of the model that fits every row best at the unit noise (the smallest χ² per degree of freedom of the ideal law
     and each candidate's law that converged): it leaves the neighbours the least of the model's error, which they
-    cancel only where it is smooth."""
-    from ambfit.diagnosis.noise import UNIT_A
+    cancel only where it is smooth.  With a position noise (declared, or std columns) the residuals' scale is not
+    the current noise's alone: that law is fitted again at the level found until the level holds (at most
+    :data:`NOISE_ROUNDS` times)."""
     from ambfit.diagnosis.scoring import step_budget
 
-    def law(effect):
-        return fit(df, (effect,), bearing=bearing, start_from=base, max_steps=step_budget((effect,), max_steps),
-                   throw=False, debias="none")
+    def law(effects, more=None):
+        if not effects and more is None:
+            return base
+        return fit(df, effects, bearing=bearing, start_from=base, max_steps=step_budget(effects, max_steps),
+                   throw=False, debias="none", **{**noise, **(more or {})})
 
-    fits = [base] + [f for f in each(law, cands) if f.converged and np.isfinite(f.reduced_chi2)]
-    estimate = from_neighbours(df, min(fits, key=lambda f: f.reduced_chi2))
-    return None if estimate is None else dataclasses.replace(
-        estimate, fit_estimate=UNIT_A * float(np.sqrt(base.reduced_chi2)))
+    # the first on this thread: a solve not yet compiled (a diagnosis given its baseline) is compiled once
+    fitted = [((), base)]
+    if cands:
+        fitted += [((cands[0],), law((cands[0],)))] + list(zip([(e,) for e in cands[1:]],
+                                                                 each(lambda e: law((e,)), cands[1:])))
+    usable = [(e, f) for e, f in fitted if f.converged and np.isfinite(f.reduced_chi2)] or [((), base)]
+    effects, best = min(usable, key=lambda ef: ef[1].reduced_chi2)
+    estimate = from_neighbours(df, best, ideal=base)
+    position = noise.get("sigma_x") is not None or "position noise taken as 0" not in base.noise_source
+    for _ in range(NOISE_ROUNDS if position and estimate is not None else 0):
+        again = from_neighbours(df, law(effects, {"sigma_i": estimate.sigma_i}), level=estimate.sigma_i, ideal=base)
+        if again is None:
+            break
+        done = abs(again.sigma_i / estimate.sigma_i - 1.0) < NOISE_TOLERANCE
+        estimate = again
+        if done:
+            break
+    return estimate
+
+
+NOISE_ROUNDS = 4
+"""Most refits of the best-fitting law at the current noise found, when a position noise shares the residuals."""
+
+NOISE_TOLERANCE = 0.01
+"""The current noise found holds when a refit at it moves it by less than this (relative)."""
 
 
 def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:

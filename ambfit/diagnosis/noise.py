@@ -32,7 +32,8 @@ UNIT_A = 1e-3
 (:func:`ambfit.estimation.problem.build_problem`)."""
 
 MIN_READINGS = 20
-"""Fewer pseudo-residuals than this estimate nothing: the fit's own estimate stands."""
+"""Fewer pseudo-residuals than this estimate nothing (:func:`ambfit.diagnose` then says so, and its scores stand
+against the unit level)."""
 
 NEIGHBOURS = 12
 """Neighbours each reading is predicted from (a group of readings too small for them and the local linear fit is
@@ -47,10 +48,16 @@ FEATURES = ("bias_A", "v_set_um", "w_set_um", "time_s")
 constant is skipped; the clock makes readings close in time the nearer, so that a drift adds little).  Commanded
 values, not readings: neighbours chosen by nearness in noisy readings would be those whose noise is alike, and
 their differences too small (among repeated set-points, markedly).  Without set-point columns the positions read
-stand in for them (:data:`READ_FEATURES`)."""
+stand in for them (:data:`READ_FEATURES`), to :data:`ambfit.estimation.basis.POSITION_CLUSTER`: readings of one
+set-point are then alike whatever their noise."""
 
 READ_FEATURES = ("bias_A", "v_um", "w_um", "time_s")
 """The operating variables when the data hold no (complete) set-point columns."""
+
+DIRECTION_NOISE = 3.0
+"""A coil current's approach direction (which groups the readings) turns only on a change of more than this many of
+the current's noise levels (the fit's χ² level, model error included; at least the 2 mA of
+:func:`ambfit.rows.approach_direction`): a direction that followed the readings' noise would group them by it."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,61 +67,80 @@ class NoiseEstimate:
     Attributes
     ----------
     sigma_i : float
-        Standard deviation of each coil current reading [A] (with the position noise the fit was given, 0 without
-        a std column, the positions' noise is folded into it).
+        Standard deviation of each coil current reading [A] (beside the position noise the fit was given; with none,
+        the positions' noise is folded into it).
     readings : int
         Readings it rests on (their pseudo-residuals).
     left_out : int
         Readings without a pseudo-residual in the estimate: holding a gross error, or in a group too small.
     fit_estimate : float
-        The fit's own estimate from its residuals' χ² per degree of freedom [A], model error included.
+        The ideal law's level from its residuals' χ² per degree of freedom [A], model error included.
+    model : str
+        The model whose residuals the readings were taken in.
+    features : str
+        What the neighbours are near in.
     """
 
     sigma_i: float
     readings: int
     left_out: int
     fit_estimate: float
+    model: str = "ideal"
+    features: str = "bias, set-points and time"
 
     def describe(self) -> str:
         return (f"current {self.sigma_i * 1e3:.3g} mA estimated from {self.readings} readings against their "
-                f"neighbours (the ideal fit's χ²/dof gives {self.fit_estimate * 1e3:.3g} mA, its error included)")
+                f"neighbours in {self.features}, in the {self.model} law's residuals (the ideal law's χ²/dof gives "
+                f"{self.fit_estimate * 1e3:.3g} mA, its error included)")
 
     def to_json(self) -> dict:
         return {"current_mA": self.sigma_i * 1e3, "readings": self.readings, "readings_left_out": self.left_out,
-                "fit_chi2_estimate_mA": self.fit_estimate * 1e3,
+                "fit_chi2_estimate_mA": self.fit_estimate * 1e3, "model": self.model, "features": self.features,
                 "method": f"local-linear pseudo-residuals: each reading's standardized residual against its "
                           f"{NEIGHBOURS} nearest neighbours' (one axis, load group and approach direction; nearest "
-                          "in bias, set-points and time), over its standard deviation; their mean square"}
+                          f"in {self.features}), over its standard deviation; their mean square"}
 
 
-def _operating_points(df: pd.DataFrame) -> np.ndarray:
-    """The readings in :data:`FEATURES` (or :data:`READ_FEATURES`), each in units of its spread: array[n, d]."""
+UNESTIMATED = "unestimated"
+"""What :func:`ambfit.diagnose` records when too few readings have neighbours enough for an estimate."""
+
+
+def _operating_points(df: pd.DataFrame) -> tuple[np.ndarray, str]:
+    """The readings in :data:`FEATURES` (or :data:`READ_FEATURES`), each in units of its spread: array[n, d], and
+    what they are."""
+    from ambfit.estimation.basis import POSITION_CLUSTER
+
     commanded = all(c in df and pd.to_numeric(df[c], errors="coerce").notna().all() for c in ("v_set_um", "w_set_um"))
     cols = []
     for name in FEATURES if commanded else READ_FEATURES:
         if name in df:
             x = pd.to_numeric(df[name], errors="coerce").to_numpy(float)
+            if name in ("v_um", "w_um"):
+                step = POSITION_CLUSTER * 1e6
+                x = np.round(x / step) * step
             spread = np.nanstd(x) if np.isfinite(x).any() else 0.0
             if np.isfinite(x).all() and spread > 0:
                 cols.append((x - np.mean(x)) / spread)
-    return np.column_stack(cols) if cols else np.zeros((len(df), 0))
+    what = "bias, set-points and time" if commanded else "bias, positions read (to 0.5 µm) and time"
+    return (np.column_stack(cols) if cols else np.zeros((len(df), 0))), what
 
 
-def pseudo_residuals(df: pd.DataFrame, z: np.ndarray) -> np.ndarray:
+def pseudo_residuals(df: pd.DataFrame, z: np.ndarray, turn: float = 2e-3) -> np.ndarray:
     """Each reading's residual ``z`` less the local linear prediction from its :data:`NEIGHBOURS` nearest neighbours
-    among the readings of its axis, load group and approach direction of both coil currents, over the standard
-    deviation that leaves to unit noise (``sqrt(1 + |w|^2)``): array[n], NaN where a reading's group is too small or
-    a residual is not finite."""
+    among the readings of its axis, load group and approach direction of both coil currents (turning on changes above
+    ``turn`` [A]), over the standard deviation that leaves to unit noise (``sqrt(1 + |w|^2)``): array[n], NaN where a
+    reading's group is too small or a residual is not finite."""
     from scipy.spatial import cKDTree
 
     n = len(df)
     out = np.full(n, np.nan)
-    points = _operating_points(df)
+    points, _ = _operating_points(df)
     k = NEIGHBOURS
     if n < k + 1:
         return out
-    key = (load_groups(df).astype(str) + "|" + pd.Series(approach_direction(df, "i_top_A"), index=df.index)
-           .astype(str) + "|" + pd.Series(approach_direction(df, "i_bottom_A"), index=df.index).astype(str))
+    key = load_groups(df).astype(str)
+    for coil in ("i_top_A", "i_bottom_A"):
+        key = key + "|" + pd.Series(approach_direction(df, coil, threshold=turn), index=df.index).astype(str)
     codes = pd.factorize(key)[0]
     finite = np.isfinite(z)
     for c in np.unique(codes):
@@ -122,31 +148,40 @@ def pseudo_residuals(df: pd.DataFrame, z: np.ndarray) -> np.ndarray:
         if len(rows) < max(k, points.shape[1] + 2) + 1:
             continue
         _, near = cKDTree(points[rows]).query(points[rows], k=k + 1)
-        for a, nb in zip(rows, rows[near[:, 1:]]):
+        for a, found in zip(rows, rows[near]):
+            # the reading itself is left out wherever the search put it (readings at one point tie)
+            nb = found[found != a][:k]
             # the local linear fit's value at the reading: an intercept and slopes in the operating variables
             w = np.linalg.pinv(np.column_stack([np.ones(k), points[nb] - points[a]]))[0]
             out[a] = (z[a] - w @ z[nb]) / np.sqrt(1.0 + w @ w)
     return out
 
 
-def from_neighbours(df: pd.DataFrame, fit: FitResult) -> NoiseEstimate | None:
+def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A,
+                    ideal: FitResult | None = None) -> NoiseEstimate | None:
     """The current noise of ``df`` from its readings against their neighbours (module docstring), given ``fit``, a
-    fit of every row at the unit current noise (:data:`UNIT_A`, as a fit without a noise level makes).  None when
-    fewer than :data:`MIN_READINGS` readings have a pseudo-residual."""
+    fit of every row at the current noise ``level`` [A] (the unit :data:`UNIT_A`, as a fit without a noise level
+    makes): ``level`` times the pseudo-residuals' root mean square, which holds exactly when the fit was given no
+    position noise (else the level is the fixed point of declaring it and estimating again).  ``ideal``: the ideal
+    law's fit at the unit level, for :attr:`NoiseEstimate.fit_estimate` (default ``fit``).  None when fewer than
+    :data:`MIN_READINGS` readings have a pseudo-residual."""
     n = len(df)
     df = df.reset_index(drop=True)
     z = np.array(fit.residuals, dtype=float)[:n]
-    gross = _gross(pseudo_residuals(df, z))
+    turn = max(2e-3, DIRECTION_NOISE * level * float(np.sqrt(fit.reduced_chi2)))
+    gross = _gross(pseudo_residuals(df, z, turn))
     # a gross error moves its neighbours' pseudo-residuals too: the readings found are taken out of every
     # neighbourhood and the rest predicted again
     z[gross] = np.nan
-    e = pseudo_residuals(df, z)
+    e = pseudo_residuals(df, z, turn)
     e[_gross(e)] = np.nan
     e = e[np.isfinite(e)]
     if len(e) < MIN_READINGS:
         return None
-    return NoiseEstimate(sigma_i=UNIT_A * float(np.sqrt(np.mean(e**2))), readings=len(e), left_out=int(n - len(e)),
-                         fit_estimate=UNIT_A * float(np.sqrt(fit.reduced_chi2)))
+    chi2 = (ideal or fit).reduced_chi2
+    return NoiseEstimate(sigma_i=level * float(np.sqrt(np.mean(e**2))), readings=len(e), left_out=int(n - len(e)),
+                         fit_estimate=UNIT_A * float(np.sqrt(chi2)), model=getattr(fit, "model", "ideal"),
+                         features=_operating_points(df)[1])
 
 
 def _gross(e: np.ndarray) -> np.ndarray:

@@ -41,10 +41,10 @@ def headline(dg) -> str:
     g = dg.grade
     if dg.verdict == "none":
         return "verdict: none (the ideal law's held-out residuals sit on the noise floor)" + (
-            "; the floor's level came from the readings themselves (no std columns): an effect that changes from one "
-            "reading to its neighbours as much as their noise does (a history the operating point does not fix) "
-            "cannot be told from it; std columns or a declared current noise would"
-            if getattr(dg, "noise_estimate", None) is not None else "")
+            "; the floor's level came from the readings themselves (no complete current std columns): an effect "
+            "that changes from one reading to its neighbours as much as their noise does (a history the operating "
+            "point does not fix) cannot be told from it; std columns or a declared current noise would"
+            if getattr(getattr(dg, "noise_estimate", None), "sigma_i", None) is not None else "")
     if dg.verdict == "undecided":
         return (f"verdict: undecided between {', '.join(dg.decision.candidates)} (best first): these data cannot "
                 "tell them apart")

@@ -41,8 +41,10 @@ import dataclasses
 import numpy as np
 
 OCCAM = ("all", "siblings", "none")
-SET_ASIDE = ("readings", "all")
 """Which more flexible models need to be ahead of the simplest explanation to rival it (:attr:`Rules.occam`)."""
+
+SET_ASIDE = ("readings", "all")
+"""Which widened laws a widened law below the floor sets aside (:attr:`Rules.set_aside`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -425,8 +427,9 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
     structured : bool
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
 
-    A widened law whose signature is clear and below the floor (:meth:`Judge.below_floor`) sets aside every widened
-    law whose terms follow the readings (:attr:`Rules.set_aside`): the verdict is decided by the laws, the pairs and
+    A widened law whose terms follow the readings, whose signature is clear and which is below the floor
+    (:meth:`Judge.below_floor`) sets aside every such widened law (:attr:`Rules.set_aside`; with ``"all"`` any
+    widened law below the floor sets aside every one): the verdict is decided by the laws, the pairs and
     the laws widened by slow terms alone (nothing explaining, ``unexplained``; a little above the floor with no model
     clearly better, ``none``; one family's law, ``undecided`` with its signature's other families,
     :attr:`Rules.untested_siblings`) and lists those below the floor in ``unjudged``.
@@ -436,8 +439,10 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
     # a reading moves the force, which readings at one load per axis allow (the force's slope across loads is not
     # observed, so a correction can flatten the law there).  The other widened laws whose terms follow the readings
     # share that freedom: their held-out scores do not test them, and none is used.  Slow terms (time, temperature)
-    # are alike for readings close in time and cannot follow a reading's noise
-    unjudged = tuple(c.label for c in candidates if c.kind == "signature" and judge.clear(c) and judge.below_floor(c))
+    # are alike for readings close in time and cannot follow a reading's noise (below the floor, such a law is only
+    # no candidate)
+    unjudged = tuple(c.label for c in candidates if c.kind == "signature" and judge.clear(c) and judge.below_floor(c)
+                     and not _slow(rules, c))
     if unjudged:
         candidates = [c for c in candidates if c.kind != "signature" or _slow(rules, c)]
     verdict = _decide(judge, ideal, candidates, structured)
