@@ -322,3 +322,18 @@ def test_the_current_noise_beside_a_known_position_noise():
     assert dg.verdict == "none", str(dg)
     assert abs(dg.noise_estimate.sigma_i / 0.2e-3 - 1) < 0.15, dg.noise_estimate
     assert "position from the std columns" in dg.noise_floor.source
+
+
+def test_readings_that_scatter_unlike_their_std_columns_are_said_to():
+    """Clean rig data scatter between neighbouring readings as their std columns say; with the std columns halved
+    the scatter is twice theirs, which the diagnosis says beside its verdict (every model falls short of the floor)."""
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=4).data
+    dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
+    assert dg.verdict == "none" and not dg.scatter.off and abs(dg.scatter.ratio - 1) < 0.15, dg.scatter
+    assert dg.to_json()["neighbour_scatter"]["off"] is False
+    stds = [c for c in data if "_std_" in c]
+    halved = data.assign(**{c: 0.5 * data[c] for c in stds})
+    dg = ambfit.diagnose(halved, check_force=False, discrepancy=False)
+    assert dg.scatter.off and abs(dg.scatter.ratio - 2) < 0.3, dg.scatter
+    assert f"scatter {dg.scatter.ratio:.2f} times their stated noise" in ambfit.diagnosis.text.verdict(dg)

@@ -28,7 +28,7 @@ from ambfit.diagnosis.checks import Pair, fold_fits, force_checks
 from ambfit.diagnosis.circuit_families import circuit_families
 from ambfit.diagnosis.discrepancy import ceiling
 from ambfit.diagnosis.heldout import gross_errors
-from ambfit.diagnosis.noise import UNESTIMATED, NoiseEstimate, from_neighbours
+from ambfit.diagnosis.noise import UNESTIMATED, NoiseEstimate, from_neighbours, scatter
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
@@ -205,6 +205,12 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         ideal, *singles = scorer.leave_out(gross, [ideal, *singles])
         ideal = dataclasses.replace(ideal, before=ideal.after)
     singles = [dataclasses.replace(c, before=ideal.after) for c in singles]
+    # data with a stated noise: how the best-fitting law's residuals scatter between neighbours, against it
+    spread = None
+    if estimate is None:
+        fitted = [c.fit for c in [ideal, *singles] if c.fit is not None and c.fit.converged
+                  and np.isfinite(c.fit.reduced_chi2)]
+        spread = scatter(df, min(fitted, key=lambda f: f.reduced_chi2)) if fitted else None
     loc = where(df, base, alpha=rules.structure_alpha, rows=scorer.scored)
     structured = bool(loc.regions)
     pairs = []
@@ -247,7 +253,7 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     best_pair = next((Pair(c.effect, c.after, c.shrink, bool(judge.explains(c))) for c in ranking if c.kind == "pair"),
                      None)
     return Diagnosis(
-        baseline=base, noise_floor=noise_floor(base, estimate), noise_estimate=estimate, where=loc,
+        baseline=base, noise_floor=noise_floor(base, estimate), noise_estimate=estimate, scatter=spread, where=loc,
         folds=scorer.fold_name, ideal=ideal,
         ranking=ranking, decision=verdict, rules=rules, verdict_fit=verdict_fit,
         operating=operating_variables(df, base), parameter_gap=parameter_gap(base, bearing, model_fit=verdict_fit),

@@ -184,6 +184,57 @@ def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A,
                          features=_operating_points(df)[1])
 
 
+SCATTER_OFF = 0.25
+"""The readings scatter unlike their stated noise when their pseudo-residuals' root mean square is further than
+this (relative) from 1, and further than 4 of its standard errors (``1 / sqrt(2 m)`` for ``m`` of them)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Scatter:
+    """How the residuals of data with a stated noise (std columns, or declared) scatter between neighbouring
+    readings, against that noise: 1 when the noise is as stated and the model's error is smooth between them.
+
+    Attributes
+    ----------
+    ratio : float
+        The pseudo-residuals' root mean square (:func:`pseudo_residuals`).
+    readings : int
+        How many readings it rests on.
+    model : str
+        The model whose residuals they were (the one that fits every row best).
+    """
+
+    ratio: float
+    readings: int
+    model: str
+
+    @property
+    def off(self) -> bool:
+        """Whether the scatter is clearly unlike the stated noise (:data:`SCATTER_OFF`)."""
+        return bool(abs(self.ratio - 1.0) > max(SCATTER_OFF, 4.0 / np.sqrt(2.0 * max(self.readings, 1))))
+
+    def describe(self) -> str:
+        if self.ratio > 1.0:
+            return (f"between neighbouring readings the {self.model} law's residuals scatter {self.ratio:.2f} times "
+                    f"their stated noise ({self.readings} readings): either the noise is larger than the std columns "
+                    "or the declared level say (a DAQ's averaging error is not a reading's noise), or an effect "
+                    "changes from one reading to its neighbours (a history the operating point does not fix); "
+                    "with the noise understated every model falls short of the floor")
+        return (f"between neighbouring readings the {self.model} law's residuals scatter {self.ratio:.2f} times their "
+                f"stated noise ({self.readings} readings): the noise is smaller than the std columns or the declared "
+                "level say, and an effect that large would go unseen")
+
+    def to_json(self) -> dict:
+        return {"ratio": float(self.ratio), "readings": int(self.readings), "model": self.model, "off": self.off}
+
+
+def scatter(df: pd.DataFrame, fit: FitResult) -> Scatter | None:
+    """:class:`Scatter` of ``fit``'s residuals (a fit at the data's stated noise); None when fewer than
+    :data:`MIN_READINGS` readings have a pseudo-residual."""
+    found = from_neighbours(df, fit, level=1.0)
+    return None if found is None else Scatter(ratio=found.sigma_i, readings=found.readings, model=found.model)
+
+
 def _gross(e: np.ndarray) -> np.ndarray:
     """Where a pseudo-residual exceeds :data:`GROSS` robust scales of them all."""
     finite = np.isfinite(e)

@@ -65,6 +65,9 @@ class Diagnosis:
         The current noise from neighbouring readings, when the data state none and none was declared
         (:mod:`ambfit.diagnosis.noise`): every fit of the diagnosis was given it; ``noise.UNESTIMATED`` when too few
         readings had neighbours for it.
+    scatter : Scatter or None
+        With a stated noise (std columns, or declared): how the best-fitting law's residuals scatter between
+        neighbouring readings against it (:class:`ambfit.diagnosis.noise.Scatter`).
     """
 
     baseline: FitResult
@@ -86,6 +89,7 @@ class Diagnosis:
     separation: Separation | None = None
     left_out: tuple = ()
     noise_estimate: object = None
+    scatter: object = None
 
     @property
     def verdict(self) -> str:
@@ -145,6 +149,7 @@ class Diagnosis:
             **({"noise_estimate": {"skipped": "too few readings have neighbours enough to estimate it"}
                 if isinstance(self.noise_estimate, str) else self.noise_estimate.to_json()}
                if self.noise_estimate is not None else {}),
+            **({"neighbour_scatter": self.scatter.to_json()} if self.scatter is not None else {}),
             "folds": self.folds,
             "where": [r.to_json() for r in self.where.regions[:20]],
             "ranking": [c.to_json(self.ideal) for c in self.ranking], "verdict": self.verdict,

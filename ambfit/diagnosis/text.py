@@ -166,6 +166,8 @@ def findings(dg) -> list[str]:
                 out.append(f"the readings' time runs with the sweep (the set-points, biases and loads explain "
                            f"{100 * sep.time_tied:.0f} % of it): a drift cannot be told from an effect of the "
                            "operating point; shuffle the order of the set-points and biases")
+    if getattr(dg, "scatter", None) is not None and dg.scatter.off:
+        out.append(dg.scatter.describe())
     if dg.decision.unjudged:
         out.append(unjudged(dg))
     if dg.left_out:
