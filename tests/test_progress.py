@@ -80,3 +80,16 @@ def test_help_imports_nothing_heavy():
     exe = str(Path(sys.executable).with_name("ambfit"))
     r = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "identify" in r.stdout
+
+
+def test_diagnose_without_std_columns_reports_the_noise_phase_first():
+    from ambfit.data import read_csv
+    from ambfit.diagnosis import diagnose
+    from ambfit.physics import effects as E
+
+    data = read_csv(ROOT / "data" / "paper_table2.csv")
+    bare = data.frame.drop(columns=[c for c in data.frame if "_std_" in c])
+    calls, cb = recorder()
+    diagnose(bare, candidates=[E.Saturation(), E.Leakage()], progress=cb)
+    assert calls[:2] == [("the readings' noise", 0, 2), ("the readings' noise", 2, 2)]
+    assert calls[2][0] == "candidate effects"

@@ -128,7 +128,8 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
             # a noise level the model's error does not enter, from neighbouring readings; the diagnosis then runs as
             # with that level declared (against the fit's own estimate every model would sit on the floor); too few
             # readings for it leave the unit level, which the record says
-            estimate = _noise_from_neighbours(df, base, cands, bearing, noise, max_steps, each) or UNESTIMATED
+            estimate = _noise_from_neighbours(df, base, cands, bearing, noise, max_steps, each,
+                                              progress) or UNESTIMATED
             if estimate is not UNESTIMATED:
                 noise = {**noise, "sigma_i": estimate.sigma_i}
                 base = _baseline(df, bearing, noise)
@@ -139,14 +140,18 @@ def diagnose(data: Dataset | pd.DataFrame, *, candidates=None, bearing: Bearing 
 
 
 def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, bearing: Bearing, noise: dict,
-                           max_steps: int, each: _Each) -> NoiseEstimate | None:
+                           max_steps: int, each: _Each, progress=None) -> NoiseEstimate | None:
     """The current noise from each reading against its neighbours (:mod:`ambfit.diagnosis.noise`), in the residuals
     of the model that fits every row best at the unit noise (the smallest χ² per degree of freedom of the ideal law
     and each candidate's law that converged): it leaves the neighbours the least of the model's error, which they
     cancel only where it is smooth.  With a position noise (declared, or std columns) the residuals' scale is not
     the current noise's alone: that law is fitted again at the level found until the level holds (at most
-    :data:`NOISE_ROUNDS` times)."""
+    :data:`NOISE_ROUNDS` times).  ``progress``: as :func:`diagnose`'s, the phase "the readings' noise"."""
     from ambfit.diagnosis.scoring import step_budget
+
+    def told(done):
+        if progress is not None:
+            progress("the readings' noise", done, len(cands))
 
     def law(effects, more=None):
         if not effects and more is None:
@@ -155,10 +160,12 @@ def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, beari
                    throw=False, debias="none", **{**noise, **(more or {})})
 
     # the first on this thread: a solve not yet compiled (a diagnosis given its baseline) is compiled once
+    told(0)
     fitted = [((), base)]
     if cands:
         fitted += [((cands[0],), law((cands[0],)))] + list(zip([(e,) for e in cands[1:]],
                                                                  each(lambda e: law((e,)), cands[1:])))
+    told(len(cands))
     usable = [(e, f) for e, f in fitted if f.converged and np.isfinite(f.reduced_chi2)] or [((), base)]
     effects, best = min(usable, key=lambda ef: ef[1].reduced_chi2)
     estimate = from_neighbours(df, best, ideal=base)
