@@ -413,13 +413,18 @@ def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_
     decision = Verdict("unexplained", unjudged=("leakage widened by its shape signature",
                                                 "current_gain widened by its current_sensor signature"))
 
-    def said(operating, rules=Rules()):
-        return text.unjudged(types.SimpleNamespace(decision=decision, operating=operating, rules=rules))
+    def said(operating, rules=Rules(), signatures=()):
+        return text.unjudged(types.SimpleNamespace(decision=decision, operating=operating, rules=rules,
+                                                   signatures=list(signatures)))
 
     one = pd.DataFrame({"axis": ["v", "w", "v", "w"], "load_N": [7.0, 7.0, 7.0, 7.0]})
     line = said(one)
-    assert line.startswith("the widened laws whose terms follow the readings set aside (those of time and temperature "
-                           "alone are still judged): leakage widened by its shape signature and current_gain")
+    assert line.startswith("the widened laws whose terms follow the readings set aside: leakage widened by its shape "
+                           "signature and current_gain")
+    # a drift's widened law among them: it is still judged, and said to be
+    drift = widened("thermal_drift", 0.0, 2.0, groups=("drift",))
+    assert said(one, signatures=[drift]).startswith("the widened laws whose terms follow the readings set aside (those "
+                                                    "of time and temperature alone are still judged): leakage")
     assert said(one, Rules(set_aside="all")).startswith("every widened law set aside: leakage widened")
     assert "fewer than two known loads on an axis" in line and line.endswith("several known loads per axis would "
                                                                              "test them")

@@ -148,12 +148,15 @@ def pseudo_residuals(df: pd.DataFrame, z: np.ndarray, turn: float = 2e-3) -> np.
         if len(rows) < max(k, points.shape[1] + 2) + 1:
             continue
         _, near = cKDTree(points[rows]).query(points[rows], k=k + 1)
-        for a, found in zip(rows, rows[near]):
-            # the reading itself is left out wherever the search put it (readings at one point tie)
-            nb = found[found != a][:k]
-            # the local linear fit's value at the reading: an intercept and slopes in the operating variables
-            w = np.linalg.pinv(np.column_stack([np.ones(k), points[nb] - points[a]]))[0]
-            out[a] = (z[a] - w @ z[nb]) / np.sqrt(1.0 + w @ w)
+        found = rows[near]
+        # the reading itself is left out wherever the search put it (readings at one point tie)
+        own = found == rows[:, None]
+        drop = np.where(own.any(axis=1), np.argmax(own, axis=1), k)
+        nb = np.where(np.arange(k)[None, :] < drop[:, None], found[:, :k], found[:, 1:])
+        # the local linear fit's value at each reading: an intercept and slopes in the operating variables
+        design = np.concatenate([np.ones((len(rows), k, 1)), points[nb] - points[rows][:, None, :]], axis=2)
+        w = np.linalg.pinv(design)[:, 0, :]
+        out[rows] = (z[rows] - np.einsum("mk,mk->m", w, z[nb])) / np.sqrt(1.0 + np.einsum("mk,mk->m", w, w))
     return out
 
 
