@@ -309,6 +309,14 @@ def test_the_noise_from_neighbours_is_their_pseudo_residuals_mean_square():
                              "v_um": k, "w_um": 0.0, "v_set_um": k, "w_set_um": 0.0, "time_s": k})
     assert estimate(z[:MIN_READINGS - 1], ramp(MIN_READINGS - 1)) is None
     assert estimate(z[:MIN_READINGS], ramp(MIN_READINGS)).readings == MIN_READINGS
+    # readings at one operating point tie (15 of them): each is predicted from the others alone, the mean of its 12
+    # neighbours
+    from ambfit.diagnosis.noise import NEIGHBOURS, pseudo_residuals
+
+    tied = ramp(MIN_READINGS).assign(v_set_um=np.repeat([0.0, 1.0], [15, MIN_READINGS - 15]), time_s=0.0)
+    one = np.zeros(MIN_READINGS)
+    one[5] = 1.0
+    assert pseudo_residuals(tied, one)[5] == pytest.approx(1.0 / np.sqrt(1.0 + 1.0 / NEIGHBOURS))
 
 
 def test_the_current_noise_beside_a_known_position_noise():
