@@ -144,9 +144,11 @@ def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, beari
     """The current noise from each reading against its neighbours (:mod:`ambfit.diagnosis.noise`), in the residuals
     of the model that fits every row best at the unit noise (the smallest χ² per degree of freedom of the ideal law
     and each candidate's law that converged): it leaves the neighbours the least of the model's error, which they
-    cancel only where it is smooth.  With a position noise (declared, or std columns) the residuals' scale is not
-    the current noise's alone: that law is fitted again at the level found until the level holds (at most
-    :data:`NOISE_ROUNDS` times).  ``progress``: as :func:`diagnose`'s, the phase "the readings' noise"."""
+    cancel only where it is smooth.  With a position noise known (declared, or std columns) the residuals' scale is
+    not the current noise's alone: the level is the one at which that law, fitted again there, leaves pseudo-residuals
+    of unit mean square, found by secant steps (at most :data:`NOISE_ROUNDS` refits).  ``progress``: as
+    :func:`diagnose`'s, the phase "the readings' noise"."""
+    from ambfit.diagnosis.residuals import noise_parts
     from ambfit.diagnosis.scoring import step_budget
 
     def told(done):
@@ -159,33 +161,75 @@ def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, beari
         return fit(df, effects, bearing=bearing, start_from=base, max_steps=step_budget(effects, max_steps),
                    throw=False, debias="none", **{**noise, **(more or {})})
 
-    # the first on this thread: a solve not yet compiled (a diagnosis given its baseline) is compiled once
     told(0)
+    # the first on this thread: a solve not yet compiled (a diagnosis given its baseline) is compiled once
     fitted = [((), base)]
     if cands:
         fitted += [((cands[0],), law((cands[0],)))] + list(zip([(e,) for e in cands[1:]],
                                                                  each(lambda e: law((e,)), cands[1:])))
-    told(len(cands))
     usable = [(e, f) for e, f in fitted if f.converged and np.isfinite(f.reduced_chi2)] or [((), base)]
     effects, best = min(usable, key=lambda ef: ef[1].reduced_chi2)
     estimate = from_neighbours(df, best, ideal=base)
-    position = noise.get("sigma_x") is not None or "position noise taken as 0" not in base.noise_source
-    for _ in range(NOISE_ROUNDS if position and estimate is not None else 0):
-        again = from_neighbours(df, law(effects, {"sigma_i": estimate.sigma_i}), level=estimate.sigma_i, ideal=base)
-        if again is None:
-            break
-        done = abs(again.sigma_i / estimate.sigma_i - 1.0) < NOISE_TOLERANCE
-        estimate = again
-        if done:
-            break
-    return estimate
+    if estimate is not None and _position_noise_known(df, noise):
+        estimate = _settled(estimate, lambda level: from_neighbours(df, law(effects, {"sigma_i": level}), level=level,
+                                                                    ideal=base))
+    told(len(cands))
+    if estimate is None:
+        return None
+    current = noise_parts(base.noise_source)[0]
+    return dataclasses.replace(estimate, gaps=current[current.index("("):] if "(" in current else "")
 
 
-NOISE_ROUNDS = 4
-"""Most refits of the best-fitting law at the current noise found, when a position noise shares the residuals."""
+def _position_noise_known(df: pd.DataFrame, noise: dict) -> bool:
+    """Whether the fits are given a position noise: declared above 0, or complete std columns with one above 0."""
+    if noise.get("sigma_x") is not None:
+        return noise["sigma_x"] > 0
+    if not {"v_std_um", "w_std_um"} <= set(df.columns):
+        return False
+    std = np.where(df["axis"].to_numpy() == "w", df["w_std_um"].to_numpy(float), df["v_std_um"].to_numpy(float))
+    return bool(np.isfinite(std).all() and (std > 0).any())
+
+
+def _settled(first: NoiseEstimate, at) -> NoiseEstimate:
+    """The current noise at which ``at(level)`` (the estimate from a fit at ``level``) gives ``level`` back: the
+    root of ``f(s) = at(s) / s - 1`` (the pseudo-residuals' root mean square, less 1) by secant steps from ``first``
+    and the fixed-point step after it, at most :data:`NOISE_ROUNDS` refits; ``settled`` when ``|f|`` is below
+    :data:`NOISE_TOLERANCE`."""
+    points = []                                  # (level, f, the estimate there)
+    level = first.sigma_i
+    for k in range(1, NOISE_ROUNDS + 1):
+        found = at(level)
+        if found is None or not np.isfinite(found.sigma_i):
+            break
+        points.append((level, found.sigma_i / level - 1.0, found))
+        if abs(points[-1][1]) < NOISE_TOLERANCE:
+            return dataclasses.replace(found, sigma_i=level, settled=True, refits=k)
+        if len(points) == 1:
+            level = found.sigma_i                    # the fixed-point step
+        else:
+            (s0, f0, _), (s1, f1, _) = points[-2:]
+            step = f1 * (s1 - s0) / (f1 - f0) if f1 != f0 else 0.0
+            level = s1 - step if step and 0.0 < s1 - step < 10.0 * first.sigma_i else found.sigma_i
+    if not points:
+        return dataclasses.replace(first, settled=False)
+    best_level, _, found = min(points, key=lambda p: abs(p[1]))
+    return dataclasses.replace(found, sigma_i=best_level, settled=False, refits=len(points))
+
+
+NOISE_ROUNDS = 6
+"""Most refits of the best-fitting law at a current noise, when a position noise shares the residuals."""
 
 NOISE_TOLERANCE = 0.01
-"""The current noise found holds when a refit at it moves it by less than this (relative)."""
+"""The current noise found holds when a refit there leaves pseudo-residuals whose root mean square is within this
+of 1."""
+
+
+def _stated_current(df: pd.DataFrame, noise: dict) -> float:
+    """The data's stated current noise [A]: declared, or the std columns' median."""
+    if noise.get("sigma_i") is not None:
+        return float(noise["sigma_i"])
+    cols = [df[c].to_numpy(float) for c in ("i_top_std_A", "i_bottom_std_A") if c in df]
+    return float(np.nanmedian(np.concatenate(cols))) if cols else 0.0
 
 
 def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:
@@ -217,7 +261,8 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     if estimate is None:
         fitted = [c.fit for c in [ideal, *singles] if c.fit is not None and c.fit.converged
                   and np.isfinite(c.fit.reduced_chi2)]
-        spread = scatter(df, min(fitted, key=lambda f: f.reduced_chi2)) if fitted else None
+        spread = scatter(df, min(fitted, key=lambda f: f.reduced_chi2), _stated_current(df, noise),
+                         positions_unstated=not _position_noise_known(df, noise)) if fitted else None
     loc = where(df, base, alpha=rules.structure_alpha, rows=scorer.scored)
     structured = bool(loc.regions)
     pairs = []

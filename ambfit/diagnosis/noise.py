@@ -79,6 +79,12 @@ class NoiseEstimate:
         The model whose residuals the readings were taken in.
     features : str
         What the neighbours are near in.
+    settled : bool
+        With a position noise known: whether refits at the level found settled on it (:attr:`refits` of them).
+    refits : int
+        Refits at the level found.
+    gaps : str
+        Why the data's own current std columns were not used, when they are there but incomplete.
     """
 
     sigma_i: float
@@ -87,21 +93,39 @@ class NoiseEstimate:
     fit_estimate: float
     model: str = "ideal"
     features: str = "bias, set-points and time"
+    settled: bool = True
+    refits: int = 0
+    gaps: str = ""
 
     def describe(self) -> str:
         return (f"current {self.sigma_i * 1e3:.3g} mA estimated from {self.readings} readings against their "
                 f"neighbours in {self.features}, in the {self.model} law's residuals (the ideal law's χ²/dof gives "
-                f"{self.fit_estimate * 1e3:.3g} mA, its error included)")
+                f"{self.fit_estimate * 1e3:.3g} mA, its error included"
+                + ("" if self.settled else f"; beside the position noise not settled after {self.refits} refits: "
+                   "the level may be high") + ")" + (f" {self.gaps}" if self.gaps else ""))
 
     def to_json(self) -> dict:
         return {"current_mA": self.sigma_i * 1e3, "readings": self.readings, "readings_left_out": self.left_out,
                 "fit_chi2_estimate_mA": self.fit_estimate * 1e3, "model": self.model, "features": self.features,
+                "settled": self.settled, "refits": self.refits,
                 "method": f"local-linear pseudo-residuals: each reading's standardized residual against its "
                           f"{NEIGHBOURS} nearest neighbours' (one axis, load group and approach direction; nearest "
                           f"in {self.features}), over its standard deviation; their mean square"}
 
 
-UNESTIMATED = "unestimated"
+@dataclasses.dataclass(frozen=True)
+class Unestimated:
+    """Too few readings have neighbours enough for an estimate: the diagnosis' scores stand against the unit level."""
+
+    def describe(self) -> str:
+        return (f"too few readings have neighbours enough to estimate the current noise apart from the model's error: "
+                f"the scores stand against the unit {UNIT_A * 1e3:g} mA (declare the noise, or give std columns)")
+
+    def to_json(self) -> dict:
+        return {"skipped": "too few readings have neighbours enough to estimate it", "unit_mA": UNIT_A * 1e3}
+
+
+UNESTIMATED = Unestimated()
 """What :func:`ambfit.diagnose` records when too few readings have neighbours enough for an estimate."""
 
 
@@ -111,21 +135,24 @@ def _operating_points(df: pd.DataFrame) -> tuple[np.ndarray, str]:
     from ambfit.estimation.basis import POSITION_CLUSTER
 
     commanded = all(c in df and pd.to_numeric(df[c], errors="coerce").notna().all() for c in ("v_set_um", "w_set_um"))
-    cols = []
+    step = POSITION_CLUSTER * 1e6
+    names = {"bias_A": "bias", "v_set_um": "set-points", "w_set_um": "set-points", "time_s": "time",
+             "v_um": f"positions read (to {step:g} µm)", "w_um": f"positions read (to {step:g} µm)"}
+    cols, used = [], []
     for name in FEATURES if commanded else READ_FEATURES:
         if name in df:
             x = pd.to_numeric(df[name], errors="coerce").to_numpy(float)
             if name in ("v_um", "w_um"):
-                step = POSITION_CLUSTER * 1e6
                 x = np.round(x / step) * step
             spread = np.nanstd(x) if np.isfinite(x).any() else 0.0
             if np.isfinite(x).all() and spread > 0:
                 cols.append((x - np.mean(x)) / spread)
-    what = "bias, set-points and time" if commanded else "bias, positions read (to 0.5 µm) and time"
+                used.append(names[name])
     if not cols:
         # one operating point throughout: the readings' order stands in (neighbours taken close in time)
         return np.arange(len(df), dtype=float)[:, None] / max(len(df), 1), "the order of the readings"
-    return np.column_stack(cols), what
+    used = list(dict.fromkeys(used))
+    return np.column_stack(cols), ", ".join(used[:-1]) + (" and " if len(used) > 1 else "") + used[-1]
 
 
 def pseudo_residuals(df: pd.DataFrame, z: np.ndarray, turn: float = 2e-3) -> np.ndarray:
@@ -163,18 +190,19 @@ def pseudo_residuals(df: pd.DataFrame, z: np.ndarray, turn: float = 2e-3) -> np.
     return out
 
 
-def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A,
-                    ideal: FitResult | None = None) -> NoiseEstimate | None:
+def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A, ideal: FitResult | None = None,
+                    turn: float | None = None) -> NoiseEstimate | None:
     """The current noise of ``df`` from its readings against their neighbours (module docstring), given ``fit``, a
     fit of every row at the current noise ``level`` [A] (the unit :data:`UNIT_A`, as a fit without a noise level
     makes): ``level`` times the pseudo-residuals' root mean square, which holds exactly when the fit was given no
     position noise (else the level is the fixed point of declaring it and estimating again).  ``ideal``: the ideal
-    law's fit at the unit level, for :attr:`NoiseEstimate.fit_estimate` (default ``fit``).  None when fewer than
-    :data:`MIN_READINGS` readings have a pseudo-residual."""
+    law's fit at the unit level, for :attr:`NoiseEstimate.fit_estimate` (default ``fit``).  ``turn`` [A]: the change
+    of a coil current that turns its approach direction (default :data:`DIRECTION_NOISE` of ``fit``'s χ² level).  None
+    when fewer than :data:`MIN_READINGS` readings have a pseudo-residual."""
     n = len(df)
     df = df.reset_index(drop=True)
     z = np.array(fit.residuals, dtype=float)[:n]
-    turn = max(2e-3, DIRECTION_NOISE * level * float(np.sqrt(fit.reduced_chi2)))
+    turn = max(2e-3, DIRECTION_NOISE * level * float(np.sqrt(fit.reduced_chi2))) if turn is None else turn
     gross = _gross(pseudo_residuals(df, z, turn))
     # a gross error moves its neighbours' pseudo-residuals too: the readings found are taken out of every
     # neighbourhood and the rest predicted again
@@ -192,7 +220,8 @@ def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A,
 
 SCATTER_OFF = 0.25
 """The readings scatter unlike their stated noise when their pseudo-residuals' root mean square is further than
-this (relative) from 1, and further than 4 of its standard errors (``1 / sqrt(2 m)`` for ``m`` of them)."""
+this (relative) from 1, and further than 6 standard errors of independent ones (``1 / sqrt(2 m)`` for ``m``;
+neighbouring pseudo-residuals share readings, so the true standard error is larger)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,37 +237,46 @@ class Scatter:
         How many readings it rests on.
     model : str
         The model whose residuals they were (the one that fits every row best).
+    positions_unstated : bool
+        The data state no position noise (it is taken as 0): what the positions' noise adds shows here.
     """
 
     ratio: float
     readings: int
     model: str
+    positions_unstated: bool = False
 
     @property
     def off(self) -> bool:
         """Whether the scatter is clearly unlike the stated noise (:data:`SCATTER_OFF`)."""
-        return bool(abs(self.ratio - 1.0) > max(SCATTER_OFF, 4.0 / np.sqrt(2.0 * max(self.readings, 1))))
+        return bool(abs(self.ratio - 1.0) > max(SCATTER_OFF, 6.0 / np.sqrt(2.0 * max(self.readings, 1))))
 
     def describe(self) -> str:
+        head = (f"between neighbouring readings the {self.model} law's residuals scatter {self.ratio:.2f} times their "
+                f"stated noise ({self.readings} readings): ")
         if self.ratio > 1.0:
-            return (f"between neighbouring readings the {self.model} law's residuals scatter {self.ratio:.2f} times "
-                    f"their stated noise ({self.readings} readings): either the noise is larger than the std columns "
-                    "or the declared level say (a DAQ's averaging error is not a reading's noise), or an effect "
-                    "changes from one reading to its neighbours (a history the operating point does not fix); "
-                    "with the noise understated every model falls short of the floor")
-        return (f"between neighbouring readings the {self.model} law's residuals scatter {self.ratio:.2f} times their "
-                f"stated noise ({self.readings} readings): the noise is smaller than the std columns or the declared "
-                "level say, and an effect that large would go unseen")
+            return head + (
+                ("the positions' noise, taken as 0 without position std columns, adds to the currents' (declare it "
+                 "with --position-noise-um); or " if self.positions_unstated else "either ")
+                + "the noise is larger than the std columns or the declared level say (a DAQ's averaging error is not "
+                "a reading's noise), or an effect changes from one reading to its neighbours (a history the operating "
+                "point does not fix); with the noise understated every model falls short of the floor")
+        hidden = float(np.sqrt(max(1.0 - self.ratio**2, 0.0)))
+        return head + ("either the noise is smaller than stated, or noise shared by neighbouring readings (a slow "
+                       "wander, filtering, averaging over one another) cancels in their differences; an error of up "
+                       f"to {hidden:.2f} of the stated noise would go unseen")
 
     def to_json(self) -> dict:
-        return {"ratio": float(self.ratio), "readings": int(self.readings), "model": self.model, "off": self.off}
+        return {"ratio": float(self.ratio), "readings": int(self.readings), "model": self.model, "off": self.off,
+                "positions_unstated": self.positions_unstated}
 
 
-def scatter(df: pd.DataFrame, fit: FitResult) -> Scatter | None:
-    """:class:`Scatter` of ``fit``'s residuals (a fit at the data's stated noise); None when fewer than
-    :data:`MIN_READINGS` readings have a pseudo-residual."""
-    found = from_neighbours(df, fit, level=1.0)
-    return None if found is None else Scatter(ratio=found.sigma_i, readings=found.readings, model=found.model)
+def scatter(df: pd.DataFrame, fit: FitResult, current: float, positions_unstated: bool = False) -> Scatter | None:
+    """:class:`Scatter` of ``fit``'s residuals (a fit at the data's stated noise, ``current`` [A] typical of the
+    coil currents'); None when fewer than :data:`MIN_READINGS` readings have a pseudo-residual."""
+    found = from_neighbours(df, fit, level=1.0, turn=max(2e-3, DIRECTION_NOISE * current))
+    return None if found is None else Scatter(ratio=found.sigma_i, readings=found.readings, model=found.model,
+                                              positions_unstated=positions_unstated)
 
 
 def _gross(e: np.ndarray) -> np.ndarray:

@@ -52,26 +52,18 @@ class NoiseFloor:
 
 def noise_floor(result: FitResult, estimate=None) -> NoiseFloor:
     """``result``'s residuals against their noise; ``estimate`` (:class:`ambfit.diagnosis.noise.NoiseEstimate`): the
-    current noise ``result`` was given came from neighbouring readings, which the source then says (with what the
-    data's own std columns lack); :data:`ambfit.diagnosis.noise.UNESTIMATED`: too few readings had neighbours for
-    it."""
-    from ambfit.diagnosis.noise import UNESTIMATED, UNIT_A
-
+    current noise ``result`` was given came from neighbouring readings, which the source then says in place of the
+    declared level; :class:`ambfit.diagnosis.noise.Unestimated`: too few readings had neighbours for it."""
     z = result.residuals
     source = result.noise_source
-    if estimate is UNESTIMATED:
-        source += (f"; too few readings have neighbours enough to estimate the current noise apart from the model's "
-                   f"error: the scores stand against the unit {UNIT_A * 1e3:g} mA (declare the noise, or give std "
-                   "columns)")
-    elif estimate is not None:
-        current, *rest = _parts(source)
-        gaps = current[current.index("("):] if "(" in current else ""
-        source = "; ".join([estimate.describe() + (f" {gaps}" if gaps else ""), *rest])
+    if estimate is not None:
+        current, *rest = noise_parts(source)
+        source = "; ".join(([current] if not hasattr(estimate, "sigma_i") else []) + [estimate.describe(), *rest])
     return NoiseFloor(source=source, mean_z2=float(np.mean(z**2)),
                       expected_mean_z2=result.dof / len(z), n_rows=len(z), n_params=len(z) - result.dof)
 
 
-def _parts(source: str) -> list[str]:
+def noise_parts(source: str) -> list[str]:
     """A noise source's parts (current, position): split at the ``"; "`` outside parentheses."""
     parts, depth, start = [], 0, 0
     for j, ch in enumerate(source):

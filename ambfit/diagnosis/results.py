@@ -61,10 +61,10 @@ class Diagnosis:
     left_out : tuple of int
         Data rows (from 1) that every model at the noise floor named outliers, left out of every held-out score
         (:func:`ambfit.diagnosis.heldout.gross_errors`).
-    noise_estimate : NoiseEstimate or str or None
+    noise_estimate : NoiseEstimate or Unestimated or None
         The current noise from neighbouring readings, when the data state none and none was declared
-        (:mod:`ambfit.diagnosis.noise`): every fit of the diagnosis was given it; ``noise.UNESTIMATED`` when too few
-        readings had neighbours for it.
+        (:mod:`ambfit.diagnosis.noise`): every fit of the diagnosis was given it; :class:`~ambfit.diagnosis.noise.
+        Unestimated` when too few readings had neighbours for it.
     scatter : Scatter or None
         With a stated noise (std columns, or declared): how the best-fitting law's residuals scatter between
         neighbouring readings against it (:class:`ambfit.diagnosis.noise.Scatter`).
@@ -146,9 +146,7 @@ class Diagnosis:
 
         rec = {
             "baseline": "ideal", "noise_floor": self.noise_floor.to_json(),
-            **({"noise_estimate": {"skipped": "too few readings have neighbours enough to estimate it"}
-                if isinstance(self.noise_estimate, str) else self.noise_estimate.to_json()}
-               if self.noise_estimate is not None else {}),
+            **({"noise_estimate": self.noise_estimate.to_json()} if self.noise_estimate is not None else {}),
             **({"neighbour_scatter": self.scatter.to_json()} if self.scatter is not None else {}),
             "folds": self.folds,
             "where": [r.to_json() for r in self.where.regions[:20]],

@@ -120,9 +120,9 @@ def unjudged(dg) -> str:
     per_axis = (loads.groupby(op["axis"]).nunique().reindex(op["axis"].unique(), fill_value=0)
                 if loads is not None else None)
     few = per_axis is None or not len(per_axis) or int(per_axis.min()) < 2
-    from ambfit.estimation.basis import SLOW_GROUPS
+    from ambfit.estimation.basis import slow as slow_groups
 
-    slow = any(set(s.groups) <= set(SLOW_GROUPS) for s in getattr(dg, "signatures", None) or ())
+    slow = any(slow_groups(s.groups) for s in getattr(dg, "signatures", None) or ())
     which = ("the widened laws whose terms follow the readings set aside"
              + (" (those of time and temperature alone are still judged)" if slow else "")
              if dg.rules.set_aside == "readings" else "every widened law set aside")

@@ -453,9 +453,9 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
 
 def _slow(rules: Rules, signature) -> bool:
     """Whether ``signature``'s terms are slow ones alone, judged when those that follow the readings are set aside."""
-    from ambfit.estimation.basis import SLOW_GROUPS
+    from ambfit.estimation.basis import slow
 
-    return rules.set_aside == "readings" and set(signature.groups) <= set(SLOW_GROUPS)
+    return rules.set_aside == "readings" and slow(signature.groups)
 
 
 def _with_untested_siblings(verdict: Verdict, laws: list) -> Verdict:

@@ -71,6 +71,11 @@ SLOW_GROUPS = ("drift",)
 """The groups whose terms are the force's own flux terms scaled by smooth functions of time and temperature: a
 correction of them is alike for readings close in time, and cannot follow each reading's noise."""
 
+
+def slow(groups) -> bool:
+    """Whether a signature of ``groups`` holds :data:`SLOW_GROUPS` alone."""
+    return bool(groups) and set(groups) <= set(SLOW_GROUPS)
+
 X_SCALE = 0.05
 """Scale of the position polynomials of the coupling and position sensor groups, as a fraction of the nominal
 gap (38 µm on the paper's bearing, about the largest displacement a protocol reaches): ``u = x / (X_SCALE g)``
