@@ -29,7 +29,7 @@ holds it), per protocol, per kind of case and per law class; the confusion matri
 no_family) and a column per verdict; the wrong claims are listed with their laws.
 
     .venv/bin/python benchmarks/gap_zoo.py [--draws 300] [--seed 3131] [--workers 2] [--out reports/gap]
-        [--before reports/gap/zoo_before.json]
+        [--before reports/gap/zoo_before.json] [--drop-std]
 
 Writes zoo.json and zoo.md to ``--out``.  ``--before``: an earlier run's zoo.json of the same study seed; the
 draws both runs hold (the same cases: each draw's seed depends on its index only) are compared, category by
@@ -37,6 +37,7 @@ category and draw by draw.
 """
 
 import argparse
+import functools
 import json
 import time
 from collections import Counter
@@ -75,14 +76,17 @@ def score(truth: tuple, verdict: str, candidates=()) -> str:
     return "undecided_with_truth" if verdict == "undecided" and want <= offered else "no_claim"
 
 
-def one_draw(item: int, seed) -> dict:
-    """Draw case ``item`` from its own seed, simulate it and diagnose it blind."""
+def one_draw(item: int, seed, drop_std: bool = False) -> dict:
+    """Draw case ``item`` from its own seed, simulate it and diagnose it blind (``drop_std``: without the readings'
+    std columns, as a user whose acquisition records none would give them)."""
     import jax
 
     import ambfit
     from ambfit.rig import zoo
 
     case, data = zoo.draw(np.random.default_rng(seed))
+    if drop_std:
+        data = data.drop(columns=[c for c in data if "_std_" in c])
     t0 = time.perf_counter()
     try:
         rec = ambfit.diagnose(data).to_json()      # the bearing description defaults to the paper's
@@ -210,7 +214,9 @@ def markdown(summary: dict, draws: list, args) -> list[str]:
           f"{all_['n']} draws of `ambfit.rig.zoo.draw` (study seed {args.seed}): laws drawn from broad classes per "
           "family, two families at once, effects of no family, protocols and recorded columns drawn too; what "
           "counts as right is in the docstring of `benchmarks/gap_zoo.py`.  Visible: the ideal law's held-out "
-          "excess is above one noise unit.", "",
+          "excess is above one noise unit."
+          + ("" if s.get("std_columns", True) else "  Every draw is diagnosed without its std columns "
+             "(`--drop-std`): the current noise comes from the readings against their neighbours."), "",
           f"Targets: right at least {_pct(TARGETS['right'])} (here {_pct(all_['right'])}, "
           f"{_pct(vis['right'])} of visible draws; right or undecided with the truth "
           f"{_pct(_sum(all_, 'right', 'undecided_with_truth'))}), wrong claims at most {_pct(TARGETS['wrong_claim'])} (here "
@@ -277,6 +283,8 @@ def main():
     ap.add_argument("--workers", type=int, default=None, help="local worker processes (default: this process)")
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "gap")
     ap.add_argument("--before", type=Path, default=None, help="an earlier zoo.json of the same study seed")
+    ap.add_argument("--drop-std", action="store_true",
+                    help="diagnose every draw without its std columns (the noise then comes from the readings)")
     args = ap.parse_args()
     before = None
     if args.before is not None:
@@ -287,8 +295,10 @@ def main():
     from ambfit.engine import Engine
 
     with Engine(workers=args.workers) as engine:
-        draws = engine.map(one_draw, list(range(args.draws)), seed=args.seed, chunk_size=1, what="draws")
-    summary = summarise(draws, args.seed) | {"engine": {"workers": args.workers, "seed": args.seed}}
+        draws = engine.map(functools.partial(one_draw, drop_std=args.drop_std), list(range(args.draws)),
+                           seed=args.seed, chunk_size=1, what="draws")
+    summary = summarise(draws, args.seed) | {"engine": {"workers": args.workers, "seed": args.seed},
+                                             "std_columns": not args.drop_std}
     if before is not None:
         summary["compared"] = compared(before, draws) | {"with": str(args.before)}
     args.out.mkdir(parents=True, exist_ok=True)

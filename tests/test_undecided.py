@@ -252,7 +252,8 @@ def test_clean_data_without_std_columns_are_none_at_their_own_noise(current):
     assert dg.verdict == "none", str(dg)
     rms = np.sqrt(np.mean(current(data[["i_top_A", "i_bottom_A"]].to_numpy()) ** 2))
     assert dg.noise_estimate is not None and abs(dg.noise_estimate.sigma_i / rms - 1) < 0.2, dg.noise_estimate
-    assert dg.noise_floor.source.startswith(f"current {dg.noise_estimate.sigma_i * 1e3:.3g} mA estimated from")
+    assert dg.noise_floor.source.startswith(f"current {dg.noise_estimate.sigma_i * 1e3:.3g} mA, the floor's level, "
+                                            "from")
     assert dg.to_json()["noise_estimate"]["readings"] == dg.noise_estimate.readings
     assert "came from the readings themselves" in ambfit.diagnosis.text.headline(dg)
     # with the level declared nothing is estimated
@@ -347,13 +348,15 @@ def test_readings_that_scatter_unlike_their_std_columns_are_said_to():
     dg = ambfit.diagnose(halved, check_force=False, discrepancy=False)
     assert dg.scatter.off and abs(dg.scatter.ratio - 2) < 0.3, dg.scatter
     said = ambfit.diagnosis.text.verdict(dg)
-    assert f"scatter {dg.scatter.ratio:.2f} times their stated noise" in said and "noise is larger than" in said
+    assert f"scatter {dg.scatter.ratio:.2f} times their stated noise" in said and "noise is larger than the std" in said
+    # on the verdict's own line, with what to do
+    assert "check the std columns, or declare the noise with --current-noise-ma" in ambfit.diagnosis.text.headline(dg)
     # doubled: half the stated scatter, and how large an error would go unseen
     doubled = data.assign(**{c: 2.0 * data[c] for c in stds})
     dg = ambfit.diagnose(doubled, check_force=False, discrepancy=False)
     assert dg.scatter.off and abs(dg.scatter.ratio - 0.5) < 0.1, dg.scatter
     said = ambfit.diagnosis.text.verdict(dg)
-    assert "noise is smaller than stated" in said and "would go unseen" in said
+    assert "noise is smaller than the std columns say" in said and "would go unseen" in said
 
 
 def test_too_few_readings_for_the_noise_from_neighbours_are_said_to_be():
@@ -378,4 +381,4 @@ def test_current_std_columns_with_an_empty_cell_are_estimated_and_said_to_be():
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.noise_estimate is not None and abs(dg.noise_estimate.sigma_i / 0.6e-3 - 1) < 0.15, dg.noise_estimate
     assert "i_top_std_A has 1 empty cell(s)" in dg.noise_floor.source, dg.noise_floor.source
-    assert "no complete current std columns" in ambfit.diagnosis.text.headline(dg)
+    assert "incomplete current std columns" in ambfit.diagnosis.text.headline(dg)

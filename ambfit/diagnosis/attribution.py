@@ -262,7 +262,8 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
         fitted = [c.fit for c in [ideal, *singles] if c.fit is not None and c.fit.converged
                   and np.isfinite(c.fit.reduced_chi2)]
         spread = scatter(df, min(fitted, key=lambda f: f.reduced_chi2), _stated_current(df, noise),
-                         positions_unstated=not _position_noise_known(df, noise)) if fitted else None
+                         positions_unstated=not _position_noise_known(df, noise),
+                         declared=noise.get("sigma_i") is not None) if fitted else None
     loc = where(df, base, alpha=rules.structure_alpha, rows=scorer.scored)
     structured = bool(loc.regions)
     pairs = []

@@ -98,9 +98,9 @@ class NoiseEstimate:
     gaps: str = ""
 
     def describe(self) -> str:
-        return (f"current {self.sigma_i * 1e3:.3g} mA estimated from {self.readings} readings against their "
-                f"neighbours in {self.features}, in the {self.model} law's residuals (the ideal law's χ²/dof gives "
-                f"{self.fit_estimate * 1e3:.3g} mA, its error included"
+        return (f"current {self.sigma_i * 1e3:.3g} mA, the floor's level, from {self.readings} readings against "
+                f"their neighbours in {self.features}, in the residuals of {self.model} (the law that fits them best; "
+                f"the ideal law's χ²/dof gives {self.fit_estimate * 1e3:.3g} mA, its error included"
                 + ("" if self.settled else f"; beside the position noise not settled after {self.refits} refits: "
                    "the level may be high") + ")" + (f" {self.gaps}" if self.gaps else ""))
 
@@ -239,12 +239,15 @@ class Scatter:
         The model whose residuals they were (the one that fits every row best).
     positions_unstated : bool
         The data state no position noise (it is taken as 0): what the positions' noise adds shows here.
+    declared : bool
+        The current noise was declared (it overrides the std columns).
     """
 
     ratio: float
     readings: int
     model: str
     positions_unstated: bool = False
+    declared: bool = False
 
     @property
     def off(self) -> bool:
@@ -252,31 +255,33 @@ class Scatter:
         return bool(abs(self.ratio - 1.0) > max(SCATTER_OFF, 6.0 / np.sqrt(2.0 * max(self.readings, 1))))
 
     def describe(self) -> str:
-        head = (f"between neighbouring readings the {self.model} law's residuals scatter {self.ratio:.2f} times their "
-                f"stated noise ({self.readings} readings): ")
+        stated = "the declared level says" if self.declared else "the std columns say"
+        head = (f"between neighbouring readings the residuals (of {self.model}, the law that fits them best) scatter "
+                f"{self.ratio:.2f} times their stated noise ({self.readings} readings): ")
         if self.ratio > 1.0:
             return head + (
                 ("the positions' noise, taken as 0 without position std columns, adds to the currents' (declare it "
                  "with --position-noise-um); or " if self.positions_unstated else "either ")
-                + "the noise is larger than the std columns or the declared level say (a DAQ's averaging error is not "
-                "a reading's noise), or an effect changes from one reading to its neighbours (a history the operating "
-                "point does not fix); with the noise understated every model falls short of the floor")
+                + f"the noise is larger than {stated} (a DAQ's averaging error is not a reading's noise), or an "
+                "effect changes from one reading to its neighbours (a history the operating point does not fix); "
+                "with the noise understated every model falls short of the floor")
         hidden = float(np.sqrt(max(1.0 - self.ratio**2, 0.0)))
-        return head + ("either the noise is smaller than stated, or noise shared by neighbouring readings (a slow "
+        return head + (f"either the noise is smaller than {stated}, or noise shared by neighbouring readings (a slow "
                        "wander, filtering, averaging over one another) cancels in their differences; an error of up "
                        f"to {hidden:.2f} of the stated noise would go unseen")
 
     def to_json(self) -> dict:
         return {"ratio": float(self.ratio), "readings": int(self.readings), "model": self.model, "off": self.off,
-                "positions_unstated": self.positions_unstated}
+                "positions_unstated": self.positions_unstated, "declared": self.declared}
 
 
-def scatter(df: pd.DataFrame, fit: FitResult, current: float, positions_unstated: bool = False) -> Scatter | None:
+def scatter(df: pd.DataFrame, fit: FitResult, current: float, positions_unstated: bool = False,
+            declared: bool = False) -> Scatter | None:
     """:class:`Scatter` of ``fit``'s residuals (a fit at the data's stated noise, ``current`` [A] typical of the
     coil currents'); None when fewer than :data:`MIN_READINGS` readings have a pseudo-residual."""
     found = from_neighbours(df, fit, level=1.0, turn=max(2e-3, DIRECTION_NOISE * current))
     return None if found is None else Scatter(ratio=found.sigma_i, readings=found.readings, model=found.model,
-                                              positions_unstated=positions_unstated)
+                                              positions_unstated=positions_unstated, declared=declared)
 
 
 def _gross(e: np.ndarray) -> np.ndarray:

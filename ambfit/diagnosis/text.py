@@ -38,13 +38,28 @@ def where_rows(dg, n: int = 8) -> list[dict]:
 
 def headline(dg) -> str:
     """The verdict in one line with its grade: what it names, how it was found and what it leaves."""
-    g = dg.grade
     if dg.verdict == "none":
-        return "verdict: none (the ideal law's held-out residuals sit on the noise floor)" + (
-            "; the floor's level came from the readings themselves (no complete current std columns): an effect "
-            "that changes from one reading to its neighbours as much as their noise does (a history the operating "
-            "point does not fix) cannot be told from it; std columns or a declared current noise would"
-            if getattr(getattr(dg, "noise_estimate", None), "sigma_i", None) is not None else "")
+        est = getattr(dg, "noise_estimate", None)
+        return "verdict: none (the ideal law's held-out residuals sit on the noise floor)" + _unlike_stated(dg) + (
+            f"; the floor's level came from the readings themselves ({'incomplete' if est.gaps else 'no'} current "
+            "std columns): an effect that varies between neighbouring readings like noise (a history the operating "
+            "point does not fix) would hide in it; std columns, or --current-noise-ma and --position-noise-um, "
+            "would show it" if getattr(est, "sigma_i", None) is not None else "")
+    return _headline(dg) + _unlike_stated(dg)
+
+
+def _unlike_stated(dg) -> str:
+    """The readings scattering clearly unlike their stated noise, said on the verdict's own line."""
+    sc = getattr(dg, "scatter", None)
+    if sc is None or not sc.off:
+        return ""
+    return (f" (but the readings scatter {sc.ratio:.2f} times their stated noise between neighbours: check the "
+            + ("declared level" if sc.declared else "std columns") + ", or declare the noise with "
+            "--current-noise-ma and --position-noise-um; see below)")
+
+
+def _headline(dg) -> str:
+    g = dg.grade
     if dg.verdict == "undecided":
         return (f"verdict: undecided between {', '.join(dg.decision.candidates)} (best first): these data cannot "
                 "tell them apart")
@@ -179,7 +194,8 @@ def findings(dg) -> list[str]:
                                                         else "")
         share = len(dg.left_out) / max(len(dg.baseline.residuals), 1)
         out.append(f"{len(dg.left_out)} reading(s) ({100 * share:.1f} %) that no model at the noise floor fits (data "
-                   f"rows {rows}: every one named them outliers) are left out of every held-out score: a sensor's "
+                   f"row(s) {rows}: every model at the floor named them outliers) are left out of every held-out "
+                   "score: a sensor's "
                    "gross errors, or an effect that no library law holds, confined to them; check the sensors there")
     if dg.grade is not None:
         g = dg.grade

@@ -14,9 +14,10 @@ from ambfit.faces.cli.app import err, escape, note, warn
 from ambfit.faces.cli.options import number
 
 CurrentNoiseOption = Annotated[float | None, typer.Option(
-    "--current-noise-ma", callback=number(0), help="Declared current noise std [mA] (default: the std columns, "
-                                                   "else estimated: by a fit from its residuals, by diagnose from "
-                                                   "each reading against its neighbours).")]
+    "--current-noise-ma", callback=number(0), help="Declared current noise std [mA], over the std columns "
+                                                   "(default: the std columns, else estimated: by a fit from its "
+                                                   "residuals, by diagnose from each reading against its "
+                                                   "neighbours).")]
 PositionNoiseOption = Annotated[float | None, typer.Option(
     "--position-noise-um", callback=number(0), help="Declared position noise std [µm] (default: the std "
                                                     "columns, else 0).")]
