@@ -28,7 +28,7 @@ from ambfit.diagnosis.checks import Pair, fold_fits, force_checks
 from ambfit.diagnosis.circuit_families import circuit_families
 from ambfit.diagnosis.discrepancy import ceiling
 from ambfit.diagnosis.heldout import gross_errors
-from ambfit.diagnosis.noise import UNESTIMATED, NoiseEstimate, from_neighbours, scatter
+from ambfit.diagnosis.noise import UNESTIMATED, NoiseEstimate, Unestimated, from_neighbours, scatter
 from ambfit.diagnosis.parameter_gap import parameter_gap
 from ambfit.diagnosis.residuals import noise_floor, operating_variables, where
 from ambfit.diagnosis.results import Diagnosis
@@ -242,7 +242,7 @@ def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:
 
 
 def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, discrepancy: bool,
-              later, estimate: NoiseEstimate | None = None) -> Diagnosis:
+              later, estimate: NoiseEstimate | Unestimated | None = None) -> Diagnosis:
     from ambfit.estimation.core import Model
     from ambfit.estimation.lm import compiled_together
 
