@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 import ambfit
-from ambfit.diagnosis import separation
+from ambfit.diagnosis import separation, text
 from ambfit.rig import protocol
 from ambfit.rig import virtual as rig
 
@@ -52,7 +52,7 @@ def test_clean_data_with_position_spikes_are_none_and_the_spikes_are_named():
     assert dg.verdict == "none", str(dg)
     assert dg.left_out == tuple(r + 1 for r in spikes)            # data rows, from 1
     assert dg.to_json()["heldout_left_out"]["rows"] == [r + 1 for r in spikes]
-    assert "gross errors" in ambfit.diagnosis.text.verdict(dg)
+    assert "gross errors" in text.verdict(dg)
     assert len(dg.ideal.heldout_z) == len(data) - len(spikes)
     # without std columns the noise comes from neighbouring readings (the spikes' pairs left out of it)
     bare = data.drop(columns=["i_top_std_A", "i_bottom_std_A", "v_std_um", "w_std_um"])
@@ -136,7 +136,7 @@ def test_two_families_that_explain_alike_are_undecided_with_what_would_separate_
     # the recommended protocol separates them; these data do not
     assert sep["separates"] and sep["expected_log_bayes"] > 5.0 > sep["on_these_data"]
     assert sep["expected_log_bayes"] == max(sep["protocols"].values())
-    assert "these data cannot tell them apart" in ambfit.diagnosis.text.verdict(dg)
+    assert "these data cannot tell them apart" in text.verdict(dg)
     assert "candidates_untested" not in rec
     # the same verdict reached with every widened law set aside: the siblings are said to be untested, and why
     first, *others = dg.decision.candidates
@@ -144,13 +144,13 @@ def test_two_families_that_explain_alike_are_undecided_with_what_would_separate_
     said = untested.to_json()["candidates_untested"]
     assert said["models"] == others and said["reason"].startswith(f"{first}'s law explains the data, but {first} "
                                                                   f"shares its signature with {others[0]}")
-    assert said["reason"] in ambfit.diagnosis.text.verdict(untested)
+    assert said["reason"] in text.verdict(untested)
     # undecided between pairs sharing a family: the family is said, with the second effects left open
     pairs = dataclasses.replace(dg, decision=dataclasses.replace(
         dg.decision, candidates=("saturation+leakage", "saturation+hysteresis"), shared=("saturation",)))
     share = pairs.to_json()["candidates_share"]
     assert share["families"] == ["saturation"] and share["reason"].endswith("(leakage and hysteresis)")
-    assert share["reason"] in ambfit.diagnosis.text.verdict(pairs)
+    assert share["reason"] in text.verdict(pairs)
     assert "candidates_share" not in rec
 
 
@@ -255,7 +255,7 @@ def test_clean_data_without_std_columns_are_none_at_their_own_noise(current):
     assert dg.noise_floor.source.startswith(f"current {dg.noise_estimate.sigma_i * 1e3:.3g} mA, the floor's level, "
                                             "from")
     assert dg.to_json()["noise_estimate"]["readings"] == dg.noise_estimate.readings
-    assert "came from the readings themselves" in ambfit.diagnosis.text.headline(dg)
+    assert "came from the readings themselves" in text.headline(dg)
     # with the level declared nothing is estimated
     assert ambfit.diagnose(data, check_force=False, discrepancy=False, sigma_i=1.5e-3).noise_estimate is None
 
@@ -347,15 +347,15 @@ def test_readings_that_scatter_unlike_their_std_columns_are_said_to():
     halved = data.assign(**{c: 0.5 * data[c] for c in stds})
     dg = ambfit.diagnose(halved, check_force=False, discrepancy=False)
     assert dg.scatter.off and abs(dg.scatter.ratio - 2) < 0.3, dg.scatter
-    said = ambfit.diagnosis.text.verdict(dg)
+    said = text.verdict(dg)
     assert f"scatter {dg.scatter.ratio:.2f} times their stated noise" in said and "noise is larger than the std" in said
     # on the verdict's own line, with what to do
-    assert "check the std columns, or declare the noise with --current-noise-ma" in ambfit.diagnosis.text.headline(dg)
+    assert "check the std columns, or declare the noise with --current-noise-ma" in text.headline(dg)
     # doubled: half the stated scatter, and how large an error would go unseen
     doubled = data.assign(**{c: 2.0 * data[c] for c in stds})
     dg = ambfit.diagnose(doubled, check_force=False, discrepancy=False)
     assert dg.scatter.off and abs(dg.scatter.ratio - 0.5) < 0.1, dg.scatter
-    said = ambfit.diagnosis.text.verdict(dg)
+    said = text.verdict(dg)
     assert "noise is smaller than the std columns say" in said and "would go unseen" in said
 
 
@@ -381,4 +381,14 @@ def test_current_std_columns_with_an_empty_cell_are_estimated_and_said_to_be():
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.noise_estimate is not None and abs(dg.noise_estimate.sigma_i / 0.6e-3 - 1) < 0.15, dg.noise_estimate
     assert "i_top_std_A has 1 empty cell(s)" in dg.noise_floor.source, dg.noise_floor.source
-    assert "incomplete current std columns" in ambfit.diagnosis.text.headline(dg)
+    assert "incomplete current std columns" in text.headline(dg)
+
+
+def test_the_discrepancy_of_data_on_the_floor_is_said_to_be_of_noise():
+    """On clean data the ideal law's held-out excess is a little noise, and the discrepancy's shares of it (0 in
+    sample, up to 1 held out) are shares of noise: said so, not read as an effect."""
+    data = ambfit.read_csv(HERE.parent / "data" / "paper_table2.csv")
+    dg = ambfit.diagnose(data, check_force=False)
+    assert dg.verdict == "none" and dg.ceiling is not None
+    line = next(s for s in text.findings(dg) if s.startswith("discrepancy"))
+    assert line.endswith("(the ideal law sits on the floor: these are shares of its noise, not of an effect)")

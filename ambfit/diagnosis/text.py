@@ -219,7 +219,9 @@ def findings(dg) -> list[str]:
                 f"explains), {dc.ideal.shrink:.3f} held out")
         if dc.verdict is not None:
             text += f"; added to {dc.verdict.model}: {dc.verdict.shrink:.3f} held out"
-        if dc.ideal.shrink < 0 or (dc.verdict is not None and dc.verdict.shrink < 0):
+        if dg.verdict == "none":
+            text += " (the ideal law sits on the floor: these are shares of its noise, not of an effect)"
+        elif dc.ideal.shrink < 0 or (dc.verdict is not None and dc.verdict.shrink < 0):
             text += (" (a negative share: with the correction the held-out readings are predicted worse than "
                      "without it, so what it learns in sample is noise, not a missing effect)")
         out.append(text)
