@@ -392,3 +392,5 @@ def test_the_discrepancy_of_data_on_the_floor_is_said_to_be_of_noise():
     assert dg.verdict == "none" and dg.ceiling is not None
     line = next(s for s in text.findings(dg) if s.startswith("discrepancy"))
     assert line.endswith("(the ideal law sits on the floor: these are shares of its noise, not of an effect)")
+    # and the in-sample mean square's expectation is said, with what it assumes
+    assert f"(expected {dg.noise_floor.expected_mean_z2:.2f}, (n - p) / n, were it right" in text.floor(dg)

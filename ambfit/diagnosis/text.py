@@ -19,8 +19,9 @@ from ambfit.estimation.units import GEOMETRY
 def floor(dg) -> str:
     """The noise floor and the ideal law's held-out excess."""
     nf = dg.noise_floor
-    return (f"noise floor ({nf.source}): mean z² {nf.mean_z2:.2f} (expected {nf.expected_mean_z2:.2f}); "
-            f"held-out excess {dg.heldout_excess_before:.2f} noise units; folds: {dg.folds}")
+    return (f"noise floor ({nf.source}): the ideal law's mean z² in sample {nf.mean_z2:.2f} (expected "
+            f"{nf.expected_mean_z2:.2f}, (n - p) / n, were it right and the noise as stated); held-out excess "
+            f"{dg.heldout_excess_before:.2f} noise units; folds: {dg.folds}")
 
 
 def ranking_rows(dg) -> list[dict]:
