@@ -181,13 +181,11 @@ def _noise_from_neighbours(df: pd.DataFrame, base: FitResult, cands: list, beari
 
 
 def _position_noise_known(df: pd.DataFrame, noise: dict) -> bool:
-    """Whether the fits are given a position noise: declared above 0, or complete std columns with one above 0."""
-    if noise.get("sigma_x") is not None:
-        return noise["sigma_x"] > 0
-    if not {"v_std_um", "w_std_um"} <= set(df.columns):
-        return False
-    std = np.where(df["axis"].to_numpy() == "w", df["w_std_um"].to_numpy(float), df["v_std_um"].to_numpy(float))
-    return bool(np.isfinite(std).all() and (std > 0).any())
+    """Whether the fits are given a position noise above 0 (declared, or complete std columns), as the problem built
+    for them holds it."""
+    from ambfit.estimation.problem import build_problem
+
+    return bool(np.any(np.asarray(build_problem(df, sigma_x=noise.get("sigma_x"))[0].s_x) > 0))
 
 
 def _settled(first: NoiseEstimate, at) -> NoiseEstimate:
@@ -225,11 +223,12 @@ of 1."""
 
 
 def _stated_current(df: pd.DataFrame, noise: dict) -> float:
-    """The data's stated current noise [A]: declared, or the std columns' median."""
-    if noise.get("sigma_i") is not None:
-        return float(noise["sigma_i"])
-    cols = [df[c].to_numpy(float) for c in ("i_top_std_A", "i_bottom_std_A") if c in df]
-    return float(np.nanmedian(np.concatenate(cols))) if cols else 0.0
+    """The data's stated current noise [A] (declared, or the std columns), the median of the problem built for the
+    fits."""
+    from ambfit.estimation.problem import build_problem
+
+    prob = build_problem(df, sigma_i=noise.get("sigma_i"), sigma_x=noise.get("sigma_x"))[0]
+    return float(np.median(np.concatenate([np.asarray(prob.s_top), np.asarray(prob.s_bottom)])))
 
 
 def _baseline(df: pd.DataFrame, bearing: Bearing, noise: dict) -> FitResult:

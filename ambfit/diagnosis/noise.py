@@ -160,18 +160,24 @@ def pseudo_residuals(df: pd.DataFrame, z: np.ndarray, turn: float = 2e-3) -> np.
     among the readings of its axis, load group and approach direction of both coil currents (turning on changes above
     ``turn`` [A]), over the standard deviation that leaves to unit noise (``sqrt(1 + |w|^2)``): array[n], NaN where a
     reading's group is too small or a residual is not finite."""
-    from scipy.spatial import cKDTree
+    return _pseudo_residuals(_operating_points(df)[0], _groups(df, turn), z)
 
-    n = len(df)
-    out = np.full(n, np.nan)
-    points, _ = _operating_points(df)
-    k = NEIGHBOURS
-    if n < k + 1:
-        return out
+
+def _groups(df: pd.DataFrame, turn: float) -> np.ndarray:
+    """Each reading's group: its axis, load group and the approach direction of both coil currents (turning on
+    changes above ``turn`` [A])."""
     key = load_groups(df).astype(str)
     for coil in ("i_top_A", "i_bottom_A"):
         key = key + "|" + pd.Series(approach_direction(df, coil, threshold=turn), index=df.index).astype(str)
-    codes = pd.factorize(key)[0]
+    return pd.factorize(key)[0]
+
+
+def _pseudo_residuals(points: np.ndarray, codes: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """:func:`pseudo_residuals` from the readings' operating points and groups."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(z), np.nan)
+    k = NEIGHBOURS
     finite = np.isfinite(z)
     for c in np.unique(codes):
         rows = np.nonzero((codes == c) & finite)[0]
@@ -203,11 +209,12 @@ def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A, 
     df = df.reset_index(drop=True)
     z = np.array(fit.residuals, dtype=float)[:n]
     turn = max(2e-3, DIRECTION_NOISE * level * float(np.sqrt(fit.reduced_chi2))) if turn is None else turn
-    gross = _gross(pseudo_residuals(df, z, turn))
+    (points, features), codes = _operating_points(df), _groups(df, turn)
+    gross = _gross(_pseudo_residuals(points, codes, z))
     # a gross error moves its neighbours' pseudo-residuals too: the readings found are taken out of every
     # neighbourhood and the rest predicted again
     z[gross] = np.nan
-    e = pseudo_residuals(df, z, turn)
+    e = _pseudo_residuals(points, codes, z)
     e[_gross(e)] = np.nan
     e = e[np.isfinite(e)]
     if len(e) < MIN_READINGS:
@@ -215,7 +222,7 @@ def from_neighbours(df: pd.DataFrame, fit: FitResult, *, level: float = UNIT_A, 
     chi2 = (ideal or fit).reduced_chi2
     return NoiseEstimate(sigma_i=level * float(np.sqrt(np.mean(e**2))), readings=len(e), left_out=int(n - len(e)),
                          fit_estimate=UNIT_A * float(np.sqrt(chi2)), model=getattr(fit, "model", "ideal"),
-                         features=_operating_points(df)[1])
+                         features=features)
 
 
 SCATTER_OFF = 0.25
@@ -286,6 +293,8 @@ def scatter(df: pd.DataFrame, fit: FitResult, current: float, positions_unstated
 
 def _gross(e: np.ndarray) -> np.ndarray:
     """Where a pseudo-residual exceeds :data:`GROSS` robust scales of them all."""
+    from ambfit.estimation.robust import robust_scale
+
     finite = np.isfinite(e)
-    scale = 1.4826 * float(np.median(np.abs(e[finite]))) if finite.any() else 0.0
+    scale = robust_scale(e[finite], known_noise=False) if finite.any() else 0.0
     return finite & (np.abs(np.where(finite, e, 0.0)) > GROSS * scale) if scale > 0 else np.zeros(len(e), bool)
