@@ -54,11 +54,14 @@ def noise_floor(result: FitResult, estimate=None) -> NoiseFloor:
     """``result``'s residuals against their noise; ``estimate`` (:class:`ambfit.diagnosis.noise.NoiseEstimate`): the
     current noise ``result`` was given came from neighbouring readings, which the source then says in place of the
     declared level; :class:`ambfit.diagnosis.noise.Unestimated`: too few readings had neighbours for it."""
+    from ambfit.diagnosis.noise import NoiseEstimate
+
     z = result.residuals
     source = result.noise_source
     if estimate is not None:
         current, *rest = noise_parts(source)
-        source = "; ".join(([current] if not hasattr(estimate, "sigma_i") else []) + [estimate.describe(), *rest])
+        kept = [] if isinstance(estimate, NoiseEstimate) else [current]     # the unit level's own source stays
+        source = "; ".join(kept + [estimate.describe(), *rest])
     return NoiseFloor(source=source, mean_z2=float(np.mean(z**2)),
                       expected_mean_z2=result.dof / len(z), n_rows=len(z), n_params=len(z) - result.dof)
 

@@ -40,12 +40,14 @@ def where_rows(dg, n: int = 8) -> list[dict]:
 def headline(dg) -> str:
     """The verdict in one line with its grade: what it names, how it was found and what it leaves."""
     if dg.verdict == "none":
+        from ambfit.diagnosis.noise import NoiseEstimate
+
         est = getattr(dg, "noise_estimate", None)
         return "verdict: none (the ideal law's held-out residuals sit on the noise floor)" + _unlike_stated(dg) + (
             f"; the floor's level came from the readings themselves ({'incomplete' if est.gaps else 'no'} current "
             "std columns): an effect that varies between neighbouring readings like noise (a history the operating "
             "point does not fix) would hide in it; std columns, or --current-noise-ma and --position-noise-um, "
-            "would show it" if getattr(est, "sigma_i", None) is not None else "")
+            "would show it" if isinstance(est, NoiseEstimate) else "")
     return _headline(dg) + _unlike_stated(dg)
 
 
@@ -196,8 +198,8 @@ def findings(dg) -> list[str]:
         share = len(dg.left_out) / max(len(dg.baseline.residuals), 1)
         out.append(f"{len(dg.left_out)} reading(s) ({100 * share:.1f} %) that no model at the noise floor fits (data "
                    f"row(s) {rows}: every model at the floor named them outliers) are left out of every held-out "
-                   "score: a sensor's "
-                   "gross errors, or an effect that no library law holds, confined to them; check the sensors there")
+                   "score: a sensor's gross errors, or an effect that no library law holds, confined to them; check "
+                   "the sensors there")
     if dg.grade is not None:
         g = dg.grade
         out.append(f"{g.model} removes {g.removes:.3f} of the held-out excess and leaves {g.remainder:.2f} "
