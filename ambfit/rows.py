@@ -13,27 +13,40 @@ import pandas as pd
 from ambfit.data import Dataset, group_labels, joint_codes
 
 
-def runs(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-    """Each (experiment, axis) run of readings in file order: ``(order, first)``, the row numbers run by run and
-    whether each of them starts its run (a coil's history is that of its run's readings)."""
-    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(len(df))
-    code = joint_codes(exp, df["axis"].to_numpy(), own_missing=True)
-    order = np.argsort(code, kind="stable")              # each run's rows together, in file order
+def runs(df: pd.DataFrame, sets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each axis' runs of readings, one coil history each: ``(order, first)``, the row numbers run by run and
+    whether each of them starts its run.
+
+    A run is one experiment's readings of an axis in file order; when the experiments were read one after another
+    on one clock (:func:`clock`), the bearing stayed energised between them, and each axis' timed experiments form
+    one run, in the order of that clock (an untimed experiment stays a run of its own).  ``sets``: as for
+    :func:`clock`.
+    """
+    n = len(df)
+    sets = np.zeros(n, dtype=np.int64) if sets is None else np.asarray(sets)
+    labels = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(n)
+    exp = joint_codes(sets, labels, own_missing=True)
+    # one history per set and axis where its experiments share a clock
+    history = np.where(_shared_clock(df, sets, labels), -1, exp)
+    code = joint_codes(sets, history, df["axis"].to_numpy(), own_missing=True)
+    # each run's rows together, by experiment (in the order of the shared clock), then in file order
+    order = np.lexsort((np.arange(n), exp, code))
     c = code[order]
     return order, np.r_[True, c[1:] != c[:-1]] if len(c) else np.zeros(0, bool)
 
 
-def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3) -> np.ndarray:
+def approach_direction(df: pd.DataFrame, column: str, threshold: float = 2e-3,
+                       sets: np.ndarray | None = None) -> np.ndarray:
     """Direction (+1 rising, -1 falling) from which each reading's coil current was reached.
 
-    Derived from the order of rows: within each experiment and axis, the sign of the
-    change from the previous reading; a change below ``threshold`` [A] keeps the
-    previous direction; the first reading counts as rising (from zero current).
+    Derived from the order of rows: within each run (:func:`runs`), the sign of the change from the previous
+    reading; a change below ``threshold`` [A] keeps the previous direction; a run's first reading counts as rising
+    (from zero current).  ``sets``: as for :func:`clock`.
     """
     n = len(df)
     if n == 0:
         return np.zeros(0)
-    order, first = runs(df)
+    order, first = runs(df, sets)
     i = df[column].to_numpy(float)[order]
     step = np.diff(i, prepend=np.nan)
     with np.errstate(invalid="ignore"):
@@ -140,8 +153,20 @@ def clock(df: pd.DataFrame, sets: np.ndarray | None = None) -> np.ndarray | None
     t = df["time_s"].to_numpy(float)
     n = len(t)
     sets = np.zeros(n, dtype=np.int64) if sets is None else np.asarray(sets)
-    exp = group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(n)
-    code = joint_codes(sets, exp)                  # each set's experiments, in the order the file lists them
+    code = joint_codes(sets, group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(n))
+    one_clock = _one_clock(t, sets, code)
+    lo, first = np.full(int(code.max(initial=-1)) + 2, np.inf), np.full(len(one_clock), np.inf)
+    np.fmin.at(lo, code, t)
+    lo[-1] = np.inf                                # (rows of no experiment start no clock of their own)
+    np.fmin.at(first, sets, t)
+    lo, first = np.where(np.isfinite(lo), lo, np.nan), np.where(np.isfinite(first), first, np.nan)
+    return t - np.where(one_clock[sets], first[sets], lo[code])
+
+
+def _one_clock(t: np.ndarray, sets: np.ndarray, code: np.ndarray) -> np.ndarray:
+    """Per data set, whether its experiments (``code``: each set's experiments numbered in the order the file
+    lists them, -1 for rows of none) were read one after another on one clock: each timed one starts after the one
+    before it ends (:func:`clock`)."""
     count = int(code.max(initial=-1)) + 1
     lo, hi = np.full(count + 1, np.inf), np.full(count + 1, -np.inf)   # (a last one for rows of no experiment)
     np.fmin.at(lo, code, t)
@@ -154,10 +179,20 @@ def clock(df: pd.DataFrame, sets: np.ndarray | None = None) -> np.ndarray | None
     restarted = after & ~(lo[timed[1:]] >= hi[timed[:-1]])
     one_clock = np.ones(int(sets.max(initial=-1)) + 1, dtype=bool)
     one_clock[owner[timed[1:]][restarted]] = False
-    first = np.full(len(one_clock), np.inf)
-    np.fmin.at(first, sets, t)
-    lo, first = np.where(np.isfinite(lo), lo, np.nan), np.where(np.isfinite(first), first, np.nan)
-    return t - np.where(one_clock[sets], first[sets], lo[code])
+    return one_clock
+
+
+def _shared_clock(df: pd.DataFrame, sets: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Per row, whether its experiment (``labels``) is timed and shares one clock with the other experiments of its
+    data set (:func:`clock`)."""
+    if "time_s" not in df.columns or len(df) == 0:
+        return np.zeros(len(df), bool)
+    t = df["time_s"].to_numpy(float)
+    code = joint_codes(sets, labels)
+    timed = np.zeros(int(code.max(initial=-1)) + 2, bool)     # (a last one for rows of no experiment)
+    timed[code[np.isfinite(t)]] = True
+    timed[-1] = False
+    return _one_clock(t, sets, code)[sets] & timed[code]
 
 
 STEADY_K = 0.01

@@ -163,13 +163,35 @@ def _experiments(df):
     return [None if pd.isna(e) else str(e) for e in df["experiment"]]
 
 
+def _one_clock_by_definition(df):
+    """clock's docstring: each timed experiment, in the order the file lists them, starts after the one before ends
+    (rows of no experiment are in none)."""
+    if "time_s" not in df.columns:
+        return False
+    spans = {}
+    for e, t in zip(_experiments(df), df["time_s"]):
+        if not np.isnan(t) and e is not None:
+            lo, hi = spans.get(e, (np.inf, -np.inf))
+            spans[e] = (min(lo, t), max(hi, t))
+    spans = list(spans.values())
+    return all(b[0] >= a[1] for a, b in zip(spans, spans[1:]))
+
+
 def _direction_by_definition(df, column, threshold=2e-3):
-    """approach_direction's docstring, one row at a time: within each experiment and axis, the sign of a change of
-    at least ``threshold`` from the previous reading, else the previous direction; the first reading rises."""
-    out, prev_row, prev_dir = np.zeros(len(df)), {}, {}
+    """approach_direction's docstring, one row at a time: within each run, the sign of a change of at least
+    ``threshold`` from the previous reading, else the previous direction; the first reading rises.  A run is an
+    experiment and axis, or, when the experiments share one clock, an axis' timed experiments one after another (a
+    missing label is an experiment of its own, on no clock)."""
     exp = _experiments(df)
-    for j, (e, ax, i) in enumerate(zip(exp, df["axis"], df[column])):
-        key = (e, ax)
+    timed = ({e for e, t in zip(exp, df["time_s"]) if not np.isnan(t) and e is not None} if "time_s" in df.columns
+             else set())
+    chained = _one_clock_by_definition(df)
+    listed = list(dict.fromkeys(exp))
+    key_of = [("clock", ax) if chained and e in timed else (e, ax) for e, ax in zip(exp, df["axis"])]
+    rows = sorted(range(len(df)), key=lambda j: (listed.index(exp[j]), j))
+    out, prev_row, prev_dir = np.zeros(len(df)), {}, {}
+    for j in rows:
+        key, i = key_of[j], df[column].iloc[j]
         if key in prev_row and abs(i - prev_row[key]) >= threshold:
             prev_dir[key] = float(np.sign(i - prev_row[key]))
         prev_dir.setdefault(key, 1.0)
@@ -194,10 +216,10 @@ def _other_by_definition(df):
     return it, ib
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(st.integers(1, 30), st.integers(0, 2**31 - 1),
-       st.sampled_from([None, "text", "numbers", "integers", "missing"]))
-def test_row_order_functions_follow_their_definitions(n, seed, experiment):
+       st.sampled_from([None, "text", "numbers", "integers", "missing"]), st.booleans())
+def test_row_order_functions_follow_their_definitions(n, seed, experiment, one_clock):
     rng = np.random.default_rng(seed)
     df = pd.DataFrame({"axis": rng.choice(["v", "w"], n), "time_s": rng.choice([0.0, 0.5, 1.0, np.nan], n),
                        "i_top_A": np.round(rng.normal(1.5, 0.004, n), 4), "i_bottom_A": rng.normal(1.5, 0.1, n)})
@@ -207,6 +229,9 @@ def test_row_order_functions_follow_their_definitions(n, seed, experiment):
         else:
             labels = {"text": ["a", "b"], "numbers": [1, 2], "missing": ["a", None]}[experiment]
             df["experiment"] = pd.Series(rng.choice(np.array(labels, dtype=object), n))
+        if one_clock:                                # experiments read one after another on one clock
+            df = df.sort_values("experiment", kind="stable", key=lambda e: e.astype(str)).reset_index(drop=True)
+            df["time_s"] = np.where(rng.random(n) < 0.1, np.nan, np.arange(n) // 2 * 0.5)
     np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
     for got, want in zip(R.other_axis_currents(df), _other_by_definition(df)):
         np.testing.assert_array_equal(got, want)

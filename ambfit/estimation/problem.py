@@ -23,7 +23,7 @@ from ambfit._arrays import Array, frozen, traced
 from ambfit._recent import Recent
 from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
-from ambfit.rows import clock, readings
+from ambfit.rows import approach_direction, clock, readings
 
 
 class _unbound:
@@ -349,7 +349,10 @@ def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
     prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups)
     offsets = np.cumsum([0] + list(lengths))
     # each data set's clock is its own (whether its experiments ran on one clock is decided per table)
-    own = {".readings.time": clock(joined, set_id)} if "time_s" in joined else {}
+    # and so is its coils' history (whether it runs on across experiments is decided with the clock)
+    own = {".readings.time": clock(joined, set_id),
+           **{f".readings.dir_{coil}": approach_direction(joined, f"i_{coil}_A", sets=set_id)
+              for coil in ("top", "bottom")}} if "time_s" in joined else {}
     rows = _slicer(prob, own)
     gidx, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
     # each data set's load groups are numbered one after another from its first: its own numbers start at 0
