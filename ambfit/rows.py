@@ -64,7 +64,7 @@ def play_states(df: pd.DataFrame, column: str, widths) -> np.ndarray:
     ``(i - p) / width`` in [-1, 1] (+1: the current has risen at least ``width`` since it last turned).
 
     The play's output ``p = clip(p_prev, i - width, i + width)`` follows the current through each run's readings
-    in file order (:func:`runs`), from zero current before the first reading.  A sum of plays of several
+    in order (:func:`runs`), from zero current before the first reading.  A sum of plays of several
     widths is the Prandtl-Ishlinskii model of hysteresis with memory (Mayergoyz, *Mathematical Models of
     Hysteresis*, 1991, ch. 1); the narrowest play's state is the approach direction (:func:`approach_direction`).
     """
@@ -87,7 +87,7 @@ def fading_states(df: pd.DataFrame, column: str, memories, widths) -> np.ndarray
     """How far each reading's coil current sits from a fading memory of its recent course: array[n, m * w],
     ``clip((i - q) / width, -1, 1)`` for each memory (outer) and half-width (inner).
 
-    ``q`` follows the current through each run's readings in file order (:func:`runs`), ``q = a q_prev + (1 - a) i``
+    ``q`` follows the current through each run's readings in order (:func:`runs`), ``q = a q_prev + (1 - a) i``
     with ``a = exp(-1 / memory)`` (``memory`` in readings), from zero current before the run's first reading, as the
     plays start: the coils were energised from zero, and a memory not yet relaxed by the first reading lags it as
     after a rise.  Where a play (:func:`play_states`) forgets nothing until the current turns by its width, this

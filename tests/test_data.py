@@ -168,12 +168,12 @@ def _one_clock_by_definition(df):
     (rows of no experiment are in none)."""
     if "time_s" not in df.columns:
         return False
-    spans = {}
-    for e, t in zip(_experiments(df), df["time_s"]):
-        if not np.isnan(t) and e is not None:
-            lo, hi = spans.get(e, (np.inf, -np.inf))
-            spans[e] = (min(lo, t), max(hi, t))
-    spans = list(spans.values())
+    exp = _experiments(df)
+    spans = []
+    for e in dict.fromkeys(x for x in exp if x is not None):        # in the order the file lists them
+        times = [t for x, t in zip(exp, df["time_s"]) if x == e and not np.isnan(t)]
+        if times:
+            spans.append((min(times), max(times)))
     return all(b[0] >= a[1] for a, b in zip(spans, spans[1:]))
 
 
@@ -198,6 +198,17 @@ def _direction_by_definition(df, column, threshold=2e-3):
         prev_row[key] = i
         out[j] = prev_dir[key]
     return out
+
+
+def test_experiments_run_on_in_the_order_the_file_lists_them():
+    """An experiment listed first but timed after the next one started: its clock restarted, so nothing chains; read
+    one after another, each axis' coil history runs on from one experiment into the next."""
+    df = pd.DataFrame({"axis": "v", "experiment": ["b", "a", "a", "b", "b"], "time_s": [np.nan, 0.0, 1.0, 2.0, 3.0],
+                       "i_top_A": [1.0, 1.0, 2.0, 1.5, 1.6], "i_bottom_A": 1.0})
+    np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), _direction_by_definition(df, "i_top_A"))
+    np.testing.assert_array_equal(R.approach_direction(df, "i_top_A"), [1, 1, 1, 1, 1])
+    chained = df.assign(experiment=["a", "a", "a", "b", "b"], time_s=[0.0, 1.0, 2.0, 3.0, 4.0])
+    np.testing.assert_array_equal(R.approach_direction(chained, "i_top_A"), [1, 1, 1, -1, 1])
 
 
 def _other_by_definition(df):
