@@ -22,6 +22,7 @@ fading             each coil's departure from fading memories of its current, of
                    that relaxes towards the current over the next readings)
 drift              each coil's ``b^2``, ``b^2 xi`` times smooth functions of time: powers and settling curves
                    (and of temperature when read: powers and the temperature lagged through first-order lags)
+drift_steps        the same times smooth steps across the run: a drift of any course, a random walk over the run
 current_sensor     each coil's ``b / (1 -+ xi)`` times powers of its measured current
 position_sensor    the force's slope in position times powers of the reading
 position_spline    the force's slope in position times cubic B-splines of the reading over its range: a sensor
@@ -53,21 +54,22 @@ GROUPS = ("shape", "coupling", "hysteresis")
 (saturation, iron, fringing, leakage); what depends on the other axis (its currents and position: coupling through
 the stator); what depends on the direction from which each coil current was approached (hysteresis).  Each group
 has its own prior scale."""
-SIGNATURE_GROUPS = ("control", "memory", "fading", "drift", "current_sensor", "position_sensor", "position_spline")
+SIGNATURE_GROUPS = ("control", "memory", "fading", "drift", "drift_steps", "current_sensor", "position_sensor",
+                    "position_spline")
 """Further groups, each the signature of one family (see the module docstring)."""
 ALL_GROUPS = GROUPS + SIGNATURE_GROUPS
 
 FAMILY_GROUPS = {
     "saturation": ("shape",), "iron_reluctance": ("shape",), "fringing": ("shape",), "leakage": ("shape",),
     "cross_coupling": ("coupling", "control"), "hysteresis": ("hysteresis", "memory", "fading"),
-    "thermal_drift": ("drift",), "current_offset": ("current_sensor",),
+    "thermal_drift": ("drift", "drift_steps"), "current_offset": ("current_sensor",),
     "current_gain": ("current_sensor",), "position_gain": ("position_sensor", "position_spline"),
 }
 """Each contract family's signature: the groups that carry what a law of its variables, other than the library's,
 could add (the flux families: flux density and gap per coil; hysteresis: the direction and path of each coil
 current; drift: time and temperature; the sensors: their readings)."""
 
-SLOW_GROUPS = ("drift",)
+SLOW_GROUPS = ("drift", "drift_steps")
 """The groups whose terms are the force's own flux terms scaled by smooth functions of time and temperature: a
 correction of them is alike for readings close in time, and cannot follow each reading's noise."""
 
@@ -86,6 +88,14 @@ SETTLE = (0.1, 0.3)
 """Time constants of the drift group's settling curves ``1 - exp(-t / tau)`` and temperature lags, as fractions of
 the run's duration: a mount that settles, or a gap that follows the coils' temperature through the iron's thermal
 lag, within the run (slower ones are the powers of time and of temperature)."""
+
+TIME_STEPS = 12
+"""The drift_steps group's smooth steps in time: one centred at each of ``k / TIME_STEPS`` of the run (``k`` = 1 ...
+``TIME_STEPS - 1``), each rising over about one spacing (``(1 + tanh(2 TIME_STEPS (tau - k / TIME_STEPS))) / 2``).
+Under the group's Gaussian prior a sum of them is a random walk over the run: a drift of any smooth course (a
+mount that creeps, then settles; a sudden shift), which the drift group's powers and settling curves of time do not
+reach, and between readings the fit has not seen it goes from one side to the other.  A group of its own, with its
+own prior scale: the marginal likelihood leaves it out of a drift the powers follow."""
 
 PLAY_WIDTHS = (0.005, 0.01, 0.02, 0.035, 0.05, 0.07, 0.1, 0.15)
 """Half-widths of the memory group's plays, as fractions of ``I_max`` (15-450 mA on the paper's rig: from the
@@ -147,7 +157,7 @@ class Basis:
             raise ValueError(f"unknown discrepancy group(s) {sorted(unknown)}; the groups are {ALL_GROUPS}")
         i_ref, g_ref = float(bearing.max_current), float(bearing.nominal_gap)
         scales = {}
-        if readings is not None and "drift" in groups:
+        if readings is not None and {"drift", "drift_steps"} & set(groups):
             t = np.asarray(readings.time, dtype=float)
             temp = np.asarray(readings.temperature, dtype=float)
             temp = temp[np.isfinite(temp)]
@@ -218,6 +228,12 @@ class Basis:
             cols += [("drift", f"{name} {coil} b^2{extra}", c * v) for name, c in clocks
                      for coil, v0 in (("top", bt**2), ("bottom", bb**2))
                      for extra, v in (("", v0), (" xi", v0 * xi))]
+        if "drift_steps" in self.groups:
+            steps = [(f"step at {k / TIME_STEPS:.3g} t_run", 0.5 * (1.0 + np.tanh(2.0 * (TIME_STEPS * f["tau"] - k))))
+                     for k in range(1, TIME_STEPS)]
+            cols += [("drift_steps", f"{name} {coil} b^2{extra}", c * v) for name, c in steps
+                     for coil, v0 in (("top", bt**2), ("bottom", bb**2))
+                     for extra, v in (("", v0), (" xi", v0 * xi))]
         if "current_sensor" in self.groups:
             cols += [("current_sensor", f"{coil} b i^{r}", v * i**r)
                      for coil, v, i in (("top", bt / (1.0 - xi), f["it"]), ("bottom", bb / (1.0 + xi), f["ib"]))
@@ -242,7 +258,7 @@ class Basis:
              "u": np.asarray(readings.x) / (X_SCALE * self.g_ref),
              "eta": np.asarray(readings.y) * self.sin_alpha / (X_SCALE * self.g_ref),
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
-        if "drift" in self.groups:
+        if {"drift", "drift_steps"} & set(self.groups):
             temp = (np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span
             tau = np.asarray(readings.time, dtype=float) / self.t_ref
             f |= {"tau": tau, "theta": np.nan_to_num(temp)} | {f"theta_lag{j}": _lagged(tau, temp, s)
@@ -285,10 +301,11 @@ class Basis:
     @classmethod
     def from_json(cls, record: dict) -> Basis:
         """The basis of a saved discrepancy; one saved with other constants (:data:`P_MAX`, :data:`Q_MAX`,
-        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`PLAY_WIDTHS`, :data:`FADING_MEMORIES`,
-        :data:`FADING_WIDTHS`) would compute other columns under the same coefficients, and is refused."""
+        :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`TIME_STEPS`, :data:`PLAY_WIDTHS`,
+        :data:`FADING_MEMORIES`, :data:`FADING_WIDTHS`) would compute other columns under the same coefficients, and is refused."""
         if "p_max" in record:
             record = {"shape_p_min": 0} | record       # saved before the shape group left out b^0
+
         for key, value in _constants().items():
             if key in record and not np.allclose(np.asarray(record[key], dtype=float), value, rtol=1e-12, atol=0.0):
                 raise ValueError(f"the discrepancy's basis was saved with {key} = {record[key]}, this ambfit's is "
@@ -323,7 +340,7 @@ class Basis:
 def _constants() -> dict:
     """The module's constants that shape the columns, as a saved basis records them."""
     return {"p_max": P_MAX, "q_max": Q_MAX, "shape_p_min": SHAPE_P_MIN, "x_scale": X_SCALE, "settle": list(SETTLE),
-            "play_widths": list(PLAY_WIDTHS), "fading_memories": list(FADING_MEMORIES),
+            "time_steps": TIME_STEPS, "play_widths": list(PLAY_WIDTHS), "fading_memories": list(FADING_MEMORIES),
             "fading_widths": list(FADING_WIDTHS)}
 
 
