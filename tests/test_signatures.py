@@ -115,23 +115,33 @@ def test_a_drift_that_steps_in_the_middle_of_the_run_is_predicted_from_the_other
     res = ambfit.fit(data, throw=False)
     name, tests = folds(data)
     z = np.asarray(res.residuals)
-    held = np.concatenate([(z + fit_discrepancy(res, data, groups=FAMILY_GROUPS["thermal_drift"],
-                                                mask=(~t).astype(float)).row_correction)[t] for t in tests])
+
+    def held_out(groups):
+        return float(np.mean(np.concatenate([(z + fit_discrepancy(res, data, groups=groups, mask=(~t).astype(float))
+                                              .row_correction)[t] for t in tests]) ** 2))
+
     assert name == "leave-one-load-out" and float(np.mean(z**2)) > 30.0
-    assert float(np.mean(held**2)) < 10.0
+    # 10: twice the measured 5.1 (other noise seeds give 5.8-7.0); a step at 20 or 80 % of the run, inside the
+    # first or last block, is extrapolated whatever the basis (41-48 with the steps), and is not this test's case
+    assert held_out(FAMILY_GROUPS["thermal_drift"]) < 10.0
+    assert held_out(("drift",)) > 1000.0
 
 
-def test_the_drift_basis_follows_the_readings_clock(design):
-    # time scaled by the data's span; a drift column is zero at each experiment's first reading
+@pytest.mark.parametrize("group", ["drift", "drift_steps"])
+def test_the_drift_basis_follows_the_readings_clock(design, group):
+    # time scaled by the data's span; a drift column is zero at each experiment's first reading, and every one is
+    # zero without a clock (a term of the readings alone would not be a drift)
     data = _simulate(design, laws.LinearTimeDrift)
     from ambfit.rows import readings
 
     r = readings(data)
-    basis = Basis.of(PAPER_BEARING, ("drift",), r)
+    basis = Basis.of(PAPER_BEARING, (group,), r)
     assert basis.t_ref == pytest.approx(float(np.max(np.asarray(r.time))))
     m = basis.matrix(r)
     first = np.asarray(r.time) == 0
     assert first.any() and np.all(m[first] == 0) and np.any(m[~first] != 0)
+    untimed = readings(data.drop(columns="time_s"))
+    assert np.all(Basis.of(PAPER_BEARING, (group,), untimed).matrix(untimed) == 0)
 
 
 @pytest.mark.parametrize("group", ["memory", "fading"])

@@ -91,11 +91,12 @@ lag, within the run (slower ones are the powers of time and of temperature)."""
 
 TIME_STEPS = 12
 """The drift_steps group's smooth steps in time: one centred at each of ``k / TIME_STEPS`` of the run (``k`` = 1 ...
-``TIME_STEPS - 1``), each rising over about one spacing (``(1 + tanh(2 TIME_STEPS (tau - k / TIME_STEPS))) / 2``).
-Under the group's Gaussian prior a sum of them is a random walk over the run: a drift of any smooth course (a
-mount that creeps, then settles; a sudden shift), which the drift group's powers and settling curves of time do not
-reach, and between readings the fit has not seen it goes from one side to the other.  A group of its own, with its
-own prior scale: the marginal likelihood leaves it out of a drift the powers follow."""
+``TIME_STEPS - 1``), each rising over about one spacing, ``(tanh(2 (TIME_STEPS tau - k)) - tanh(-2 k)) / 2``: zero
+at the clock's start, as the drift group's terms.  Under the group's Gaussian prior a sum of them is a random walk
+over the run: a drift of any smooth course (a mount that creeps, then settles; a sudden shift), which the drift
+group's powers and settling curves of time do not reach.  Over readings a fold's fit has not seen, the walk's
+prediction passes from the level before them to the level after.  A group of its own, with its own prior scale:
+the marginal likelihood leaves it out of a drift the powers follow."""
 
 PLAY_WIDTHS = (0.005, 0.01, 0.02, 0.035, 0.05, 0.07, 0.1, 0.15)
 """Half-widths of the memory group's plays, as fractions of ``I_max`` (15-450 mA on the paper's rig: from the
@@ -130,10 +131,10 @@ _MATRICES = Recent(8)
 
 @dataclasses.dataclass(frozen=True)
 class Basis:
-    """The discrepancy's basis functions, fixed by the bearing description and, for drift, the span of the data's
-    clock and thermometer (``t_ref`` [s], ``temp_ref``, ``temp_span`` [°C]), for the position splines the span of
-    the position readings (``u_lo``, ``u_hi``, in units of :data:`X_SCALE` of the gap) and how many set-points
-    they have (``u_intervals``, :data:`POSITION_CLUSTER`); not by the fit."""
+    """The discrepancy's basis functions, fixed by the bearing description and, for drift and its steps, the span of
+    the data's clock and thermometer (``t_ref`` [s], ``temp_ref``, ``temp_span`` [°C]), for the position splines the
+    span of the position readings (``u_lo``, ``u_hi``, in units of :data:`X_SCALE` of the gap) and how many
+    set-points they have (``u_intervals``, :data:`POSITION_CLUSTER`); not by the fit."""
 
     i_ref: float
     g_ref: float
@@ -150,7 +151,7 @@ class Basis:
 
     @classmethod
     def of(cls, bearing: Bearing, groups=GROUPS, readings=None) -> Basis:
-        """The basis of ``bearing``; ``readings`` (those it will be fitted on) set the drift group's time and
+        """The basis of ``bearing``; ``readings`` (those it will be fitted on) set the drift groups' time and
         temperature scales and the position splines' span."""
         unknown = set(groups) - set(ALL_GROUPS)
         if unknown:
@@ -229,7 +230,10 @@ class Basis:
                      for coil, v0 in (("top", bt**2), ("bottom", bb**2))
                      for extra, v in (("", v0), (" xi", v0 * xi))]
         if "drift_steps" in self.groups:
-            steps = [(f"step at {k / TIME_STEPS:.3g} t_run", 0.5 * (1.0 + np.tanh(2.0 * (TIME_STEPS * f["tau"] - k))))
+            # each step less its value at the clock's start: zero there, as the drift group's terms (and everywhere
+            # for readings without a clock, where a step would be a term of the readings, not of time)
+            steps = [(f"step at {k / TIME_STEPS:.3g} t_run", 0.5 * (np.tanh(2.0 * (TIME_STEPS * f["tau"] - k))
+                                                                     - np.tanh(-2.0 * k)))
                      for k in range(1, TIME_STEPS)]
             cols += [("drift_steps", f"{name} {coil} b^2{extra}", c * v) for name, c in steps
                      for coil, v0 in (("top", bt**2), ("bottom", bb**2))
@@ -302,10 +306,10 @@ class Basis:
     def from_json(cls, record: dict) -> Basis:
         """The basis of a saved discrepancy; one saved with other constants (:data:`P_MAX`, :data:`Q_MAX`,
         :data:`SHAPE_P_MIN`, :data:`X_SCALE`, :data:`SETTLE`, :data:`TIME_STEPS`, :data:`PLAY_WIDTHS`,
-        :data:`FADING_MEMORIES`, :data:`FADING_WIDTHS`) would compute other columns under the same coefficients, and is refused."""
+        :data:`FADING_MEMORIES`, :data:`FADING_WIDTHS`) would compute other columns under the same coefficients, and
+        is refused."""
         if "p_max" in record:
             record = {"shape_p_min": 0} | record       # saved before the shape group left out b^0
-
         for key, value in _constants().items():
             if key in record and not np.allclose(np.asarray(record[key], dtype=float), value, rtol=1e-12, atol=0.0):
                 raise ValueError(f"the discrepancy's basis was saved with {key} = {record[key]}, this ambfit's is "
