@@ -342,7 +342,7 @@ def test_a_widened_law_below_the_floor_sets_aside_every_widened_law_that_follows
     v = decide(Rules(), start, [vague, graded])
     assert v.name == "iron_reluctance" and v.unjudged == ()
     # a drift widened by its time and temperature terms is still judged, and named; with set_aside "all" it is not
-    drift = widened("thermal_drift", 0.05, 8.0, groups=("drift",), start=start)
+    drift = widened("thermal_drift", 0.05, 8.0, groups=FAMILY_GROUPS["thermal_drift"], start=start)
     v = decide(Rules(), start, [leaky, graded, drift])
     assert v.name == "thermal_drift" and v.model is drift and v.unjudged == (leaky.label,)
     v = decide(Rules(set_aside="all"), start, [leaky, graded, drift])
@@ -422,7 +422,7 @@ def test_the_unjudged_widened_laws_are_explained_with_the_loads_that_would_test_
     assert line.startswith("the widened laws whose terms follow the readings set aside: leakage widened by its shape "
                            "signature and current_gain")
     # a drift's widened law among them: it is still judged, and said to be
-    drift = widened("thermal_drift", 0.0, 2.0, groups=("drift",))
+    drift = widened("thermal_drift", 0.0, 2.0, groups=FAMILY_GROUPS["thermal_drift"])
     assert said(one, signatures=[drift]).startswith("the widened laws whose terms follow the readings set aside (those "
                                                     "of time and temperature alone are still judged): leakage")
     assert said(one, Rules(set_aside="all")).startswith("every widened law set aside: leakage widened")
