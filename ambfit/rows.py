@@ -211,9 +211,10 @@ def thermometer(df: pd.DataFrame) -> np.ndarray | None:
     return t if known.size and np.ptp(known) >= STEADY_K else None
 
 
-def readings(data: Dataset | pd.DataFrame):
+def readings(data: Dataset | pd.DataFrame, sets: np.ndarray | None = None):
     """The rows as :class:`ambfit.physics.model.Readings` in SI units; time counts from the start of the rows'
-    clock (:func:`clock`), wherever the clock's zero is."""
+    clock (:func:`clock`), wherever the clock's zero is.  ``sets``: as for :func:`clock` (the clocks and coil
+    histories of a joined table's data sets, each decided as for that table alone)."""
     from ambfit.physics.model import Readings
 
     df = data.frame if isinstance(data, Dataset) else data
@@ -223,8 +224,8 @@ def readings(data: Dataset | pd.DataFrame):
     return Readings.build(
         axis=ax, i_top=df["i_top_A"].to_numpy(float), i_bottom=df["i_bottom_A"].to_numpy(float),
         x=np.where(ax == 0, v, w), y=np.where(ax == 0, w, v), bias=df["bias_A"].to_numpy(float),
-        time=clock(df),
+        time=clock(df, sets),
         temperature=thermometer(df),
-        dir_top=approach_direction(df, "i_top_A"), dir_bottom=approach_direction(df, "i_bottom_A"),
+        dir_top=approach_direction(df, "i_top_A", sets=sets), dir_bottom=approach_direction(df, "i_bottom_A", sets=sets),
         **dict(zip(("i_top_other", "i_bottom_other"), other_axis_currents(df))),
     )

@@ -23,7 +23,7 @@ from ambfit._arrays import Array, frozen, traced
 from ambfit._recent import Recent
 from ambfit.data import Dataset, joint_codes, load_groups
 from ambfit.physics.model import Readings
-from ambfit.rows import approach_direction, clock, readings
+from ambfit.rows import readings
 
 
 class _unbound:
@@ -243,9 +243,10 @@ def build_problem(data: Dataset | pd.DataFrame, *, sigma_i: float | None = None,
     return (prob if mask is None else prob.with_mask(mask)), meta
 
 
-def _build(df: pd.DataFrame, sigma_i, sigma_x, groups=None) -> tuple[Problem, Meta]:
-    """``groups``: the rows' load-group codes and labels when the caller numbered them (a joined table)."""
-    r = readings(df)
+def _build(df: pd.DataFrame, sigma_i, sigma_x, groups=None, sets=None) -> tuple[Problem, Meta]:
+    """``groups``: the rows' load-group codes and labels when the caller numbered them (a joined table); ``sets``:
+    each row's data set there (:func:`ambfit.rows.readings`)."""
+    r = readings(df, sets)
     ax = np.asarray(r.axis)
     st, sb, sx, source = _noise(df, ax, sigma_i, sigma_x)
     load = df["load_N"].to_numpy(float) if "load_N" in df else np.full(len(df), np.nan)
@@ -304,15 +305,12 @@ def _join_keys(joined: pd.DataFrame, frames: list[pd.DataFrame], set_id: np.ndar
     return list(zip(cur, pos, *(has[c] for c in ("load_id", "experiment", "time_s", "temperature_C")), own))
 
 
-def _slicer(prob: Problem, replace: dict | None = None):
+def _slicer(prob: Problem):
     """A function ``(lo, hi, k_free, gidx) -> Problem`` of rows ``lo:hi`` of ``prob`` (NumPy leaves), built from
-    the flattened problem: thousands of data sets' problems without a module constructor each.  ``replace``:
-    leaves (by key path, e.g. ``".readings.time"``) to take instead of ``prob``'s, one entry per row."""
+    the flattened problem: thousands of data sets' problems without a module constructor each."""
     paths, tree = jax.tree_util.tree_flatten_with_path(prob)
     names = [jax.tree_util.keystr(path) for path, _ in paths]
-    leaves = [np.asarray((replace or {}).get(name, leaf)) for name, (_, leaf) in zip(names, paths)]
-    if missing := set(replace or {}) - set(names):
-        raise KeyError(f"no leaf {sorted(missing)} in the problem")
+    leaves = [np.asarray(leaf) for _, leaf in paths]
 
     k_at, g_at = (next(i for i, name in enumerate(names) if name.endswith(end)) for end in (".k_free", ".gidx"))
 
@@ -346,14 +344,12 @@ def _build_joined(joined: pd.DataFrame, lengths: list[int], sigma_i, sigma_x):
     per data set (NumPy leaves)."""
     set_id = np.repeat(np.arange(len(lengths)), lengths)
     groups = _joined_groups(joined, set_id)
-    prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups)
+    # each data set's clock and coil histories are its own (whether its experiments ran on one clock is decided per
+    # table)
+    prob, meta = _build(joined.assign(experiment=_numbered(joined, "experiment", set_id)), sigma_i, sigma_x, groups,
+                        sets=set_id)
     offsets = np.cumsum([0] + list(lengths))
-    # each data set's clock is its own (whether its experiments ran on one clock is decided per table)
-    # and so is its coils' history (whether it runs on across experiments is decided with the clock)
-    own = {".readings.time": clock(joined, set_id),
-           **{f".readings.dir_{coil}": approach_direction(joined, f"i_{coil}_A", sets=set_id)
-              for coil in ("top", "bottom")}} if "time_s" in joined else {}
-    rows = _slicer(prob, own)
+    rows = _slicer(prob)
     gidx, known, ax = np.asarray(prob.gidx), np.asarray(prob.known), np.asarray(prob.ax)
     # each data set's load groups are numbered one after another from its first: its own numbers start at 0
     starts = offsets[:-1]
