@@ -154,19 +154,18 @@ def clock(df: pd.DataFrame, sets: np.ndarray | None = None) -> np.ndarray | None
     n = len(t)
     sets = np.zeros(n, dtype=np.int64) if sets is None else np.asarray(sets)
     code = joint_codes(sets, group_labels(df["experiment"]).to_numpy() if "experiment" in df.columns else np.zeros(n))
-    one_clock = _one_clock(t, sets, code)
-    lo, first = np.full(int(code.max(initial=-1)) + 2, np.inf), np.full(len(one_clock), np.inf)
-    np.fmin.at(lo, code, t)
-    lo[-1] = np.inf                                # (rows of no experiment start no clock of their own)
+    one_clock, lo = _one_clock(t, sets, code)
+    first = np.full(len(one_clock), np.inf)
     np.fmin.at(first, sets, t)
     lo, first = np.where(np.isfinite(lo), lo, np.nan), np.where(np.isfinite(first), first, np.nan)
     return t - np.where(one_clock[sets], first[sets], lo[code])
 
 
-def _one_clock(t: np.ndarray, sets: np.ndarray, code: np.ndarray) -> np.ndarray:
+def _one_clock(t: np.ndarray, sets: np.ndarray, code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per data set, whether its experiments (``code``: each set's experiments numbered in the order the file
     lists them, -1 for rows of none) were read one after another on one clock: each timed one starts after the one
-    before it ends (:func:`clock`)."""
+    before it ends (:func:`clock`); and each experiment's first time (inf for one untimed, and in the last place for
+    rows of none, which start no clock of their own)."""
     count = int(code.max(initial=-1)) + 1
     lo, hi = np.full(count + 1, np.inf), np.full(count + 1, -np.inf)   # (a last one for rows of no experiment)
     np.fmin.at(lo, code, t)
@@ -179,7 +178,7 @@ def _one_clock(t: np.ndarray, sets: np.ndarray, code: np.ndarray) -> np.ndarray:
     restarted = after & ~(lo[timed[1:]] >= hi[timed[:-1]])
     one_clock = np.ones(int(sets.max(initial=-1)) + 1, dtype=bool)
     one_clock[owner[timed[1:]][restarted]] = False
-    return one_clock
+    return one_clock, lo
 
 
 def _shared_clock(df: pd.DataFrame, sets: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -187,12 +186,9 @@ def _shared_clock(df: pd.DataFrame, sets: np.ndarray, labels: np.ndarray) -> np.
     data set (:func:`clock`)."""
     if "time_s" not in df.columns or len(df) == 0:
         return np.zeros(len(df), bool)
-    t = df["time_s"].to_numpy(float)
     code = joint_codes(sets, labels)
-    timed = np.zeros(int(code.max(initial=-1)) + 2, bool)     # (a last one for rows of no experiment)
-    timed[code[np.isfinite(t)]] = True
-    timed[-1] = False
-    return _one_clock(t, sets, code)[sets] & timed[code]
+    one_clock, lo = _one_clock(df["time_s"].to_numpy(float), sets, code)
+    return one_clock[sets] & np.isfinite(lo[code])
 
 
 STEADY_K = 0.01
