@@ -158,7 +158,7 @@ class Basis:
             raise ValueError(f"unknown discrepancy group(s) {sorted(unknown)}; the groups are {ALL_GROUPS}")
         i_ref, g_ref = float(bearing.max_current), float(bearing.nominal_gap)
         scales = {}
-        if readings is not None and {"drift", "drift_steps"} & set(groups):
+        if readings is not None and set(SLOW_GROUPS) & set(groups):
             t = np.asarray(readings.time, dtype=float)
             temp = np.asarray(readings.temperature, dtype=float)
             temp = temp[np.isfinite(temp)]
@@ -221,23 +221,23 @@ class Basis:
                 cols += [("fading", f"fading {m:g} readings {w:g} I_max {coil} b{extra}", v)
                          for coil, s, b, x in (("top", st, bt, xi), ("bottom", sb, bb, -xi))
                          for extra, v in (("", s * b), (" xi", s * b * x))]
+        def gap_and_origin(group, clocks):
+            # each coil's b^2 and b^2 xi (a drift of gap and origin) times each function of time or temperature
+            return [(group, f"{name} {coil} b^2{extra}", c * v) for name, c in clocks
+                    for coil, v0 in (("top", bt**2), ("bottom", bb**2))
+                    for extra, v in (("", v0), (" xi", v0 * xi))]
+
         if "drift" in self.groups:
-            clocks = ([(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)]
-                      + [(f"1 - exp(-t / {s:g} t_run)", -np.expm1(-f["tau"] / s)) for s in SETTLE]
-                      + [(f"T^{r}", f["theta"] ** r) for r in (1, 2)]
-                      + [(f"T lagged {s:g} t_run", f[f"theta_lag{j}"]) for j, s in enumerate(SETTLE)])
-            cols += [("drift", f"{name} {coil} b^2{extra}", c * v) for name, c in clocks
-                     for coil, v0 in (("top", bt**2), ("bottom", bb**2))
-                     for extra, v in (("", v0), (" xi", v0 * xi))]
+            cols += gap_and_origin("drift", [(f"t^{r}", f["tau"] ** r) for r in (1, 2, 3)]
+                                   + [(f"1 - exp(-t / {s:g} t_run)", -np.expm1(-f["tau"] / s)) for s in SETTLE]
+                                   + [(f"T^{r}", f["theta"] ** r) for r in (1, 2)]
+                                   + [(f"T lagged {s:g} t_run", f[f"theta_lag{j}"]) for j, s in enumerate(SETTLE)])
         if "drift_steps" in self.groups:
             # each step less its value at the clock's start: zero there, as the drift group's terms (and everywhere
             # for readings without a clock, where a step would be a term of the readings, not of time)
-            steps = [(f"step at {k / TIME_STEPS:.3g} t_run", 0.5 * (np.tanh(2.0 * (TIME_STEPS * f["tau"] - k))
-                                                                     - np.tanh(-2.0 * k)))
-                     for k in range(1, TIME_STEPS)]
-            cols += [("drift_steps", f"{name} {coil} b^2{extra}", c * v) for name, c in steps
-                     for coil, v0 in (("top", bt**2), ("bottom", bb**2))
-                     for extra, v in (("", v0), (" xi", v0 * xi))]
+            cols += gap_and_origin("drift_steps", [
+                (f"step at {k / TIME_STEPS:.3g} t_run",
+                 0.5 * (np.tanh(2.0 * (TIME_STEPS * f["tau"] - k)) - np.tanh(-2.0 * k))) for k in range(1, TIME_STEPS)])
         if "current_sensor" in self.groups:
             cols += [("current_sensor", f"{coil} b i^{r}", v * i**r)
                      for coil, v, i in (("top", bt / (1.0 - xi), f["it"]), ("bottom", bb / (1.0 + xi), f["ib"]))
@@ -262,7 +262,7 @@ class Basis:
              "u": np.asarray(readings.x) / (X_SCALE * self.g_ref),
              "eta": np.asarray(readings.y) * self.sin_alpha / (X_SCALE * self.g_ref),
              "dt": np.asarray(readings.dir_top, dtype=float), "db": np.asarray(readings.dir_bottom, dtype=float)}
-        if {"drift", "drift_steps"} & set(self.groups):
+        if set(SLOW_GROUPS) & set(self.groups):
             temp = (np.asarray(readings.temperature, dtype=float) - self.temp_ref) / self.temp_span
             tau = np.asarray(readings.time, dtype=float) / self.t_ref
             f |= {"tau": tau, "theta": np.nan_to_num(temp)} | {f"theta_lag{j}": _lagged(tau, temp, s)
