@@ -16,6 +16,7 @@ import ambfit
 from ambfit.diagnosis import separation, text
 from ambfit.rig import protocol
 from ambfit.rig import virtual as rig
+from ambfit.rig.limits import limit_violations
 
 HERE = Path(__file__).resolve().parent
 
@@ -195,10 +196,28 @@ def test_the_recommended_protocol_separates_them_when_run():
             continue
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.verdict == "undecided" and dg.separation.separates
-    plan = separation.designs(dg.decision.model.fit, data, ambfit.PAPER_BEARING)[dg.separation.protocol]
-    again = ambfit.diagnose(rig.simulate(spec, plan, effect, seed=np.random.default_rng(5)).data, check_force=False,
-                            discrepancy=False)
+    plan = dg.separation.design
+    assert plan is not None and any(dg.separation.protocol in separation.designs(data, ambfit.PAPER_BEARING, top)
+                                    for top in separation.SWEEP_TOPS)
+    run = rig.simulate(spec, plan, effect, seed=np.random.default_rng(5))
+    # within the bearing's limits on the rig that made the data, not only on the law fitted to them
+    assert not limit_violations(spec, plan, effect, run.physical_currents)
+    again = ambfit.diagnose(run.data, check_force=False, discrepancy=False)
     assert again.verdict == "iron_reluctance", str(again)
+
+
+def test_the_protocols_scored_are_centred_where_the_readings_were():
+    """An effective origin can sit tens of µm from the stator's centre (an error in one coil's channel moves where
+    the forces balance): the protocols that would separate the candidates go where the rotor has already been."""
+    data = rig.simulate(rig.PAPER_RIG, protocol.rich(center=(30e-6, -10e-6)), seed=2).data
+    middle = np.array([0.5 * (data[c].min() + data[c].max()) for c in ("v_um", "w_um")]) * 1e-6
+    reach = 0.6 * ambfit.PAPER_BEARING.backup_clearance
+    for top in separation.SWEEP_TOPS:
+        for what, design in separation.designs(data, ambfit.PAPER_BEARING, top).items():
+            set_points = np.stack([design.v_set, design.w_set], axis=1)
+            assert np.all(np.hypot(*(set_points - middle).T) <= reach + 1e-12), what
+            # a sweep to ``top`` of the coil limit, or the biases these data were read at
+            assert np.max(design.bias_v) <= max(top * ambfit.PAPER_BEARING.max_current, data["bias_A"].max()) + 1e-9
 
 
 def test_a_protocol_at_many_biases_names_their_number_and_range():

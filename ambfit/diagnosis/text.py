@@ -183,6 +183,10 @@ def findings(dg) -> list[str]:
             out.append(f"to tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
                        f"for the weakest pair (these data: {sep.on_these_data:.1f})"
                        + ("" if sep.separates else "; even that would not separate them clearly"))
+            if sep.largest_current is not None:
+                out.append(f"that protocol needs coil currents up to {sep.largest_current:.2f} A by the candidates' "
+                           f"laws as fitted, against the coil limit of {sep.current_limit:g} A: an extrapolation "
+                           "beyond these readings' currents; watch them as it runs")
             drift = any("thermal_drift" in c.split("+") for c in dg.decision.candidates)
             if drift and sep.time_tied is not None and sep.time_tied > dg.rules.time_tied_r2:
                 out.append(f"the readings' time runs with the sweep (the set-points, biases and loads explain "
