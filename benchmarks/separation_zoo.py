@@ -96,8 +96,9 @@ def markdown(draws: list, args) -> list[str]:
     for d in run:
         md.append(f"| {d['index']} | `{d['truth']}` | {', '.join(d['candidates'])} | {d['expected_log_bayes']:.1f} | "
                   f"`{d['follow_up']}` {', '.join(d['follow_up_candidates'])} | {d['follow_up_category']} |")
-    md += ["", f"Rerun: `.venv/bin/python benchmarks/separation_zoo.py --draws {args.draws} --seed {args.seed} "
-           f"--workers {args.workers}`."]
+    workers = f" --workers {args.workers}" if args.workers else ""
+    md += ["", f"Rerun: `.venv/bin/python benchmarks/separation_zoo.py --draws {args.draws} --seed {args.seed}"
+           f"{workers}`."]
     return md
 
 

@@ -137,6 +137,10 @@ def test_two_families_that_explain_alike_are_undecided_with_what_would_separate_
     # the recommended protocol separates them; these data do not
     assert sep["separates"] and sep["expected_log_bayes"] > 5.0 > sep["on_these_data"]
     assert sep["expected_log_bayes"] == max(sep["protocols"].values())
+    # run within the coil limit by the candidates' models, and said so
+    assert sep["largest_coil_current_A"] <= separation.HEADROOM * sep["coil_current_limit_A"]
+    said = f"up to {sep['largest_coil_current_A']:.2f} A by these data's fitted models"
+    assert any(said in line for line in text.findings(dg))
     assert "these data cannot tell them apart" in text.verdict(dg)
     assert "candidates_untested" not in rec
     # the same verdict reached with every widened law set aside: the siblings are said to be untested, and why
@@ -206,18 +210,63 @@ def test_the_recommended_protocol_separates_them_when_run():
     assert again.verdict == "iron_reluctance", str(again)
 
 
-def test_the_protocols_scored_are_centred_where_the_readings_were():
+def _fitted(spec, effects=()):
+    """What :func:`separation._protocols` reads of a candidate's fit: names, values, effects."""
+    return types.SimpleNamespace(names=["g_v0", "g_w0", "v0", "w0"], values=[*spec.g0, *spec.x0],
+                                 effects=tuple(effects))
+
+
+def test_the_protocols_scored_stay_where_the_readings_were_whatever_the_fitted_origin():
     """An effective origin can sit tens of µm from the stator's centre (an error in one coil's channel moves where
-    the forces balance): the protocols that would separate the candidates go where the rotor has already been."""
-    data = rig.simulate(rig.PAPER_RIG, protocol.rich(center=(30e-6, -10e-6)), seed=2).data
-    middle = np.array([0.5 * (data[c].min() + data[c].max()) for c in ("v_um", "w_um")]) * 1e-6
-    reach = 0.6 * ambfit.PAPER_BEARING.backup_clearance
-    for top in separation.SWEEP_TOPS:
-        for what, design in separation.designs(data, ambfit.PAPER_BEARING, top).items():
-            set_points = np.stack([design.v_set, design.w_set], axis=1)
-            assert np.all(np.hypot(*(set_points - middle).T) <= reach + 1e-12), what
-            # a sweep to ``top`` of the coil limit, or the biases these data were read at
-            assert np.max(design.bias_v) <= max(top * ambfit.PAPER_BEARING.max_current, data["bias_A"].max()) + 1e-9
+    the forces balance): a protocol centred there could put the rotor on its back-up bearing.  The protocols scored
+    lie among the positions already read, within the clearance of the rig that made the readings."""
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    off = spec.with_truth(x0=(spec.x0[0] - 45e-6, spec.x0[1] + 30e-6))      # a fitted origin 54 µm away
+    runs = separation._protocols([_fitted(off)], data, ambfit.PAPER_BEARING)
+    assert len(runs) == 3
+    for what, design, _, _ in runs:
+        assert not limit_violations(spec, design), what
+
+
+def test_a_set_point_is_safe_when_every_centre_the_readings_allow_is_within_the_clearance():
+    """Readings on a 50 µm circle hold the stator's centre within 10 µm of the circle's (60 µm clearance): a point
+    45 µm out is at most 55 µm from any such centre, one 55 µm out may be 65 µm away, the middle 10 µm; readings
+    130 µm apart fit no centre, and their segment is what is left."""
+    ring = 50e-6 * np.stack([np.cos(np.linspace(0, 2 * np.pi, 24)), np.sin(np.linspace(0, 2 * np.pi, 24))], axis=1)
+    safe = separation.safe_anywhere(np.array([[45e-6, 0.0], [55e-6, 0.0], [0.0, 0.0], [-30e-6, 30e-6]]), ring, 60e-6)
+    assert list(safe) == [True, False, True, True]
+    apart = np.array([[-65e-6, 0.0], [65e-6, 0.0]])
+    assert list(separation.safe_anywhere(np.array([[0.0, 0.0], [0.0, 5e-6]]), apart, 60e-6)) == [True, False]
+
+
+def test_a_protocol_is_kept_within_the_coil_limit_by_every_candidates_model():
+    """The sweep's top comes down until every candidate's fitted model runs the protocol within HEADROOM of the coil
+    limit (a saturating iron needs more current for the same force than the ideal law); a protocol one of them
+    cannot run is left out."""
+    from ambfit.physics import effects as E
+
+    spec, bearing = rig.PAPER_RIG, ambfit.PAPER_BEARING
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    ideal = separation._protocols([_fitted(spec)], data, bearing)
+    strong = separation._protocols([_fitted(spec, [E.Saturation(b_sat=np.asarray(0.9))])], data, bearing)
+    sweep = {what.split(" A ")[0]: need for what, _, _, need in ideal}
+    assert all(need <= separation.HEADROOM * bearing.max_current for *_, need in ideal + strong)
+    # the saturating model needs more current: its sweeps stop lower than the ideal law's
+    assert [w for w, *_ in strong] != [w for w, *_ in ideal] and sweep
+
+    real = rig.simulate
+
+    def refuses(spec_, design, effects=(), *args, **kw):
+        if effects:
+            raise rig.RigError("cannot balance")
+        return real(spec_, design, effects, *args, **kw)
+
+    try:
+        rig.simulate = refuses
+        assert separation._protocols([_fitted(spec, [E.Saturation()])], data, bearing) == []
+    finally:
+        rig.simulate = real
 
 
 def test_a_protocol_at_many_biases_names_their_number_and_range():
