@@ -271,7 +271,8 @@ def _check(raw: pd.DataFrame, problems: _Problems, max_position_um: float) -> pd
 def _numeric(df: pd.DataFrame, problems: _Problems):
     for col in [c for c in REQUIRED[1:] + NUMERIC_OPTIONAL if c in df.columns]:
         text = df[col].astype(str).str.strip()
-        empty = text.eq("") | text.str.lower().isin(("nan", "na", "none"))
+        # (a frame's missing value stays missing as text; a file's empty cell or "nan" is text)
+        empty = df[col].isna() | text.eq("") | text.str.lower().isin(("nan", "na", "none"))
         if col in REQUIRED:
             problems.rows(empty, "empty cell in a required column", col, df[col])
         num = pd.to_numeric(text.where(~empty, None), errors="coerce").astype(float)

@@ -326,3 +326,12 @@ def test_rows_after_a_skipped_blank_row_keep_their_file_numbers(tmp_path):
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(DataError, match=r"row 10\b.*i_top_A.*oops"):
         read_csv(path)
+
+
+def test_a_frames_missing_values_in_optional_columns_are_missing_not_errors():
+    """A frame built in memory holds a missing optional value as NaN (an unknown load), which stays NaN as text;
+    a file's empty cell is the empty string.  Both are a missing value, not a number that is not finite."""
+    df = rig.simulate(rig.PAPER_RIG, P.rich(), seed=1).data
+    df.loc[:5, "load_N"] = np.nan
+    ds = D.check(df)
+    assert ds.frame["load_N"].isna().sum() == 6
