@@ -249,3 +249,13 @@ def test_limit_violations_name_biases_and_coil_currents_beyond_the_limit():
     worst = max(found, key=lambda f: f.value)
     assert worst.value == pytest.approx(sim.physical_currents.max(), rel=1e-12) and worst.value > 1.5
     assert "top coil" in str(worst) and "coil current limit of 1.5 A" in str(worst)
+
+
+def test_a_protocols_steps_are_its_set_points_biases_and_loads_in_order():
+    p = P.rich(center=(10e-6, -5e-6))
+    steps = p.steps()
+    assert len(steps) == len(p) and list(steps["step"]) == list(range(1, len(p) + 1))
+    np.testing.assert_allclose(steps["v_set_um"], p.v_set * 1e6)
+    np.testing.assert_allclose(steps["bias_w_A"], p.bias_w)
+    np.testing.assert_allclose(steps["time_s"], p.time)
+    assert list(steps["load_v_N"]) == [p.loads[k].force_v for k in p.load_id]

@@ -162,12 +162,21 @@ def test_two_families_that_explain_alike_are_undecided_with_what_would_separate_
 def test_design_discriminate_prints_the_protocols(alike, tmp_path):
     from ambfit.faces.cli.app import app
 
-    out = tmp_path / "sep.json"
-    r = CliRunner().invoke(app, ["design", "--discriminate", str(alike), "--json", str(out), "--occam", "none"])
+    out, plan = tmp_path / "sep.json", tmp_path / "plan.csv"
+    r = CliRunner().invoke(app, ["design", "--discriminate", str(alike), "--json", str(out), "--occam", "none",
+                                 "--plan-out", str(plan)])
     assert r.exit_code == 0, r.output
     assert "undecided between" in r.output and "run:" in r.output
     rec = json.loads(out.read_text())
     assert rec["verdict"] == "undecided" and rec["separate_by"]["protocol"] in rec["separate_by"]["protocols"]
+    # the recommended protocol's steps, to run it by: the set-points and biases it was scored on
+    steps = pd.read_csv(plan)
+    assert list(steps["step"]) == list(range(1, len(steps) + 1))
+    assert steps["bias_v_A"].max() <= rec["separate_by"]["largest_coil_current_A"]
+    assert {"load_v_N", "load_w_N", "load_known", "v_set_um", "w_set_um", "bias_w_A"} <= set(steps.columns)
+    # asked for without --discriminate: said so, nothing run
+    r = CliRunner().invoke(app, ["design", str(alike), "--plan-out", str(tmp_path / "other.csv")])
+    assert r.exit_code != 0 and "--discriminate" in r.output and not (tmp_path / "other.csv").exists()
     # with no preference for the simpler (--occam none) fringing widened by the flux families' signature, which
     # the default sets aside, is a candidate too (the default's candidates: the first test), and so are the
     # current offset's and leakage's laws, within the margin (4 paired standard errors) of the best

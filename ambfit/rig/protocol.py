@@ -101,6 +101,20 @@ class Protocol:
         """Time of each reading [s]."""
         return self.dwell_s * np.arange(1, len(self) + 1, dtype=float)
 
+    def steps(self):
+        """The steps as a table to run them by, in order: experiment, iteration, the load (its name, the force it
+        puts on each axis [N] and whether it is known), set-points [µm, sensor coordinates], biases [A] and the
+        time of the reading [s] (a DataFrame)."""
+        import pandas as pd
+
+        loads = [self.loads[k] for k in self.load_id]
+        return pd.DataFrame({
+            "step": np.arange(1, len(self) + 1), "experiment": self.experiment, "iteration": self.iteration,
+            "load_id": self.load_id, "load_v_N": [ld.force_v for ld in loads], "load_w_N": [ld.force_w for ld in loads],
+            "load_known": [ld.known for ld in loads], "v_set_um": np.asarray(self.v_set) * 1e6,
+            "w_set_um": np.asarray(self.w_set) * 1e6, "bias_v_A": self.bias_v, "bias_w_A": self.bias_w,
+            "time_s": self.time})
+
 
 def _steps(points, biases, *, load, experiment, iteration, assembly=0):
     rows = [(v, w, bv, bw) for (v, w) in points for (bv, bw) in biases]

@@ -143,6 +143,9 @@ def design(
                                                "the bearing's limits would tell them apart (expected log Bayes "
                                                "factor of each protocol scored).")] = False,
     occam: OccamOption = Occam.all,
+    plan_out: Annotated[Path | None, typer.Option("--plan-out", help="With --discriminate: write the recommended "
+                                                  "protocol's steps here (CSV: order, loads, set-points [µm], "
+                                                  "biases [A]).")] = None,
 ):
     """Recommend the next perturbations (set-points [µm], bias [A]) that most reduce the target's uncertainty; with
     --discriminate, the protocol that best tells the diagnosis' undecided candidates apart."""
@@ -151,12 +154,14 @@ def design(
     from ambfit.estimation import fit
     from ambfit.faces.cli.progress import progress_bar
 
-    check_output(json_out, inputs=(data, bearing))
+    if plan_out is not None and not discriminate:
+        fail("--plan-out writes the protocol --discriminate recommends: give --discriminate too")
+    check_output(json_out, plan_out, inputs=(data, bearing))
     enable_compilation_cache()
     desc = bearing_of(bearing)
     ds = read_data(data, desc, accept_implausible)
     if discriminate:
-        _discriminate(ds, desc, json_out, declared_noise(current_noise_ma, position_noise_um), occam.value)
+        _discriminate(ds, desc, json_out, declared_noise(current_noise_ma, position_noise_um), occam.value, plan_out)
         return
     try:
         with progress_bar(2) as bar:
@@ -176,7 +181,7 @@ def design(
         write_json(rec.to_json(), json_out)
 
 
-def _discriminate(ds, desc, json_out, noise: dict, occam: str) -> None:
+def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | None = None) -> None:
     """``design --discriminate``: the diagnosis' candidates and the protocols that would separate them."""
     from ambfit.data import DataError
     from ambfit.diagnosis import Rules
@@ -200,6 +205,8 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str) -> None:
             note(f"{', '.join(dg.confounded_with)} explain these data too but did not count as rivals (more "
                  "flexible, or naming more families); --occam none weighs every other family's model")
         record = {"verdict": dg.verdict, "candidates": [], "separate_by": None}
+        if plan_out is not None:
+            note(f"no protocol to run: {plan_out} not written")
     else:
         note(f"undecided between {', '.join(dg.decision.candidates)}; these data: expected log Bayes factor "
              f"{sep.on_these_data:.1f} for the weakest pair")
@@ -207,7 +214,13 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str) -> None:
                     for k, v in sorted(sep.protocols.items(), key=lambda kv: -kv[1])],
                    "protocols within the bearing's limits (best first)", left=("protocol",))
         note(f"run: {sep.protocol}" + ("" if sep.separates else " (even that would not separate them clearly)"))
+        if sep.largest_current is not None:
+            note(f"it needs coil currents up to {sep.largest_current:.2f} A by these data's fitted models (coil "
+                 f"limit {sep.current_limit:g} A); watch them as it runs")
         record = {"verdict": dg.verdict, "candidates": list(dg.decision.candidates), "separate_by": sep.to_json()}
+        if plan_out is not None and sep.design is not None:
+            sep.design.steps().to_csv(plan_out, index=False)
+            note(f"its {len(sep.design)} steps: {plan_out}")
     if json_out is not None:
         write_json(record, json_out)
 
