@@ -280,8 +280,9 @@ def _numeric(df: pd.DataFrame, problems: _Problems):
         df[col] = num
     if "iteration" in df.columns:
         text = df["iteration"].astype(str).str.strip()
-        num = pd.to_numeric(text.where(text != "", None), errors="coerce")
-        problems.rows((text != "") & ~(np.isfinite(num) & (num == np.round(num))), "iteration must be an integer",
+        given = df["iteration"].notna() & (text != "")
+        num = pd.to_numeric(text.where(given, None), errors="coerce")
+        problems.rows(given & ~(np.isfinite(num) & (num == np.round(num))), "iteration must be an integer",
                       "iteration", df["iteration"])
 
 

@@ -333,5 +333,7 @@ def test_a_frames_missing_values_in_optional_columns_are_missing_not_errors():
     a file's empty cell is the empty string.  Both are a missing value, not a number that is not finite."""
     df = rig.simulate(rig.PAPER_RIG, P.rich(), seed=1).data
     df.loc[:5, "load_N"] = np.nan
+    df["iteration"] = df["iteration"].astype(float)
+    df.loc[7, "iteration"] = np.nan
     ds = D.check(df)
-    assert ds.frame["load_N"].isna().sum() == 6
+    assert ds.frame["load_N"].isna().sum() == 6 and ds.frame["iteration"].isna().sum() == 1

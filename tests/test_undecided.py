@@ -239,14 +239,27 @@ def test_the_protocols_scored_stay_where_the_readings_were_whatever_the_fitted_o
 
 
 def test_a_set_point_is_safe_when_every_centre_the_readings_allow_is_within_the_clearance():
-    """Readings on a 50 µm circle hold the stator's centre within 10 µm of the circle's (60 µm clearance): a point
-    45 µm out is at most 55 µm from any such centre, one 55 µm out may be 65 µm away, the middle 10 µm; readings
-    130 µm apart fit no centre, and their segment is what is left."""
+    """Readings on a 50 µm circle hold the stator's centre within 10.1 µm of the circle's (60 µm clearance): a point
+    48.5 µm out is at most 58.6 µm from any such centre, one 50.5 µm out may be 60.5 µm away, the middle 10.1 µm;
+    readings 130 µm apart fit no centre, and nothing is safe."""
     ring = 50e-6 * np.stack([np.cos(np.linspace(0, 2 * np.pi, 24)), np.sin(np.linspace(0, 2 * np.pi, 24))], axis=1)
-    safe = separation.safe_anywhere(np.array([[45e-6, 0.0], [55e-6, 0.0], [0.0, 0.0], [-30e-6, 30e-6]]), ring, 60e-6)
-    assert list(safe) == [True, False, True, True]
+    points = np.array([[48.5e-6, 0.0], [50.5e-6, 0.0], [0.0, 0.0], [-30e-6, 30e-6], [0.0, 55e-6]])
+    assert list(separation.safe_anywhere(points, ring, 60e-6)) == [True, False, True, True, False]
     apart = np.array([[-65e-6, 0.0], [65e-6, 0.0]])
-    assert list(separation.safe_anywhere(np.array([[0.0, 0.0], [0.0, 5e-6]]), apart, 60e-6)) == [True, False]
+    assert not np.any(separation.safe_anywhere(np.array([[0.0, 0.0], [0.0, 5e-6]]), apart, 60e-6))
+
+
+def test_readings_too_close_together_for_any_reach_get_a_sweep_at_their_own_set_points():
+    """Table 2's diagonal pairs leave the stator's centre anywhere in a wide region: no grid around them is safe
+    wherever it is, but a bias sweep where the rotor has already been is."""
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    runs = separation._protocols([_fitted(spec)], data, ambfit.PAPER_BEARING)
+    assert len(runs) == 1 and "already read" in runs[0][0]
+    design = runs[0][1]
+    read = {(round(v, 1), round(w, 1)) for v, w in data[["v_set_um", "w_set_um"]].to_numpy()}
+    assert {(round(v * 1e6, 1), round(w * 1e6, 1)) for v, w in zip(design.v_set, design.w_set)} <= read
+    assert not limit_violations(spec, design)
 
 
 def test_a_protocol_is_kept_within_the_coil_limit_by_every_candidates_model():

@@ -61,6 +61,18 @@ class Separation:
     current_read: float | None = None
     current_limit: float | None = None
 
+    def current_note(self) -> str | None:
+        """The largest coil current the protocol needs, in words (None when not measured)."""
+        if self.largest_current is None:
+            return None
+        said = (f"that protocol needs coil currents up to {self.largest_current:.2f} A by these data's fitted models, "
+                f"against the coil limit of {self.current_limit:g} A")
+        if self.current_read is not None and self.largest_current <= self.current_read:
+            return said
+        read = "" if self.current_read is None else \
+            f" beyond the largest these readings hold ({self.current_read:.2f} A),"
+        return said + f":{read} an extrapolation; watch the currents as it runs"
+
     def to_json(self) -> dict:
         out = {"protocol": self.protocol, "expected_log_bayes": self.expected_log_bayes,
                "on_these_data": self.on_these_data, "separates": self.separates, "protocols": dict(self.protocols)}
@@ -123,49 +135,70 @@ def _listed(values, most: int = 8) -> str:
 
 HEADROOM = 0.97
 """A protocol is kept when none of the candidates' models, as fitted to these data, drives a coil beyond this
-share of the coil current limit to run it (nor the ideal law at the first candidate's gap and origin).  The ideal
+share of the coil current limit to run it (nor the ideal law at the first candidate's gap, origin and k).  The ideal
 law alone is not enough: on the law zoo (seed 3131, ``benchmarks/separation_zoo.py``) a bias sweep to 80 % of a
 3 A limit under four loads needed 2.71-2.75 A by the ideal law and 3.03-3.5 A on the rigs that made the data
 (leakage, saturation), which the fitted laws of those families mostly see.  Beyond the readings' own currents their
-prediction is an extrapolation (one of that seed's 73 recommendations needed 3.03 A on its rig), hence the margin
-and the largest current reported (:attr:`Separation.largest_current`); the library's iron reluctance case
-(``tests/test_undecided.py``) separates only with its sweep at 2.4 A, 2.88 A of a 3 A limit."""
+prediction is an extrapolation (one of 73 recommendations checked by the ideal law alone needed 3.03 A on its rig,
+2.8 A by its candidates' laws), hence the margin and the largest current reported
+(:attr:`Separation.largest_current`).  The margin is set by the library's iron reluctance case
+(``tests/test_undecided.py``), which separates only with its sweep at 2.4 A: 2.88 A of a 3 A limit."""
 
 SWEEP_TOPS = (0.8, 0.7, 0.6, 0.5)
 """The bias sweep's top as a share of the coil current limit: the highest of these whose currents keep
 :data:`HEADROOM`."""
 
+REACH = 0.6
+"""The set-points' largest distance from the middle of the readings, as a share of the back-up clearance."""
+
 SPANS = (1.0, 0.75, 0.5, 0.35)
-"""The set-points' reach as a share of 60 % of the back-up clearance: the widest of these whose set-points are safe
+"""The set-points' reach as a share of :data:`REACH`: the widest of these whose set-points are safe
 wherever the stator's centre is, given the positions already read (:func:`safe_anywhere`)."""
 
-CENTRE_GRID = 1e-6
-"""Spacing [m] of the grid on which :func:`safe_anywhere` looks for the stator's possible centres; a set-point keeps
-this much more from the clearance."""
+CENTRE_CELLS = 60
+"""Cells across the back-up clearance of the grid on which :func:`safe_anywhere` looks for the stator's possible
+centres (1 µm on a 60 µm clearance); a set-point keeps one cell more from the clearance, which covers the grid's
+miss of the feasible region's edge (at most half a cell's diagonal)."""
+
+
+def _hull(points: np.ndarray) -> np.ndarray:
+    """The vertices of ``points``' convex hull (all of them when they are fewer than 3 or on one line): what a
+    farthest distance or a within-distance-of-all test of a convex set needs."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.unique(points, axis=0)
+    if len(pts) < 3:
+        return pts
+    try:
+        return pts[ConvexHull(pts).vertices]
+    except QhullError:                       # (on one line: its two ends)
+        along = (pts - pts.mean(axis=0)) @ np.linalg.svd(pts - pts.mean(axis=0))[2][0]
+        return pts[[int(np.argmin(along)), int(np.argmax(along))]]
 
 
 def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float) -> np.ndarray:
     """Whether each of ``points [n, 2]`` is within ``clearance`` of every centre the stator may have: every point
     within ``clearance`` of all the ``visited [m, 2]`` positions (the rotor was at each of them, so the centre was
-    within the clearance of each), all [m].  Wider than the positions' convex hull (a point beyond readings near the
-    rim can be safe), and safe whatever the fitted origin says.  Where no centre fits every position (readings
-    farther apart than the clearance's diameter: a reassembled rotor, a glitch), the convex hull
-    (:func:`ambfit.estimation.design.inside_visited`)."""
-    from ambfit.estimation.design import inside_visited
-
+    within the clearance of each; a sensor gain error shrinks or stretches that by its own share), all [m].  Wider
+    than the positions' convex hull (a point beyond readings near the rim can be safe), and safe whatever the fitted
+    origin says.  Where no centre is within the clearance of every position (readings farther apart than its
+    diameter: a reassembled rotor, a glitch), none is safe."""
     pts = np.asarray(points, float).reshape(-1, 2)
-    vis = np.unique(np.round(np.asarray(visited, float).reshape(-1, 2) / 1e-7) * 1e-7, axis=0)
+    vis = _hull(np.round(np.asarray(visited, float).reshape(-1, 2) / 1e-7) * 1e-7)
+    if not len(vis):
+        return np.zeros(len(pts), bool)
+    cell = clearance / CENTRE_CELLS
     mid = 0.5 * (vis.min(axis=0) + vis.max(axis=0))
-    axis = np.arange(-clearance, clearance + CENTRE_GRID, CENTRE_GRID)
-    grid = (mid[None, :] + np.stack(np.meshgrid(axis, axis), axis=-1).reshape(-1, 2))
-    grid = grid[np.hypot(*(grid - mid).T) <= clearance]
-    for chunk in np.array_split(vis, max(1, len(vis) // 64)):         # (centres within reach of every position)
-        grid = grid[np.all(np.hypot(grid[:, None, 0] - chunk[None, :, 0], grid[:, None, 1] - chunk[None, :, 1])
-                           <= clearance, axis=1)]
+    axis = np.arange(-clearance, clearance + cell, cell)
+    grid = mid[None, :] + np.stack(np.meshgrid(axis, axis), axis=-1).reshape(-1, 2)
+    # a centre within the clearance of the hull's vertices is within it of every position
+    grid = grid[np.all(np.hypot(grid[:, None, 0] - vis[None, :, 0], grid[:, None, 1] - vis[None, :, 1]) <= clearance,
+                       axis=1)]
     if not len(grid):
-        return inside_visited(pts, vis)
-    far = np.max(np.hypot(pts[:, None, 0] - grid[None, :, 0], pts[:, None, 1] - grid[None, :, 1]), axis=1)
-    return far <= clearance - CENTRE_GRID
+        return np.zeros(len(pts), bool)
+    edge = _hull(grid)                          # (the farthest point of the centres' convex region is a vertex)
+    far = np.max(np.hypot(pts[:, None, 0] - edge[None, :, 0], pts[:, None, 1] - edge[None, :, 1]), axis=1)
+    return far <= clearance - cell
 
 
 def _middle(df: pd.DataFrame) -> np.ndarray:
@@ -181,8 +214,8 @@ def _middle(df: pd.DataFrame) -> np.ndarray:
 
 def designs(df: pd.DataFrame, bearing, top: float = SWEEP_TOPS[0], span: float = SPANS[0]) -> dict:
     """The protocols scored, scaled to the bearing and centred where the readings were (:func:`_middle`):
-    ``{description: Protocol}`` (a bias sweep to ``top`` of the coil limit, set-points across ``span`` of 60 % of
-    the back-up clearance at these data's biases, the same biases as the sweep in shuffled order).
+    ``{description: Protocol}`` (a bias sweep to ``top`` of the coil limit, set-points across ``span`` of
+    :data:`REACH` of the back-up clearance at these data's biases, the same biases as the sweep in shuffled order).
 
     Not the fitted effective origin: it is where the forces balance, which an error in one coil's channel can move
     tens of µm from the stator's centre (on the law zoo a protocol centred there would have taken the rotor 62 µm
@@ -190,7 +223,7 @@ def designs(df: pd.DataFrame, bearing, top: float = SWEEP_TOPS[0], span: float =
     from ambfit.rig import protocol
 
     centre = tuple(_middle(df))
-    reach = span * 0.6 * bearing.backup_clearance / np.sqrt(2.0)
+    reach = span * REACH * bearing.backup_clearance / np.sqrt(2.0)
     biases = np.unique(np.round(df["bias_A"].to_numpy(float), 3))
     sweep = tuple(np.round(np.linspace(0.25, top, 6) * bearing.max_current, 3))
     kg = bearing.rotor_mass
@@ -212,11 +245,12 @@ def designs(df: pd.DataFrame, bearing, top: float = SWEEP_TOPS[0], span: float =
 
 
 def _protocols(models: list, df: pd.DataFrame, bearing) -> list[tuple[str, object, pd.DataFrame, float]]:
-    """Each of :func:`designs` (description, protocol) with its readings, simulated on a rig of these data's fitted
-    gap and origin (the ideal law: only where the readings fall matters), and the largest coil current it needs.
-    Its set-points are drawn in until they are safe wherever the stator's centre is (:data:`SPANS`,
-    :func:`safe_anywhere`), and its sweep lowered until every model of ``models`` (the candidates' fits), run on it at its own
-    fitted gap, origin and k, keeps the coil currents within :data:`HEADROOM`.  A protocol that cannot is left out."""
+    """Each of :func:`designs` (description, protocol) with its readings, simulated on a rig of the first model's
+    fitted gap, origin and k (the ideal law: only where the readings fall matters), and the largest coil current it
+    needs.  Its set-points are drawn in until they are safe wherever the stator's centre is (:data:`SPANS`,
+    :func:`safe_anywhere`), and its sweep lowered until every model of ``models`` (the candidates' fits), run on it
+    at its own fitted gap, origin and k, keeps the coil currents within :data:`HEADROOM`.  A protocol that cannot is
+    left out; when none can, a sweep at the set-points already read (:func:`_at_the_readings`)."""
     from ambfit.rig import virtual as rig
 
     def rig_of(fitted):
@@ -268,7 +302,35 @@ def _protocols(models: list, df: pd.DataFrame, bearing) -> list[tuple[str, objec
                     out.append((what, design, sim.data, needs[what]))
                     break
             break                            # (the widest reach among the readings, whatever its currents)
+    if not out:                              # (readings too close together for any reach: their own set-points)
+        for top in SWEEP_TOPS:
+            what, design = _at_the_readings(df, bearing, top)
+            need = largest(spec, design)
+            for m in (m for m in models if m.effects):
+                need = max(need, largest(rig_of(m), design, m.effects)) if need <= limit else need
+            if need <= limit:
+                sim = rig.simulate(spec, design, noise=rig.Noise(current=sigma[0], position=sigma[1]), seed=0,
+                                   thermometer=thermometer)
+                return [(what, design, sim.data, need)]
     return out
+
+
+def _at_the_readings(df: pd.DataFrame, bearing, top: float) -> tuple[str, object]:
+    """A bias sweep to ``top`` of the coil limit at the (at most 5) set-points already read nearest their middle,
+    under the loads of :func:`designs`: where the rotor has been, safe whatever the centre."""
+    from ambfit.rig import protocol
+
+    cols = [f"{a}_set_um" if f"{a}_set_um" in df and df[f"{a}_set_um"].notna().all() else f"{a}_um" for a in "vw"]
+    seen = df[cols].to_numpy(float) * 1e-6
+    seen = np.unique(np.round(seen[np.all(np.isfinite(seen), axis=1)] / 1e-7) * 1e-7, axis=0)
+    points = seen[np.argsort(np.hypot(*(seen - _middle(df)).T))[:5]]
+    first = next(iter(designs(df, bearing, top).values()))
+    names = list(dict.fromkeys(first.load_id))
+    sweep = tuple(np.round(np.linspace(0.25, top, 6) * bearing.max_current, 3))
+    design = protocol.concat(*(protocol.bias_sweep(sweep, [tuple(p) for p in points], loads=first.loads, load=name,
+                                                   experiment=f"sweep under {name}") for name in names))
+    return (f"a bias sweep {sweep[0]:g}-{sweep[-1]:g} A (up and down) at the {len(points)} set-point(s) already read "
+            f"nearest their middle, under {len(names)} known loads", design)
 
 
 def _noise_of(df: pd.DataFrame) -> tuple[float, float]:

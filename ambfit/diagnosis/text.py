@@ -183,13 +183,8 @@ def findings(dg) -> list[str]:
             out.append(f"to tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
                        f"for the weakest pair (these data: {sep.on_these_data:.1f})"
                        + ("" if sep.separates else "; even that would not separate them clearly"))
-            if sep.largest_current is not None:
-                beyond = sep.current_read is None or sep.largest_current > sep.current_read
-                out.append(f"that protocol needs coil currents up to {sep.largest_current:.2f} A by these data's "
-                           f"fitted models, against the coil limit of {sep.current_limit:g} A"
-                           + (f": beyond the largest these readings hold ({sep.current_read:.2f} A), an extrapolation; "
-                              "watch the currents as it runs" if beyond and sep.current_read is not None else
-                              ": an extrapolation; watch the currents as it runs" if beyond else ""))
+            if sep.current_note() is not None:
+                out.append(sep.current_note())
             drift = any("thermal_drift" in c.split("+") for c in dg.decision.candidates)
             if drift and sep.time_tied is not None and sep.time_tied > dg.rules.time_tied_r2:
                 out.append(f"the readings' time runs with the sweep (the set-points, biases and loads explain "

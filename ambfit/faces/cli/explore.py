@@ -198,7 +198,13 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | 
     except FitError as exc:
         fail(str(exc), 3)
     sep = dg.separation
-    if dg.verdict != "undecided" or sep is None:
+    if dg.verdict == "undecided" and sep is None:
+        note(f"undecided between {', '.join(dg.decision.candidates)}; no protocol within the bearing's limits "
+             "could be scored for them")
+        record = {"verdict": dg.verdict, "candidates": list(dg.decision.candidates), "separate_by": None}
+        if plan_out is not None:
+            note(f"no protocol to run: {plan_out} not written")
+    elif dg.verdict != "undecided":
         named = dg.decision.kind == "named"
         note(f"verdict: {dg.verdict}: nothing to tell apart" + (" (the data single it out)" if named else ""))
         if named and dg.confounded_with and occam != "none":
@@ -214,12 +220,13 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | 
                     for k, v in sorted(sep.protocols.items(), key=lambda kv: -kv[1])],
                    "protocols within the bearing's limits (best first)", left=("protocol",))
         note(f"run: {sep.protocol}" + ("" if sep.separates else " (even that would not separate them clearly)"))
-        if sep.largest_current is not None:
-            note(f"it needs coil currents up to {sep.largest_current:.2f} A by these data's fitted models (coil "
-                 f"limit {sep.current_limit:g} A); watch them as it runs")
+        if sep.current_note() is not None:
+            note(sep.current_note())
         record = {"verdict": dg.verdict, "candidates": list(dg.decision.candidates), "separate_by": sep.to_json()}
         if plan_out is not None and sep.design is not None:
-            sep.design.steps().to_csv(plan_out, index=False)
+            from ambfit._output import formula_safe, write_text
+
+            write_text(plan_out, formula_safe(sep.design.steps()).to_csv(index=False))
             note(f"its {len(sep.design)} steps: {plan_out}")
     if json_out is not None:
         write_json(record, json_out)
