@@ -252,10 +252,18 @@ def test_limit_violations_name_biases_and_coil_currents_beyond_the_limit():
 
 
 def test_a_protocols_steps_are_its_set_points_biases_and_loads_in_order():
+    """The steps a rig operator runs by are the steps the rig records: each step's set-points, biases, load, experiment
+    and time, as the contract CSV of that protocol holds them (a row per axis)."""
     p = P.rich(center=(10e-6, -5e-6))
     steps = p.steps()
+    data = rig.simulate(rig.PAPER_RIG, p, seed=0).data
     assert len(steps) == len(p) and list(steps["step"]) == list(range(1, len(p) + 1))
-    np.testing.assert_allclose(steps["v_set_um"], p.v_set * 1e6)
-    np.testing.assert_allclose(steps["bias_w_A"], p.bias_w)
-    np.testing.assert_allclose(steps["time_s"], p.time)
-    assert list(steps["load_v_N"]) == [p.loads[k].force_v for k in p.load_id]
+    for axis in ("v", "w"):
+        rows = data[data["axis"] == axis].reset_index(drop=True)
+        np.testing.assert_allclose(steps["v_set_um"], rows["v_set_um"], atol=1e-9)
+        np.testing.assert_allclose(steps["w_set_um"], rows["w_set_um"], atol=1e-9)
+        np.testing.assert_allclose(steps[f"bias_{axis}_A"], rows["bias_A"])
+        np.testing.assert_allclose(steps["time_s"], rows["time_s"])
+        assert list(steps["load_id"]) == list(rows["load_id"]) and list(steps["experiment"]) == list(rows["experiment"])
+        known = rows["load_N"].notna()
+        np.testing.assert_allclose(steps[f"load_{axis}_N"][known], rows["load_N"][known])
