@@ -19,6 +19,7 @@ the tie.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 
 import numpy as np
@@ -279,39 +280,49 @@ def _protocols(models: list, df: pd.DataFrame, bearing) -> list[tuple[str, objec
     if not len(visited):
         return []
     limit = HEADROOM * bearing.max_current
-    n_slots = len(designs(df, bearing))
-    out, needs = [], {}
-    for slot in range(n_slots):
-        for span in SPANS:
-            _, design = list(designs(df, bearing, SWEEP_TOPS[0], span).items())[slot]
-            if not np.all(safe_anywhere(np.stack([design.v_set, design.w_set], axis=1), visited,
-                                        bearing.backup_clearance)):
-                continue
-            for top in SWEEP_TOPS:
-                what, design = list(designs(df, bearing, top, span).items())[slot]
-                if what not in needs:        # (a protocol the sweep's top does not change is judged once)
-                    need = largest(spec, design)
-                    for m in (m for m in models if m.effects):
-                        if need > limit:
-                            break
-                        need = max(need, largest(rig_of(m), design, m.effects))
-                    needs[what] = need
-                if needs[what] <= limit:
-                    sim = rig.simulate(spec, design, noise=rig.Noise(current=sigma[0], position=sigma[1]), seed=0,
-                                       thermometer=thermometer)
-                    out.append((what, design, sim.data, needs[what]))
-                    break
-            break                            # (the widest reach among the readings, whatever its currents)
-    if not out:                              # (readings too close together for any reach: their own set-points)
-        for top in SWEEP_TOPS:
-            what, design = _at_the_readings(df, bearing, top)
+    needs = {}
+
+    def need_of(what, design) -> float:
+        """The largest coil current ``design`` needs by the ideal law and each model with effects (judged once per
+        description: a protocol the sweep's top does not change is the same protocol), stopping beyond the limit."""
+        if what not in needs:
             need = largest(spec, design)
             for m in (m for m in models if m.effects):
-                need = max(need, largest(rig_of(m), design, m.effects)) if need <= limit else need
-            if need <= limit:
-                sim = rig.simulate(spec, design, noise=rig.Noise(current=sigma[0], position=sigma[1]), seed=0,
-                                   thermometer=thermometer)
-                return [(what, design, sim.data, need)]
+                if need > limit:
+                    break
+                need = max(need, largest(rig_of(m), design, m.effects))
+            needs[what] = need
+        return needs[what]
+
+    def run(what, design) -> tuple:
+        sim = rig.simulate(spec, design, noise=rig.Noise(current=sigma[0], position=sigma[1]), seed=0,
+                           thermometer=thermometer)
+        return what, design, sim.data, needs[what]
+
+    listed = functools.cache(lambda top, span: list(designs(df, bearing, top, span).items()))
+
+    def safe(slot, span) -> bool:
+        """Whether the slot's set-points at ``span`` are safe wherever the stator's centre is (the top does not
+        move them)."""
+        design = listed(SWEEP_TOPS[0], span)[slot][1]
+        return bool(np.all(safe_anywhere(np.stack([design.v_set, design.w_set], axis=1), visited,
+                                         bearing.backup_clearance)))
+
+    out = []
+    for slot in range(len(listed(SWEEP_TOPS[0], SPANS[0]))):
+        span = next((span for span in SPANS if safe(slot, span)), None)
+        if span is None:
+            continue
+        # the widest reach among the readings, whatever its currents; the highest sweep within the headroom
+        tries = (listed(top, span)[slot] for top in SWEEP_TOPS)
+        chosen = next((entry for entry in tries if need_of(*entry) <= limit), None)
+        if chosen is not None:
+            out.append(run(*chosen))
+    if not out:                              # (readings too close together for any reach: their own set-points)
+        tries = (_at_the_readings(df, bearing, top) for top in SWEEP_TOPS)
+        chosen = next((entry for entry in tries if need_of(*entry) <= limit), None)
+        if chosen is not None:
+            return [run(*chosen)]
     return out
 
 

@@ -183,8 +183,8 @@ def findings(dg) -> list[str]:
             out.append(f"to tell them apart, run {sep.protocol}: expected log Bayes factor {sep.expected_log_bayes:.1f} "
                        f"for the weakest pair (these data: {sep.on_these_data:.1f})"
                        + ("" if sep.separates else "; even that would not separate them clearly"))
-            if sep.current_note() is not None:
-                out.append(sep.current_note())
+            if (current := sep.current_note()) is not None:
+                out.append(current)
             drift = any("thermal_drift" in c.split("+") for c in dg.decision.candidates)
             if drift and sep.time_tied is not None and sep.time_tied > dg.rules.time_tied_r2:
                 out.append(f"the readings' time runs with the sweep (the set-points, biases and loads explain "

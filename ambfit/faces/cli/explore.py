@@ -202,8 +202,6 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | 
         note(f"undecided between {', '.join(dg.decision.candidates)}; no protocol within the bearing's limits "
              "could be scored for them")
         record = {"verdict": dg.verdict, "candidates": list(dg.decision.candidates), "separate_by": None}
-        if plan_out is not None:
-            note(f"no protocol to run: {plan_out} not written")
     elif dg.verdict != "undecided":
         named = dg.decision.kind == "named"
         note(f"verdict: {dg.verdict}: nothing to tell apart" + (" (the data single it out)" if named else ""))
@@ -211,8 +209,6 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | 
             note(f"{', '.join(dg.confounded_with)} explain these data too but did not count as rivals (more "
                  "flexible, or naming more families); --occam none weighs every other family's model")
         record = {"verdict": dg.verdict, "candidates": [], "separate_by": None}
-        if plan_out is not None:
-            note(f"no protocol to run: {plan_out} not written")
     else:
         note(f"undecided between {', '.join(dg.decision.candidates)}; these data: expected log Bayes factor "
              f"{sep.on_these_data:.1f} for the weakest pair")
@@ -220,14 +216,18 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | 
                     for k, v in sorted(sep.protocols.items(), key=lambda kv: -kv[1])],
                    "protocols within the bearing's limits (best first)", left=("protocol",))
         note(f"run: {sep.protocol}" + ("" if sep.separates else " (even that would not separate them clearly)"))
-        if sep.current_note() is not None:
-            note(sep.current_note())
+        if (current := sep.current_note()) is not None:
+            note(current)
         record = {"verdict": dg.verdict, "candidates": list(dg.decision.candidates), "separate_by": sep.to_json()}
-        if plan_out is not None and sep.design is not None:
+    if plan_out is not None:
+        plan = sep.design if record["separate_by"] is not None else None
+        if plan is None:
+            note(f"no protocol to run: {plan_out} not written")
+        else:
             from ambfit._output import formula_safe, write_text
 
-            write_text(plan_out, formula_safe(sep.design.steps()).to_csv(index=False))
-            note(f"its {len(sep.design)} steps: {plan_out}")
+            write_text(plan_out, formula_safe(plan.steps()).to_csv(index=False))
+            note(f"its {len(plan)} steps: {plan_out}")
     if json_out is not None:
         write_json(record, json_out)
 
