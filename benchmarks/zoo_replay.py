@@ -37,7 +37,8 @@ def _light(model):
     if isinstance(model, Signature):
         return Signature(law=_light(model.law), groups=model.groups, log_bayes=dict(model.log_bayes),
                          heldout_z=np.asarray(model.heldout_z), folds=(), full=None,
-                         heldout_var=None if model.heldout_var is None else np.asarray(model.heldout_var))
+                         heldout_var=None if model.heldout_var is None else np.asarray(model.heldout_var),
+                         widens=model.widens)
     return Candidate(effect=model.effect, heldout_z=np.asarray(model.heldout_z), before=model.before, fit=None,
                      kind=model.kind,
                      heldout_var=None if model.heldout_var is None else np.asarray(model.heldout_var))
@@ -85,7 +86,7 @@ def load(into: Path) -> list[dict]:
 
 def verdict_of(draw: dict, rules):
     """The verdict ``rules`` give ``draw``'s stored scores (None when the diagnosis stopped with an error)."""
-    from ambfit.diagnosis.verdict import decide, needs_pairs
+    from ambfit.diagnosis.verdict import decide, needs_pairs, needs_widened_pairs
 
     if draw["error"] is not None:
         return None
@@ -93,6 +94,8 @@ def verdict_of(draw: dict, rules):
     singles = [c for c in cands if c.kind == "law"]
     keep = needs_pairs(rules, draw["ideal"], singles, draw["structured"])
     cands = [c for c in cands if c.kind != "pair" or keep]
+    if not needs_widened_pairs(rules, draw["ideal"], [c for c in cands if c.kind != "widened_pair"]):
+        cands = [c for c in cands if c.kind != "widened_pair"]
     return decide(rules, draw["ideal"], cands, structured=draw["structured"])
 
 

@@ -1,6 +1,8 @@
 """A family named by its signature whatever its law (issue 23): the basis groups, the verdict's thresholds, and the
 diagnosis on laws other than the library's."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -268,3 +270,28 @@ def test_the_signature_is_wanted_on_the_folds_rows_and_only_refitted_when_they_d
     seen = fit_discrepancy(cut.fit, data, groups=groups, mask=seen_rows(cut.fit, np.ones(len(data), bool)))
     assert sig.log_bayes == seen.log_bayes != sig.full.log_bayes
     assert widened(cut, data, groups, {}, wanted=False).log_bayes == sig.full.log_bayes
+
+
+def test_a_pair_with_one_law_widened_reaches_a_law_the_library_lacks_beside_a_second_effect(design):
+    """A play much wider than the library's beside a drift: the library's pair leaves the play, the pair with its
+    hysteresis widened by the family's signature (the drift's law beside it) predicts the held-out readings
+    clearly better; each of the pair's families is widened in turn."""
+    from ambfit.diagnosis.scoring import Scorer
+    from ambfit.diagnosis.threads import _Each
+    from ambfit.diagnosis.verdict import Judge, Rules
+
+    rng = np.random.default_rng(11)
+    data = laws.as_recorded(rig.simulate(rig.PAPER_RIG, design, [laws.MinorLoopHysteresis.random(rng),
+                                                                  E.ThermalDrift.random(rng)], seed=rng).data)
+    with _Each(2) as each:
+        scorer = Scorer(data, ambfit.fit(data), bearing=PAPER_BEARING, noise={}, max_steps=60, each=each)
+        ideal, pair = scorer.laws([(), (E.Hysteresis(), E.ThermalDrift())])
+        pair = dataclasses.replace(pair, before=ideal.after)
+        both = scorer.widened_pairs([pair])
+    by = {s.family: s for s in both}
+    assert sorted(by) == ["hysteresis", "thermal_drift"] and all(s.kind == "widened_pair" for s in both)
+    hyst = by["hysteresis"]
+    assert hyst.families == ("hysteresis", "thermal_drift") and hyst.groups == FAMILY_GROUPS["hysteresis"]
+    assert hyst.to_json(True)["with"] == "thermal_drift"
+    judge = Judge(len(ideal.heldout_z), ideal.score, Rules())
+    assert judge.clearly_better(hyst, pair) and hyst.score < pair.score

@@ -17,7 +17,7 @@ import pytest
 from ambfit.diagnosis import text
 from ambfit.diagnosis.heldout import Candidate
 from ambfit.diagnosis.signatures import Signature
-from ambfit.diagnosis.verdict import Judge, Rules, Verdict, decide, needs_pairs, needs_signatures
+from ambfit.diagnosis.verdict import Judge, Rules, Verdict, decide, needs_pairs, needs_signatures, needs_widened_pairs
 from ambfit.estimation.basis import FAMILY_GROUPS
 
 N = 800
@@ -46,6 +46,14 @@ def widened(family: str, extra: float, law_extra: float, groups=("shape",), log_
     own = law(family, law_extra, start=start)
     return Signature(law=own, groups=tuple(groups), log_bayes={groups[0]: log_bayes},
                      heldout_z=_z(extra, sum(map(ord, family)) + 7), folds=(), full=None)
+
+
+def widened_pair(pair: str, family: str, extra: float, pair_extra: float, start: Candidate) -> Signature:
+    """The pair ``pair`` with ``family``'s law widened by its signature."""
+    own = law(pair, pair_extra, start=start)
+    groups = FAMILY_GROUPS[family]
+    return Signature(law=own, groups=groups, log_bayes={groups[0]: 50.0},
+                     heldout_z=_z(extra, sum(map(ord, pair + family)) + 11), folds=(), full=None, widens=family)
 
 
 def test_judge_thresholds_follow_the_standard_error_of_a_mean_of_squares():
@@ -186,6 +194,58 @@ def test_a_pair_is_tried_when_no_single_explains_and_named_when_it_beats_the_res
     assert decide(Rules(occam=False), start, [single, pair, quiet]).name == "saturation+current_offset"
 
 
+def test_a_pair_with_one_law_widened_is_tried_only_when_nothing_simpler_explains():
+    start = ideal(30.0)
+    laws = [law("hysteresis", 3.0, start=start), law("thermal_drift", 5.0, start=start)]
+    pair = law("hysteresis+thermal_drift", 0.6, start=start)
+    hyst = widened("hysteresis", 0.6, 3.0, groups=FAMILY_GROUPS["hysteresis"], start=start)
+    both = widened_pair("hysteresis+thermal_drift", "hysteresis", 0.0, 0.6, start)
+    assert both.kind == "widened_pair" and both.families == ("hysteresis", "thermal_drift")
+    assert both.family == "hysteresis" and both.second == "thermal_drift"
+    assert both.model == "hysteresis widened by its hysteresis+memory+fading signature, with thermal_drift"
+    on = Rules(widened_pairs=True)
+    assert needs_widened_pairs(on, start, laws + [pair, hyst])
+    assert not needs_widened_pairs(Rules(), start, laws + [pair, hyst])          # not tried by default
+    assert not needs_widened_pairs(on, start, laws + [hyst])                     # no pairs were scored
+    v = decide(on, start, laws + [pair, hyst, both])
+    assert v.name == "hysteresis+thermal_drift" and v.grade.by == "widened_pair" and v.best is both
+    assert decide(Rules(), start, laws + [pair, hyst, both]).kind == "unexplained"
+    # a widened law that explains the data: no pair is widened
+    assert not needs_widened_pairs(on, start, laws + [pair, widened("hysteresis", 0.0, 3.0,
+                                                                     groups=FAMILY_GROUPS["hysteresis"], start=start)])
+
+
+def test_a_model_naming_fewer_families_takes_the_place_of_one_that_explains_only_when_it_explains_too():
+    start = ideal(30.0)
+    pair = law("saturation+current_offset", 0.1, start=start)
+    single = law("saturation", 0.2, start=start)
+    judge = Judge(N, start.score)
+    assert judge.explains(pair) and not judge.explains(single) and not judge.clearly_better(pair, single)
+    v = decide(Rules(minimal_explains=True), start, [single, pair])
+    assert v.kind == "undecided" and set(v.candidates) == {"saturation+current_offset", "saturation"}
+    assert v.shared == ("saturation",)
+    assert decide(Rules(), start, [single, pair]).name == "saturation"         # the default names it, graded
+    # one that explains too replaces it
+    near = law("saturation", 0.05, start=start)
+    assert judge.explains(near) and decide(Rules(minimal_explains=True), start, [near, pair]).name == "saturation"
+
+
+def test_sibling_rivals_lets_a_flux_familys_widened_law_rival_a_siblings_law_it_does_not_beat():
+    start = ideal(10.0)
+    sat = law("saturation", 0.0, start=start)
+    fringing = widened("fringing", 0.05, 3.0, start=start)           # explains, behind the law, not clearly
+    judge = Judge(N, start.score)
+    assert judge.explains(fringing) and not judge.clearly_better(sat, fringing) and not judge.ahead(fringing, sat)
+    assert decide(Rules(), start, [sat, fringing.law, fringing]).name == "saturation"
+    v = decide(Rules(sibling_rivals=True), start, [sat, fringing.law, fringing])
+    assert v.kind == "undecided" and v.candidates == ("saturation", "fringing")
+    # the current channels' signature holds an offset per coil: a current offset's law stays named
+    offset = law("current_offset", 0.0, start=start)
+    gain = widened("current_gain", 0.05, 3.0, groups=("current_sensor",), start=start)
+    assert judge.explains(gain) and not judge.clearly_better(offset, gain)
+    assert decide(Rules(sibling_rivals=True), start, [offset, gain.law, gain]).name == "current_offset"
+
+
 def test_a_clear_signature_names_its_family_when_no_law_explains():
     start = ideal(10.0)
     laws = [law("hysteresis", 5.0, start=start), law("saturation", 4.0, start=start)]
@@ -317,7 +377,8 @@ def test_rules_are_one_object_and_every_threshold_moves_a_decision():
     assert {f.name for f in dataclasses.fields(Rules)} == {
         "floor_tolerance", "floor_se", "margin_se", "graded_shrink", "graded_remainder", "spread_max", "log_bayes_clear",
         "structure_alpha", "circuit_dchi2", "ahead_se", "separate_log_bayes", "time_tied_r2", "occam", "pairs",
-        "pair_verdict", "confident_var", "untested_siblings", "name_shared", "set_aside"}
+        "pair_verdict", "confident_var", "untested_siblings", "name_shared", "set_aside", "sibling_rivals",
+        "minimal_explains", "widened_pairs"}
     assert not needs_pairs(Rules(pairs=False), start, [a], structured=False)
 
 

@@ -35,7 +35,7 @@ from ambfit.diagnosis.results import Diagnosis
 from ambfit.diagnosis.scoring import Scorer
 from ambfit.diagnosis.separation import separate_by
 from ambfit.diagnosis.threads import _Each
-from ambfit.diagnosis.verdict import Judge, Rules, decide, needs_pairs, needs_signatures
+from ambfit.diagnosis.verdict import Judge, Rules, decide, needs_pairs, needs_signatures, needs_widened_pairs
 from ambfit.estimation.fit import fit
 from ambfit.estimation.results import FitResult
 from ambfit.physics.bearing import PAPER_BEARING, Bearing
@@ -281,6 +281,10 @@ def _diagnose(scorer: Scorer, cands: list, rules: Rules, *, check_force: bool, d
     # library's, which a library law that explains must still beat
     sigs = scorer.signatures(sorted(singles, key=lambda c: c.score)) if needs_signatures(rules, ideal, structured) \
         else []
+    # with pairs: each pair with one of its families' laws widened by its signature (a law other than the library's
+    # beside a second effect)
+    if needs_widened_pairs(rules, ideal, singles + pairs + sigs):
+        sigs = sigs + scorer.widened_pairs(pairs)
     # decide
     verdict = decide(rules, ideal, singles + pairs + sigs, structured=structured)
     ranking = sorted(singles + pairs, key=lambda c: c.score)

@@ -113,7 +113,7 @@ def force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True
     if with_effects:
         jobs.append((verdict_fit.effects, verdict_fit, discrepancy, step_budget(verdict_fit.effects, max_steps),
                      fitted.get(verdict_fit.model, ())))
-    widened = best is not None and best.kind == "signature"
+    widened = best is not None and best.kind in ("signature", "widened_pair")
     best_fit = best.law.fit if widened else best.fit if best is not None else None
     if best_fit is not None and best_fit.effects:
         jobs.append((best_fit.effects, best_fit, best.groups if widened else False,

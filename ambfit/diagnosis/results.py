@@ -116,7 +116,7 @@ class Diagnosis:
         """When the verdict's family was named by its signature, that widened law
         (:class:`~ambfit.diagnosis.signatures.Signature`: how much the library's law leaves); else None."""
         model = self.decision.model
-        return model if model is not None and model.kind == "signature" else None
+        return model if model is not None and model.kind in ("signature", "widened_pair") else None
 
     @property
     def judge(self) -> Judge:

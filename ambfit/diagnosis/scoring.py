@@ -3,7 +3,8 @@
 :class:`Scorer` holds what the scores of one data set share (the table, its folds and load groups, the noise, the
 bearing, the step budget, the threads) and turns models into typed records: :meth:`Scorer.laws` library laws and
 pairs of them (:class:`~ambfit.diagnosis.heldout.Candidate`), :meth:`Scorer.signatures` each family's law widened
-by its signature (:class:`~ambfit.diagnosis.signatures.Signature`).  Deciding among them is
+by its signature and :meth:`Scorer.widened_pairs` each pair with one of its laws so widened
+(:class:`~ambfit.diagnosis.signatures.Signature`).  Deciding among them is
 :func:`ambfit.diagnosis.verdict.decide`'s.
 
 A model's fold refits are single fits started from its fit of every row, two at a time on threads (each compiled
@@ -137,4 +138,13 @@ class Scorer:
         own = [c for c in laws if c.effect in FAMILY_GROUPS and c.folds]
         tasks = [functools.partial(widened, c, self.df, FAMILY_GROUPS[c.effect], self.noise, scored=self.scored)
                  for c in own]
+        return sorted(self.each(lambda task: task(), tasks), key=lambda s: s.score)
+
+    def widened_pairs(self, pairs: list[Candidate]) -> list[Signature]:
+        """Each pair of laws widened by each of its families' signatures in turn (a family whose law differs from
+        the library's, beside a second effect the library's law describes), best first."""
+        from ambfit.estimation.basis import FAMILY_GROUPS
+
+        tasks = [functools.partial(widened, c, self.df, FAMILY_GROUPS[f], self.noise, scored=self.scored, widens=f)
+                 for c in pairs if c.folds for f in c.families if f in FAMILY_GROUPS]
         return sorted(self.each(lambda task: task(), tasks), key=lambda s: s.score)

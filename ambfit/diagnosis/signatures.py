@@ -40,6 +40,9 @@ class Signature:
         correction, whose coefficients with the law's parameters reproduce it (``largest_terms`` of the record).
     heldout_var : array or None
         Each held-out reading's predictive variance (the law's parameters and the correction's coefficients).
+    widens : str or None
+        When ``law`` is a pair of laws, the family whose signature widens it (the other's law is the second effect);
+        None for a single law.
     """
 
     law: Candidate
@@ -49,20 +52,32 @@ class Signature:
     folds: tuple
     full: object
     heldout_var: np.ndarray | None = None
+    widens: str | None = None
 
-    kind = "signature"
+    @property
+    def kind(self) -> str:
+        """``signature`` (a family's law widened), or ``widened_pair`` (one family of a pair widened, the other's
+        library law beside it)."""
+        return "signature" if self.widens is None else "widened_pair"
 
     @property
     def family(self) -> str:
-        return self.law.effect
+        """The widened family."""
+        return self.law.effect if self.widens is None else self.widens
 
     @property
     def families(self) -> tuple[str, ...]:
-        return (self.family,)
+        return tuple(self.law.families)
+
+    @property
+    def second(self) -> str | None:
+        """A widened pair's other family (None for a single law)."""
+        return None if self.widens is None else next(f for f in self.law.families if f != self.widens)
 
     @property
     def model(self) -> str:
-        return f"{self.family} widened by its {'+'.join(self.groups)} signature"
+        text = f"{self.family} widened by its {'+'.join(self.groups)} signature"
+        return text if self.widens is None else f"{text}, with {self.second}"
 
     label = model
 
@@ -90,7 +105,8 @@ class Signature:
 
     def to_json(self, clear: bool) -> dict:
         """The record; ``clear``: whether the data clearly want the signature (:meth:`Judge.clear`)."""
-        return {"family": self.family, "signature": "+".join(self.groups),
+        return {"family": self.family, **({"with": self.second} if self.widens is not None else {}),
+                "signature": "+".join(self.groups),
                 "log_bayes": self.log_bayes_max, "log_bayes_groups": self.log_bayes,
                 "signature_clear": clear, "heldout_excess_after": self.after, "shrink": self.shrink,
                 "score": self.score, "library_law_shrink": self.law.shrink, "library_law_leaves": 1.0 - self.law.shrink,
@@ -100,12 +116,14 @@ class Signature:
                 "largest_terms": self.full.largest(3)}
 
 
-def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=None) -> Signature:
+def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=None,
+            widens: str | None = None) -> Signature:
     """``law`` widened by the discrepancy ``groups``: fitted on each fold's other rows (every reading with a finite
     residual, the law's outliers among them, its parameters refitted to them, linearised), scored on the fold; and
     on the rows the law's fit of every row used (``full``, the saved correction).  ``scored`` (bool per row, default
     every row): the readings that count, in the corrections and the scores (:func:`ambfit.diagnosis.heldout.
-    gross_errors` leaves out those no model at the floor fits).
+    gross_errors` leaves out those no model at the floor fits).  ``widens``: for a pair of laws, the family whose
+    signature ``groups`` is.
 
     ``log_bayes`` (how much the data want the signature) is measured on the rows the folds' corrections learn from,
     the outliers too, so that it asks of the signature what the held-out test does; ``wanted=False`` skips that
@@ -139,5 +157,5 @@ def widened(law: Candidate, df, groups, noise, *, wanted: bool = True, scored=No
         log_bayes = full.log_bayes
     var = np.concatenate(vs)
     return Signature(law=law, groups=tuple(groups), log_bayes=log_bayes, heldout_z=np.concatenate(zs),
-                     folds=tuple(folds_), full=full, heldout_var=var)
+                     folds=tuple(folds_), full=full, heldout_var=var, widens=widens)
 

@@ -71,7 +71,8 @@ def _headline(dg) -> str:
             f" (the closest, {g.model}, leaves {g.remainder:.2f} noise units)" if g is not None else "")
     text = f"verdict: {dg.verdict}"
     if g is not None:
-        how = {"law": "the library's law", "pair": "a pair of laws", "signature": "its law widened by its signature"}
+        how = {"law": "the library's law", "pair": "a pair of laws", "signature": "its law widened by its signature",
+               "widened_pair": "a pair with one law widened by its signature"}
         text += (f" ({how.get(g.by, g.by)} {g.model}: removes {g.removes:.3f} of the held-out excess, "
                  + ("at the noise floor)" if g.at_floor else f"leaves {g.remainder:.2f} noise units)"))
     return text

@@ -156,6 +156,37 @@ class Rules:
         widened law.  On the law zoo's stored scores (seeds 3131, 9191 and 4242, 900 draws) "readings" turns 5
         ``unexplained`` drifts into right verdicts and 1 into a wrong claim (a drift named beside a current offset no
         library law of the pair found); everything else alike (``reports/gap/rules.md``).
+    sibling_rivals : bool
+        With :attr:`occam` "all" or "siblings": a law widened by the flux families' shared ``shape`` signature, of
+        another flux family than the library law that explains the data, rivals that law when it explains the data
+        too and is not clearly worse, ahead of it or not (the law beats its sibling's library law, not its broader
+        forms, which the widened law stands for; the current channels' signature is left to Occam, since it holds an
+        offset per coil: an offset's law is one of its forms).  On the law zoo's stored scores (seeds 3131 and 9191,
+        384 draws; ``benchmarks/zoo_replay.py``) it turns 4 wrong claims (a position gain named fringing, an iron
+        reluctance named leakage, a saturation beside a current offset named leakage with it, a saturation beside a
+        current gain named alone) and 4 right verdicts (saturation, against leakage or fringing widened) into
+        ``undecided``: right 45.1 → 44.0 %, wrong claims 4.4 → 3.4 %.  Off by default: on the rig's own laws
+        (``benchmarks/gap_attribution.py``, 3 sets per effect) every flux family's library law, exact there, is
+        mimicked by a sibling's widened law, and 5 of 9 (3 saturations, an iron reluctance, a leakage) turn
+        ``undecided``: top-1 0.90 → 0.67 (``reports/gap/rules.md``).
+    minimal_explains : bool
+        A model naming fewer families than the simplest that explains the data (a law against a pair, say) takes
+        its place only when it explains them too: one short of the floor leaves both, ``undecided`` with the family
+        they share (:attr:`Verdict.shared`).  False (the default): the fewer families are named, graded short of the
+        floor, whether they explain or not.  On the law zoo's stored scores (seeds 3131 and 9191, 384 draws) one
+        right verdict (a hysteresis whose widened law fell short beside pairs that explain) and one wrong claim (a
+        cross coupling named beside an iron reluctance) turn ``undecided``; on the rig's own laws
+        (``benchmarks/gap_attribution.py``, 3 sets per effect) a leakage law short of the floor turns ``undecided``
+        among leakage and every second family beside it (top-1 0.90 → 0.86): when any second law reaches the floor
+        beside it, the pairs' freedom is what reaches it, not a second effect.
+    widened_pairs : bool
+        Score each pair with one of its laws widened by its family's signature (a law other than the library's
+        beside a second effect) when pairs were scored and no law, pair or widened law explains the data
+        (:func:`needs_widened_pairs`).  Off by default: on the law zoo's study seed 3131 (300 draws) it names 2
+        pairs right that were ``unexplained``, and makes 5 wrong claims: 4 pairs named by one family whose widened
+        law alone, short of the floor, is not clearly worse than the widened pair (:attr:`minimal_explains` makes
+        them ``undecided``, and 3 singles named short of the floor with them), and a mechanical spring (no family)
+        named ``leakage+current_offset``: right 45.7 → 46.0 %, wrong claims 5.0 → 6.7 %.
     pairs : bool
         Try pairs of effects when no single one explains the data.
     pair_verdict : bool
@@ -179,6 +210,9 @@ class Rules:
     untested_siblings: bool = True
     name_shared: bool = False
     set_aside: str = "readings"
+    sibling_rivals: bool = False
+    minimal_explains: bool = False
+    widened_pairs: bool = False
     pairs: bool = True
     pair_verdict: bool = True
 
@@ -290,8 +324,8 @@ class Judge:
 class Grade:
     """What a verdict's model removes and what it leaves: noise units, at the floor or not, explaining or not.
 
-    ``by`` is how the model was found: a library ``law``, a ``pair`` of laws, or a law widened by its family's
-    ``signature``."""
+    ``by`` is how the model was found: a library ``law``, a ``pair`` of laws, a law widened by its family's
+    ``signature``, or a pair with one law so widened (``widened_pair``)."""
 
     model: str
     families: tuple
@@ -399,6 +433,14 @@ def needs_pairs(rules: Rules, ideal, singles: list, structured: bool) -> bool:
     return not any(judge.explains(c) for c in singles)
 
 
+def needs_widened_pairs(rules: Rules, ideal, models: list) -> bool:
+    """Whether pairs with one law widened by its signature are to be scored: the pairs were scored (no single law
+    explains the data) and no law, pair or widened law explains them."""
+    judge = Judge(len(ideal.heldout_z), ideal.score, rules)
+    return rules.widened_pairs and any(c.kind == "pair" for c in models) and not any(
+        judge.explains(c) and (c.kind != "signature" or judge.clear(c)) for c in models)
+
+
 def needs_signatures(rules: Rules, ideal, structured: bool) -> bool:
     """Whether the families' laws widened by their signatures are to be scored: whenever the ideal law is off the
     floor.  A law that explains the data must still be told from another family whose law differs from the
@@ -407,8 +449,12 @@ def needs_signatures(rules: Rules, ideal, structured: bool) -> bool:
     return not on_floor(rules, ideal, structured)
 
 
-TIERS = ("law", "pair", "signature")
-"""Models by flexibility: a library law, a pair of them, a family's law widened by its signature."""
+TIERS = ("law", "pair", "signature", "widened_pair")
+"""Models by flexibility: a library law, a pair of them, a family's law widened by its signature, a pair with one
+of its laws so widened."""
+
+WIDENED = ("signature", "widened_pair")
+"""The kinds of model widened by a signature."""
 
 
 def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -> Verdict:
@@ -421,8 +467,8 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
     ideal : Candidate
         The ideal law's held-out score.
     candidates : list
-        Scored models: library laws and pairs (``kind`` ``"law"`` / ``"pair"``) and widened laws (``kind``
-        ``"signature"``), their held-out residuals on the same readings as the ideal law's, in the order they
+        Scored models: library laws and pairs (``kind`` ``"law"`` / ``"pair"``), widened laws (``kind``
+        ``"signature"``) and widened pairs (``"widened_pair"``, used with :attr:`Rules.widened_pairs`), their held-out residuals on the same readings as the ideal law's, in the order they
         were scored (ties keep it).
     structured : bool
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
@@ -441,10 +487,12 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
     # share that freedom: their held-out scores do not test them, and none is used.  Slow terms (time, temperature)
     # are alike for readings close in time and cannot follow a reading's noise (below the floor, such a law is only
     # no candidate)
-    unjudged = tuple(c.label for c in candidates if c.kind == "signature" and judge.clear(c) and judge.below_floor(c)
+    if not rules.widened_pairs:
+        candidates = [c for c in candidates if c.kind != "widened_pair"]
+    unjudged = tuple(c.label for c in candidates if c.kind in WIDENED and judge.clear(c) and judge.below_floor(c)
                      and not _slow(rules, c))
     if unjudged:
-        candidates = [c for c in candidates if c.kind != "signature" or _slow(rules, c)]
+        candidates = [c for c in candidates if c.kind not in WIDENED or _slow(rules, c)]
     verdict = _decide(judge, ideal, candidates, structured)
     if unjudged and rules.untested_siblings:
         verdict = _with_untested_siblings(verdict, candidates)
@@ -481,7 +529,7 @@ def _with_untested_siblings(verdict: Verdict, laws: list) -> Verdict:
 def _decide(judge: Judge, ideal, candidates: list, structured: bool) -> Verdict:
     """:func:`decide` on the models that take part."""
     rules = judge.rules
-    usable = [c for c in candidates if not judge.below_floor(c) and (c.kind != "signature" or judge.clear(c))
+    usable = [c for c in candidates if not judge.below_floor(c) and (c.kind not in WIDENED or judge.clear(c))
               and (c.kind != "pair" or rules.pair_verdict)]
     usable.sort(key=lambda c: c.score)
     # on the floor; or a little above it, with no model predicting the held-out readings clearly better
@@ -527,17 +575,21 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
     rivals = [c for c in best_of.values() if not judge.clearly_better(top, c) and not (
         _occam(judge.rules, top, c) and not judge.clearly_better(c, top)
         and not (judge.explains(c) and judge.ahead(c, top)))]
-    if top.kind == "signature":
+    if top.kind in WIDENED:
         # any family's widened law on the same signature, its best model or not (its own law may score lower)
         held = {frozenset(top.families)} | {frozenset(r.families) for r in rivals}
         for c in usable:
-            if (c.kind == "signature" and c.groups == top.groups and judge.explains(c)
+            if (c.kind == top.kind and c.groups == top.groups and judge.explains(c)
                     and frozenset(c.families) not in held):
                 rivals.append(c)
                 held.add(frozenset(c.families))
     group = [top, *sorted(rivals, key=lambda c: c.score)]
     sets = [frozenset(c.families) for c in group]
-    minimal = [c for c, fams in zip(group, sets) if not any(other < fams for other in sets)]
+    # a model naming fewer families takes a rival's place only when it explains the data as well (when ``top``
+    # does): one that falls short leaves both, the data wanting the extra family or not
+    fewer = [fams for c, fams in zip(group, sets) if judge.explains(c) or not judge.explains(top)
+             or not judge.rules.minimal_explains]
+    minimal = [c for c, fams in zip(group, sets) if not any(other < fams for other in fewer)]
     core = frozenset.intersection(*sets)
     extra = tuple(dict.fromkeys("+".join(c.families) for c in group if frozenset(c.families) != core))
     if len(minimal) == 1 or (core and judge.rules.name_shared):
@@ -546,9 +598,9 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
         confounded = [n for n in dict.fromkeys(list(extra) + _confounded(judge, named, usable))
                       if n != "+".join(families)]
         return Verdict("named", model=named, families=families, confounded_with=tuple(confounded),
-                       grade=judge.grade(named), shrink=named.shrink, best=named if named.kind == "signature" else None)
+                       grade=judge.grade(named), shrink=named.shrink, best=named if named.kind in WIDENED else None)
     return Verdict("undecided", model=top, grade=judge.grade(top), shrink=top.shrink,
-                   best=top if top.kind == "signature" else None,
+                   best=top if top.kind in WIDENED else None,
                    candidates=tuple("+".join(c.families) for c in minimal),
                    shared=tuple(f for f in top.families if f in core))
 
@@ -558,11 +610,16 @@ def _occam(rules: Rules, top, other) -> bool:
     (``Rules.occam``): with ``"siblings"``, when it is a widened law on a signature of ``top``'s families."""
     if TIERS.index(other.kind) <= TIERS.index(top.kind) or rules.occam == "none":
         return False
+    if rules.sibling_rivals and other.kind == "signature" and top.kind not in WIDENED and other.groups == ("shape",):
+        from ambfit.estimation.basis import FAMILY_GROUPS
+
+        if other.groups in {FAMILY_GROUPS.get(f) for f in top.families}:
+            return False
     if rules.occam == "all":
         return True
     from ambfit.estimation.basis import FAMILY_GROUPS
 
-    return other.kind == "signature" and other.groups in {FAMILY_GROUPS.get(f) for f in top.families}
+    return other.kind in WIDENED and other.groups in {FAMILY_GROUPS.get(f) for f in top.families}
 
 
 def _confounded(judge: Judge, model, others: list) -> list[str]:
