@@ -3,10 +3,11 @@
 ``collect`` diagnoses the zoo's draws (:func:`ambfit.rig.zoo.draw`, each from its own seed as
 ``benchmarks/gap_zoo.py`` does) up to the decision and stores what :func:`ambfit.diagnosis.verdict.decide` is given:
 the ideal law's held-out score, every library law's, every pair's (scored whenever the ideal law is off the floor,
-so that rules deciding when pairs are needed can be replayed too) and every widened law's, each reduced to its
-held-out residuals and predictive variances.  ``replay`` applies :class:`~ambfit.diagnosis.verdict.Rules` to them,
-gating the pairs with :func:`~ambfit.diagnosis.verdict.needs_pairs` as the diagnosis does, and scores each verdict
-with ``gap_zoo.score``.
+so that rules deciding when pairs are needed can be replayed too), every widened law's and every widened pair's
+(whenever pairs are), each reduced to its held-out residuals and predictive variances.  ``replay`` applies
+:class:`~ambfit.diagnosis.verdict.Rules` to them, gating the pairs with :func:`~ambfit.diagnosis.verdict.needs_pairs`
+and the widened pairs with :func:`~ambfit.diagnosis.verdict.needs_widened_pairs` as the diagnosis does, and scores
+each verdict with ``gap_zoo.score``.
 
     .venv/bin/python benchmarks/zoo_replay.py collect --seed 3131 --draws 300 --workers 2 --into /tmp/zoo3131
     .venv/bin/python benchmarks/zoo_replay.py replay /tmp/zoo3131 [--rule ahead_se=1.5 ...]
@@ -64,15 +65,18 @@ def one_draw(job: tuple, into: str, folds: str = "regions") -> dict:
     def every_pair(rules, ideal, singles, structured):
         return bool(singles) and not verdict.on_floor(rules, ideal, structured)
 
-    real = attribution.decide, attribution.needs_pairs
-    attribution.decide, attribution.needs_pairs = record, every_pair
+    def any_pair(rules, ideal, models):
+        return any(c.kind == "pair" for c in models)
+
+    real = attribution.decide, attribution.needs_pairs, attribution.needs_widened_pairs
+    attribution.decide, attribution.needs_pairs, attribution.needs_widened_pairs = record, every_pair, any_pair
     error = None
     try:
         ambfit.diagnose(data, check_force=False, discrepancy=False, folds=folds)
     except ambfit.FitError as exc:
         error = str(exc).splitlines()[0]
     finally:
-        attribution.decide, attribution.needs_pairs = real
+        attribution.decide, attribution.needs_pairs, attribution.needs_widened_pairs = real
         jax.clear_caches()
     out = {"index": item, "folds": folds, "kind": case.kind, "truth": case.truth, "label": case.label,
            "laws": case.describe()["laws"], "protocol": case.protocol_kind, "rows": len(data), "error": error, **seen}

@@ -288,6 +288,9 @@ def test_a_pair_with_one_law_widened_reaches_a_law_the_library_lacks_beside_a_se
         ideal, pair = scorer.laws([(), (E.Hysteresis(), E.ThermalDrift())])
         pair = dataclasses.replace(pair, before=ideal.after)
         both = scorer.widened_pairs([pair])
+        # two families of one signature: the pair is widened once, by the first's
+        (shared,) = scorer.widened_pairs([dataclasses.replace(pair, effect="saturation+leakage")])
+    assert shared.family == "saturation" and shared.second == "leakage" and shared.groups == FAMILY_GROUPS["leakage"]
     by = {s.family: s for s in both}
     assert sorted(by) == ["hysteresis", "thermal_drift"] and all(s.kind == "widened_pair" for s in both)
     hyst = by["hysteresis"]

@@ -210,6 +210,9 @@ def test_a_pair_with_one_law_widened_is_tried_only_when_nothing_simpler_explains
     v = decide(on, start, laws + [pair, hyst, both])
     assert v.name == "hysteresis+thermal_drift" and v.grade.by == "widened_pair" and v.best is both
     assert decide(Rules(), start, laws + [pair, hyst, both]).kind == "unexplained"
+    # one whose signature the data do not clearly want is no candidate
+    unclear = dataclasses.replace(both, log_bayes={"hysteresis": 2.0})
+    assert decide(on, start, laws + [pair, hyst, unclear]).kind == "unexplained"
     # a widened law that explains the data: no pair is widened
     assert not needs_widened_pairs(on, start, laws + [pair, widened("hysteresis", 0.0, 3.0,
                                                                      groups=FAMILY_GROUPS["hysteresis"], start=start)])
@@ -239,6 +242,15 @@ def test_sibling_rivals_lets_a_flux_familys_widened_law_rival_a_siblings_law_it_
     assert decide(Rules(), start, [sat, fringing.law, fringing]).name == "saturation"
     v = decide(Rules(sibling_rivals=True), start, [sat, fringing.law, fringing])
     assert v.kind == "undecided" and v.candidates == ("saturation", "fringing")
+    # ... only when it explains the data too
+    near = law("saturation", 0.1, start=start)
+    short = widened("fringing", 0.25, 3.0, start=start)
+    assert judge.explains(near) and not judge.explains(short) and not judge.clearly_better(near, short)
+    assert decide(Rules(sibling_rivals=True), start, [near, short.law, short]).name == "saturation"
+    # ... and only a library law's: a pair holding a flux family is left to Occam
+    pair = law("saturation+current_offset", 0.0, start=start)
+    assert decide(Rules(sibling_rivals=True), start, [pair, fringing.law, fringing]).name == \
+        "saturation+current_offset"
     # the current channels' signature holds an offset per coil: a current offset's law stays named
     offset = law("current_offset", 0.0, start=start)
     gain = widened("current_gain", 0.05, 3.0, groups=("current_sensor",), start=start)

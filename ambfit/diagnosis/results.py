@@ -55,7 +55,8 @@ class Diagnosis:
     ceiling : Ceiling or None
         The discrepancy's held-out shrink on the ideal law and the verdict's model.
     signatures : list[Signature] or None
-        Every family's law widened by its signature, best first, when no single law explained the data.
+        Every family's law widened by its signature (and, with :attr:`Rules.widened_pairs`, each pair with one of its
+        laws widened), best first, when the ideal law is off the floor.
     separation : Separation or None
         ``undecided``: the protocol that would tell the candidates apart.
     left_out : tuple of int
@@ -113,8 +114,8 @@ class Diagnosis:
 
     @property
     def law(self):
-        """When the verdict's family was named by its signature, that widened law
-        (:class:`~ambfit.diagnosis.signatures.Signature`: how much the library's law leaves); else None."""
+        """When the verdict's family was named by its signature, that widened law or widened pair
+        (:class:`~ambfit.diagnosis.signatures.Signature`: how much the library's law or pair leaves); else None."""
         model = self.decision.model
         return model if model is not None and model.kind in ("signature", "widened_pair") else None
 
@@ -206,13 +207,17 @@ class Diagnosis:
 
     def steps(self) -> list[dict]:
         """How the verdict was reached, each step with its held-out shrink: the first effect, then the second of
-        a pair; for a family whose law differs, the library's law, then the law widened by its signature."""
+        a pair; for a family whose law differs, the library's law (or pair), then the law widened by its
+        signature."""
         by_name = {c.effect: c for c in self.ranking}
         if self.decision.kind != "named":
             return []
         if self.law is not None:
-            return [{"model": self.verdict, "shrink": self.law.law.shrink},
-                    {"model": self.law.model, "shrink": self.law.shrink}]
+            # (a widened pair: its first law, the pair, then the pair widened)
+            first = [{"model": self.law.law.families[0], "shrink": by_name[self.law.law.families[0]].shrink}] \
+                if self.law.widens is not None and self.law.law.families[0] in by_name else []
+            return first + [{"model": self.verdict, "shrink": self.law.law.shrink},
+                            {"model": self.law.model, "shrink": self.law.shrink}]
         if self.families is not None:
             return [{"model": "magnetic_circuit", "shrink": self.shrink,
                      "families": [f.family for f in self.families if f.significant]}]

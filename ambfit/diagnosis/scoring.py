@@ -142,9 +142,13 @@ class Scorer:
 
     def widened_pairs(self, pairs: list[Candidate]) -> list[Signature]:
         """Each pair of laws widened by each of its families' signatures in turn (a family whose law differs from
-        the library's, beside a second effect the library's law describes), best first."""
+        the library's, beside a second effect the library's law describes; once when both share one), best
+        first."""
         from ambfit.estimation.basis import FAMILY_GROUPS
 
+        # (a pair of two families of one signature is widened once: by the first's, the same terms)
+        todo = {(c.effect, FAMILY_GROUPS[f]): (c, f) for c in pairs if c.folds for f in reversed(c.families)
+                if f in FAMILY_GROUPS}
         tasks = [functools.partial(widened, c, self.df, FAMILY_GROUPS[f], self.noise, scored=self.scored, widens=f)
-                 for c in pairs if c.folds for f in c.families if f in FAMILY_GROUPS]
+                 for c, f in todo.values()]
         return sorted(self.each(lambda task: task(), tasks), key=lambda s: s.score)

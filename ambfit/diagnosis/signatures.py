@@ -104,8 +104,11 @@ class Signature:
         return shrink(self.law.before, self.after)
 
     def to_json(self, clear: bool) -> dict:
-        """The record; ``clear``: whether the data clearly want the signature (:meth:`Judge.clear`)."""
-        return {"family": self.family, **({"with": self.second} if self.widens is not None else {}),
+        """The record; ``clear``: whether the data clearly want the signature (:meth:`Judge.clear`).  A widened pair's
+        names the other family (``with``) and the pair (``library_pair``), whose figures ``library_law_*`` are."""
+        # (a widened pair: "library_law_*" are the library pair's, named by "library_pair")
+        return {"family": self.family,
+                **({"with": self.second, "library_pair": self.law.effect} if self.widens is not None else {}),
                 "signature": "+".join(self.groups),
                 "log_bayes": self.log_bayes_max, "log_bayes_groups": self.log_bayes,
                 "signature_clear": clear, "heldout_excess_after": self.after, "shrink": self.shrink,

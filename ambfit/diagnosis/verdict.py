@@ -162,13 +162,12 @@ class Rules:
         too and is not clearly worse, ahead of it or not (the law beats its sibling's library law, not its broader
         forms, which the widened law stands for; the current channels' signature is left to Occam, since it holds an
         offset per coil: an offset's law is one of its forms).  On the law zoo's stored scores (seeds 3131 and 9191,
-        384 draws; ``benchmarks/zoo_replay.py``) it turns 4 wrong claims (a position gain named fringing, an iron
-        reluctance named leakage, a saturation beside a current offset named leakage with it, a saturation beside a
-        current gain named alone) and 4 right verdicts (saturation, against leakage or fringing widened) into
-        ``undecided``: right 45.1 → 44.0 %, wrong claims 4.4 → 3.4 %.  Off by default: on the rig's own laws
-        (``benchmarks/gap_attribution.py``, 3 sets per effect) every flux family's library law, exact there, is
-        mimicked by a sibling's widened law, and 5 of 9 (3 saturations, an iron reluctance, a leakage) turn
-        ``undecided``: top-1 0.90 → 0.67 (``reports/gap/rules.md``).
+        384 draws; ``benchmarks/zoo_replay.py``) it turns 3 wrong claims (a position gain named fringing, an iron
+        reluctance named leakage, a saturation beside a current gain named alone) and 4 right verdicts (saturation,
+        against leakage, iron reluctance or fringing widened) into ``undecided``: right 45.1 → 44.0 %, wrong claims
+        4.4 → 3.6 %.  Off by default: on the rig's own laws (``benchmarks/gap_attribution.py``, 3 sets per effect)
+        a flux family's library law, exact there, is mimicked by a sibling's widened law, and 4 of 9 (3 saturations,
+        an iron reluctance) turn ``undecided``: top-1 0.90 → 0.71 (``reports/gap/rules.md``).
     minimal_explains : bool
         A model naming fewer families than the simplest that explains the data (a law against a pair, say) takes
         its place only when it explains them too: one short of the floor leaves both, ``undecided`` with the family
@@ -435,10 +434,11 @@ def needs_pairs(rules: Rules, ideal, singles: list, structured: bool) -> bool:
 
 def needs_widened_pairs(rules: Rules, ideal, models: list) -> bool:
     """Whether pairs with one law widened by its signature are to be scored: the pairs were scored (no single law
-    explains the data) and no law, pair or widened law explains them."""
+    explains the data) and no law, pair or widened law that takes part in the decision explains them."""
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
+    taking_part, _ = _judged(judge, models)               # (the widened laws decide would set aside do not count)
     return rules.widened_pairs and any(c.kind == "pair" for c in models) and not any(
-        judge.explains(c) and (c.kind != "signature" or judge.clear(c)) for c in models)
+        judge.explains(c) and (c.kind not in WIDENED or judge.clear(c)) for c in taking_part)
 
 
 def needs_signatures(rules: Rules, ideal, structured: bool) -> bool:
@@ -468,8 +468,8 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
         The ideal law's held-out score.
     candidates : list
         Scored models: library laws and pairs (``kind`` ``"law"`` / ``"pair"``), widened laws (``kind``
-        ``"signature"``) and widened pairs (``"widened_pair"``, used with :attr:`Rules.widened_pairs`), their held-out residuals on the same readings as the ideal law's, in the order they
-        were scored (ties keep it).
+        ``"signature"``) and widened pairs (``"widened_pair"``, used with :attr:`Rules.widened_pairs`), their
+        held-out residuals on the same readings as the ideal law's, in the order they were scored (ties keep it).
     structured : bool
         Whether the ideal law's residuals have structured regions (:func:`ambfit.diagnosis.residuals.where`).
 
@@ -489,14 +489,21 @@ def decide(rules: Rules, ideal, candidates: list, *, structured: bool = False) -
     # no candidate)
     if not rules.widened_pairs:
         candidates = [c for c in candidates if c.kind != "widened_pair"]
-    unjudged = tuple(c.label for c in candidates if c.kind in WIDENED and judge.clear(c) and judge.below_floor(c)
-                     and not _slow(rules, c))
-    if unjudged:
-        candidates = [c for c in candidates if c.kind not in WIDENED or _slow(rules, c)]
+    candidates, unjudged = _judged(judge, candidates)
     verdict = _decide(judge, ideal, candidates, structured)
     if unjudged and rules.untested_siblings:
         verdict = _with_untested_siblings(verdict, candidates)
     return dataclasses.replace(verdict, unjudged=unjudged)
+
+
+def _judged(judge: Judge, candidates: list) -> tuple[list, tuple]:
+    """``candidates`` less the widened laws set aside (:func:`decide`), and the labels of those below the floor."""
+    rules = judge.rules
+    unjudged = tuple(c.label for c in candidates if c.kind in WIDENED and judge.clear(c) and judge.below_floor(c)
+                     and not _slow(rules, c))
+    if unjudged:
+        candidates = [c for c in candidates if c.kind not in WIDENED or _slow(rules, c)]
+    return candidates, unjudged
 
 
 def _slow(rules: Rules, signature) -> bool:
@@ -574,7 +581,7 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
     best_of.pop(frozenset(top.families), None)
     rivals = [c for c in best_of.values() if not judge.clearly_better(top, c) and not (
         _occam(judge.rules, top, c) and not judge.clearly_better(c, top)
-        and not (judge.explains(c) and judge.ahead(c, top)))]
+        and not (judge.explains(c) and (judge.ahead(c, top) or _sibling(judge.rules, top, c))))]
     if top.kind in WIDENED:
         # any family's widened law on the same signature, its best model or not (its own law may score lower)
         held = {frozenset(top.families)} | {frozenset(r.families) for r in rivals}
@@ -607,19 +614,26 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
 
 def _occam(rules: Rules, top, other) -> bool:
     """Whether ``other``, more flexible than ``top``, rivals it only when it explains the data and is ahead of it
-    (``Rules.occam``): with ``"siblings"``, when it is a widened law on a signature of ``top``'s families."""
+    (``Rules.occam``): with ``"siblings"``, when it is a widened law on a signature of ``top``'s families.  (With
+    :attr:`Rules.sibling_rivals` a flux sibling's widened law that explains rivals it, ahead or not: :func:`_sibling`.)"""
     if TIERS.index(other.kind) <= TIERS.index(top.kind) or rules.occam == "none":
         return False
-    if rules.sibling_rivals and other.kind == "signature" and top.kind not in WIDENED and other.groups == ("shape",):
-        from ambfit.estimation.basis import FAMILY_GROUPS
-
-        if other.groups in {FAMILY_GROUPS.get(f) for f in top.families}:
-            return False
     if rules.occam == "all":
         return True
     from ambfit.estimation.basis import FAMILY_GROUPS
 
     return other.kind in WIDENED and other.groups in {FAMILY_GROUPS.get(f) for f in top.families}
+
+
+def _sibling(rules: Rules, top, other) -> bool:
+    """Whether ``other`` is another flux family's law widened by the flux families' shared signature, ``top`` one
+    flux family's library law (:attr:`Rules.sibling_rivals`: then it rivals ``top`` when it explains the data, ahead
+    of it or not)."""
+    from ambfit.estimation.basis import FAMILY_GROUPS
+
+    flux = FAMILY_GROUPS["saturation"]
+    return (rules.sibling_rivals and top.kind == "law" and other.kind == "signature" and other.groups == flux
+            and FAMILY_GROUPS.get(top.effect) == flux and not set(other.families) & set(top.families))
 
 
 def _confounded(judge: Judge, model, others: list) -> list[str]:
