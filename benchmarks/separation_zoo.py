@@ -4,10 +4,11 @@ A measuring instrument: it changes nothing in how the diagnosis decides.
 Each draw of :func:`ambfit.rig.zoo.draw` (the same cases as ``benchmarks/gap_zoo.py``: each draw's seed depends on
 its index only) is diagnosed blind.  Where the verdict is ``undecided``, the rig that made the data (the same laws,
 gaps, origins, heating and recorded columns) runs the protocol the diagnosis recommends
-(:attr:`ambfit.diagnosis.separation.Separation.design`), and the new readings alone are diagnosed blind again.  The
-follow-up's verdict is scored against the truth as ``gap_zoo`` scores verdicts, apart for the draws whose
-recommendation says it separates the candidates (its expected log Bayes factor clears
-``Rules.separate_log_bayes``) and those whose does not.  The recommendation is judged on laws unlike the library's:
+(:attr:`ambfit.diagnosis.separation.Separation.design`), and the new readings alone are diagnosed blind again; then
+the rig runs the first protocol and the recommended one after it (one run, the first readings drawn anew), and
+those readings are diagnosed together.  Each follow-up's verdict is scored against the truth as ``gap_zoo`` scores
+verdicts, apart for the draws whose recommendation says it separates the candidates (its expected log Bayes factor
+clears ``Rules.separate_log_bayes``) and those whose does not.  The recommendation is judged on laws unlike the library's:
 it is computed from the candidates' library laws as fitted, which stand in for their widened forms.
 
     .venv/bin/python benchmarks/separation_zoo.py [--draws 300] [--seed 3131] [--workers 2] [--out reports/gap]
@@ -32,10 +33,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def one_draw(item: int, seed) -> dict:
     """Draw case ``item`` from its own seed and diagnose it; when undecided, run the recommended protocol on its rig
-    and diagnose the new readings."""
+    and diagnose the new readings, alone and after the first protocol's."""
     import jax
 
     import ambfit
+    from ambfit.rig import protocol as protocols
     from ambfit.rig import zoo
     from ambfit.rig.virtual import RigError
 
@@ -65,13 +67,34 @@ def one_draw(item: int, seed) -> dict:
         return out | {"follow_up": "error", "error": str(exc).splitlines()[0]}
     finally:
         jax.clear_caches()
-    return out | {"follow_up": second.verdict, "follow_up_candidates": list(second.decision.candidates),
-                  "follow_up_rows": len(again),
-                  "follow_up_category": score(case.truth, second.verdict, second.decision.candidates)}
+    out |= {"follow_up": second.verdict, "follow_up_candidates": list(second.decision.candidates),
+            "follow_up_rows": len(again),
+            "follow_up_category": score(case.truth, second.verdict, second.decision.candidates)}
+    # the first protocol and the recommended one run one after the other on the rig, and diagnosed together: its
+    # experiments named apart from the first protocol's, a load by the first's name when it is the same load
+    design, first_loads = sep.design, case.protocol.loads
+    renamed = {k: k if first_loads.get(k, v) == v else f"follow-up {k}" for k, v in design.loads.items()}
+    later = dataclasses.replace(design, experiment=np.array([f"follow-up {e}" for e in design.experiment]),
+                                load_id=np.array([renamed[k] for k in design.load_id]),
+                                loads={renamed[k]: v for k, v in design.loads.items()})
+    try:
+        # (a noise of its own: what the follow-up drew does not move it)
+        both = zoo.simulate_case(dataclasses.replace(case, protocol=protocols.concat(case.protocol, later)),
+                                 np.random.default_rng(seed.spawn(1)[0]))
+        joined = ambfit.diagnose(both, check_force=False, discrepancy=False)
+    except RigError as exc:
+        return out | {"joined": "rig_error", "joined_error": str(exc).splitlines()[0]}
+    except ambfit.FitError as exc:
+        return out | {"joined": "error", "joined_error": str(exc).splitlines()[0]}
+    finally:
+        jax.clear_caches()
+    return out | {"joined": joined.verdict, "joined_candidates": list(joined.decision.candidates),
+                  "joined_rows": len(both),
+                  "joined_category": score(case.truth, joined.verdict, joined.decision.candidates)}
 
 
-def _row(title: str, draws: list) -> str:
-    f = fractions([{"category": d["follow_up_category"]} for d in draws])
+def _row(title: str, draws: list, key: str = "follow_up_category") -> str:
+    f = fractions([{"category": d[key]} for d in draws])
     cells = [f"{100 * f[c]:.0f} %" if f["n"] else "-" for c in CATEGORIES]
     return f"| {title} | {len(draws)} | " + " | ".join(cells) + " |"
 
@@ -90,12 +113,25 @@ def markdown(draws: list, args) -> list[str]:
           _row("says it separates them", [d for d in run if d["separates"]]),
           _row("says it does not", [d for d in run if not d["separates"]]),
           _row("all", run), ""]
+    both = [d for d in run if "joined_category" in d]
+    md += ["The same draws with the first readings and the recommended ones diagnosed together (the rig runs the "
+           "first protocol, then the recommended one; the first readings are a new run of the same protocol):", "",
+           "| recommendation | draws | " + " | ".join(CATEGORIES) + " |", "|---|---|" + "---|" * len(CATEGORIES),
+           _row("says it separates them", [d for d in both if d["separates"]], "joined_category"),
+           _row("says it does not", [d for d in both if not d["separates"]], "joined_category"),
+           _row("all", both, "joined_category"), ""]
     if failed:
         md += [f"Not run: {len(failed)} (" + "; ".join(f"#{d['index']} {d['follow_up']}" for d in failed) + ").", ""]
-    md += ["| # | truth | candidates | expected log Bayes factor | follow-up verdict | category |", "|---|---|---|---|---|---|"]
+    if missing := [d for d in run if "joined_category" not in d]:
+        md += [f"Joined runs not run: {len(missing)} (" + "; ".join(f"#{d['index']} {d['joined']}" for d in missing)
+               + ").", ""]
+    md += ["| # | truth | candidates | expected log Bayes factor | follow-up verdict | category | joined verdict | "
+           "category |", "|---|---|---|---|---|---|---|---|"]
     for d in run:
         md.append(f"| {d['index']} | `{d['truth']}` | {', '.join(d['candidates'])} | {d['expected_log_bayes']:.1f} | "
-                  f"`{d['follow_up']}` {', '.join(d['follow_up_candidates'])} | {d['follow_up_category']} |")
+                  f"`{d['follow_up']}` {', '.join(d['follow_up_candidates'])} | {d['follow_up_category']} | "
+                  f"`{d.get('joined', '-')}` {', '.join(d.get('joined_candidates', []))} | "
+                  f"{d.get('joined_category', '-')} |")
     workers = f" --workers {args.workers}" if args.workers else ""
     md += ["", f"Rerun: `.venv/bin/python benchmarks/separation_zoo.py --draws {args.draws} --seed {args.seed}"
            f"{workers}`."]
