@@ -298,3 +298,22 @@ def test_a_pair_with_one_law_widened_reaches_a_law_the_library_lacks_beside_a_se
     assert hyst.to_json(True)["with"] == "thermal_drift"
     judge = Judge(len(ideal.heldout_z), ideal.score, Rules())
     assert judge.clearly_better(hyst, pair) and hyst.score < pair.score
+
+
+def test_a_widened_pair_verdict_says_which_law_differs_and_beside_which():
+    """With ``Rules(widened_pairs=True)``: a law zoo case (study seed 3131, draw 70: a position sensor's
+    characteristic beside a current offset) that no law, pair or widened law explains is named by the pair with its
+    position-gain law widened; its record, steps and findings say which law is widened and which stands beside it."""
+    from ambfit.diagnosis import text
+    from ambfit.diagnosis.verdict import Rules
+    from ambfit.rig import zoo
+
+    case, data = zoo.draw(np.random.default_rng(np.random.SeedSequence(3131).spawn(71)[70]))
+    assert case.label == "current_offset+position_gain"
+    dg = ambfit.diagnose(data, check_force=False, discrepancy=False, rules=Rules(widened_pairs=True))
+    assert dg.verdict == "current_offset+position_gain" and dg.grade.by == "widened_pair", dg.summary()
+    assert dg.law.family == "position_gain" and dg.law.second == "current_offset"
+    law = dg.to_json()["law"]
+    assert law["with"] == "current_offset" and law["library_pair"] == "current_offset+position_gain"
+    assert [s["model"] for s in dg.steps()] == ["current_offset", "current_offset+position_gain", dg.law.model]
+    assert any("with its position_gain law widened by that signature" in f for f in text.findings(dg))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 
 from ambfit.diagnosis.scoring import step_budget
+from ambfit.diagnosis.verdict import WIDENED
 
 FIGURES = ("rms_rel", "max_rel", "rms_rel_mean", "model_error_rel")
 """A model's force errors relative to the known load: per-reading RMS and largest, RMS of each load's mean, and the
@@ -113,7 +114,7 @@ def force_checks(df, base, verdict_fit, bearing, noise, discrepancy: bool = True
     if with_effects:
         jobs.append((verdict_fit.effects, verdict_fit, discrepancy, step_budget(verdict_fit.effects, max_steps),
                      fitted.get(verdict_fit.model, ())))
-    widened = best is not None and best.kind in ("signature", "widened_pair")
+    widened = best is not None and best.kind in WIDENED
     best_fit = best.law.fit if widened else best.fit if best is not None else None
     if best_fit is not None and best_fit.effects:
         jobs.append((best_fit.effects, best_fit, best.groups if widened else False,

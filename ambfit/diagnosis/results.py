@@ -16,7 +16,7 @@ from ambfit.diagnosis.discrepancy import Ceiling
 from ambfit.diagnosis.heldout import Candidate
 from ambfit.diagnosis.residuals import NoiseFloor, Where
 from ambfit.diagnosis.separation import Separation
-from ambfit.diagnosis.verdict import Grade, Judge, Rules, Verdict
+from ambfit.diagnosis.verdict import WIDENED, Grade, Judge, Rules, Verdict
 from ambfit.estimation.results import FitResult
 
 
@@ -117,7 +117,7 @@ class Diagnosis:
         """When the verdict's family was named by its signature, that widened law or widened pair
         (:class:`~ambfit.diagnosis.signatures.Signature`: how much the library's law or pair leaves); else None."""
         model = self.decision.model
-        return model if model is not None and model.kind in ("signature", "widened_pair") else None
+        return model if model is not None and model.kind in WIDENED else None
 
     @property
     def judge(self) -> Judge:

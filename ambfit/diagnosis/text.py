@@ -211,13 +211,13 @@ def findings(dg) -> list[str]:
     if dg.law is not None:
         lw = dg.law
         signature = "+".join(lw.groups)
-        # (a widened pair: the library's pair, its family's law widened beside the other's)
+        # (a widened pair: the library's pair, then its family's law widened beside the other's)
         library = f"{lw.family} law" if lw.widens is None else f"pair {lw.law.effect}"
-        beside = "" if lw.widens is None else f", beside the {lw.second} law"
+        widening = "widened by that signature" if lw.widens is None else \
+            f"with its {lw.family} law widened by that signature"
         out.append(f"{lw.family}'s signature ({signature} terms) in its residuals: log Bayes factor "
                    f"{lw.log_bayes_max:.1f} ({'clear' if dg.judge.clear(lw) else 'not clear'}); the library's "
-                   f"{library} shrinks the held-out excess by {lw.law.shrink:.3f}, widened by "
-                   f"that signature{beside} by {lw.shrink:.3f}"
+                   f"{library} shrinks the held-out excess by {lw.law.shrink:.3f}, {widening} by {lw.shrink:.3f}"
                    + (f": the family is {lw.family}, its law differs from the library's"
                       if dg.verdict == "+".join(lw.families) else ""))
     if dg.ceiling is not None:
