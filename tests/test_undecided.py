@@ -484,3 +484,15 @@ def test_the_discrepancy_of_data_on_the_floor_is_said_to_be_of_noise():
     assert line.endswith("(the ideal law sits on the floor: these are shares of its noise, not of an effect)")
     # and the in-sample mean square's expectation is said, with what it assumes
     assert f"(expected {dg.noise_floor.expected_mean_z2:.2f}, (n - p) / n, were it right" in text.floor(dg)
+
+
+def test_plan_out_on_a_named_verdict_warns_that_nothing_is_written(tmp_path):
+    """A verdict the data single out has no protocol to recommend: --plan-out says so on the error stream and
+    writes no file."""
+    from ambfit.faces.cli.app import app
+
+    data, plan = tmp_path / "saturation.csv", tmp_path / "plan.csv"
+    data.write_bytes(gzip.decompress((HERE / "data" / "diagnosis" / "rig_saturation.csv.gz").read_bytes()))
+    r = CliRunner().invoke(app, ["design", "--discriminate", str(data), "--plan-out", str(plan)])
+    assert r.exit_code == 0, r.output
+    assert "nothing to tell apart" in r.stdout and "no protocol to run" in r.stderr and not plan.exists()

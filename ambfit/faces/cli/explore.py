@@ -222,7 +222,7 @@ def _discriminate(ds, desc, json_out, noise: dict, occam: str, plan_out: Path | 
     if plan_out is not None:
         plan = sep.design if record["separate_by"] is not None else None
         if plan is None:
-            note(f"no protocol to run: {plan_out} not written")
+            warn(f"no protocol to run: {plan_out} not written")
         else:
             from ambfit._output import formula_safe, write_text
 
