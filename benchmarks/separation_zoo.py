@@ -39,7 +39,6 @@ def one_draw(item: int, seed) -> dict:
     import ambfit
     from ambfit.rig import protocol as protocols
     from ambfit.rig import zoo
-    from ambfit.rig.virtual import RigError
 
     rng = np.random.default_rng(seed)
     case, data = zoo.draw(rng)
@@ -58,18 +57,9 @@ def one_draw(item: int, seed) -> dict:
         return out
     out |= {"recommended": sep.protocol, "expected_log_bayes": sep.expected_log_bayes, "separates": sep.separates,
             "on_these_data": sep.on_these_data, "follow_up_steps": len(sep.design)}
-    try:
-        again = zoo.simulate_case(dataclasses.replace(case, protocol=sep.design), rng)
-        second = ambfit.diagnose(again, check_force=False, discrepancy=False)
-    except RigError as exc:
-        return out | {"follow_up": "rig_error", "error": str(exc).splitlines()[0]}
-    except ambfit.FitError as exc:
-        return out | {"follow_up": "error", "error": str(exc).splitlines()[0]}
-    finally:
-        jax.clear_caches()
-    out |= {"follow_up": second.verdict, "follow_up_candidates": list(second.decision.candidates),
-            "follow_up_rows": len(again),
-            "follow_up_category": score(case.truth, second.verdict, second.decision.candidates)}
+    out |= _diagnosed(case, sep.design, rng, "follow_up")
+    if "follow_up_category" not in out:
+        return out
     # the first protocol and the recommended one run one after the other on the rig, and diagnosed together: its
     # experiments named apart from the first protocol's, a load by the first's name when it is the same load
     design, first_loads = sep.design, case.protocol.loads
@@ -77,20 +67,31 @@ def one_draw(item: int, seed) -> dict:
     later = dataclasses.replace(design, experiment=np.array([f"follow-up {e}" for e in design.experiment]),
                                 load_id=np.array([renamed[k] for k in design.load_id]),
                                 loads={renamed[k]: v for k, v in design.loads.items()})
+    # (a noise of its own: what the follow-up drew does not move it)
+    return out | _diagnosed(case, protocols.concat(case.protocol, later), np.random.default_rng(seed.spawn(1)[0]),
+                            "joined")
+
+
+def _diagnosed(case, proto, rng, key: str) -> dict:
+    """``case``'s rig running ``proto``, its readings diagnosed blind: the verdict as ``key``, with its candidates,
+    rows and category, or why it did not run (``key`` ``rig_error`` or ``error``, the message as ``key_error``)."""
+    import jax
+
+    import ambfit
+    from ambfit.rig import zoo
+    from ambfit.rig.virtual import RigError
+
     try:
-        # (a noise of its own: what the follow-up drew does not move it)
-        both = zoo.simulate_case(dataclasses.replace(case, protocol=protocols.concat(case.protocol, later)),
-                                 np.random.default_rng(seed.spawn(1)[0]))
-        joined = ambfit.diagnose(both, check_force=False, discrepancy=False)
+        data = zoo.simulate_case(dataclasses.replace(case, protocol=proto), rng)
+        dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     except RigError as exc:
-        return out | {"joined": "rig_error", "joined_error": str(exc).splitlines()[0]}
+        return {key: "rig_error", f"{key}_error": str(exc).splitlines()[0]}
     except ambfit.FitError as exc:
-        return out | {"joined": "error", "joined_error": str(exc).splitlines()[0]}
+        return {key: "error", f"{key}_error": str(exc).splitlines()[0]}
     finally:
         jax.clear_caches()
-    return out | {"joined": joined.verdict, "joined_candidates": list(joined.decision.candidates),
-                  "joined_rows": len(both),
-                  "joined_category": score(case.truth, joined.verdict, joined.decision.candidates)}
+    return {key: dg.verdict, f"{key}_candidates": list(dg.decision.candidates), f"{key}_rows": len(data),
+            f"{key}_category": score(case.truth, dg.verdict, dg.decision.candidates)}
 
 
 def _row(title: str, draws: list, key: str = "follow_up_category") -> str:
