@@ -8,8 +8,8 @@ gaps, origins, heating and recorded columns) runs the protocol the diagnosis rec
 the rig runs the first protocol and the recommended one after it (one run, the first readings drawn anew), and
 those readings are diagnosed together.  Each follow-up's verdict is scored against the truth as ``gap_zoo`` scores
 verdicts, apart for the draws whose recommendation says it separates the candidates (its expected log Bayes factor
-clears ``Rules.separate_log_bayes``) and those whose does not.  The recommendation is judged on laws unlike the library's:
-it is computed from the candidates' library laws as fitted, which stand in for their widened forms.
+clears ``Rules.separate_log_bayes``) and those whose does not.  The recommendation is judged on laws unlike the
+library's: it is computed from the candidates' library laws as fitted, which stand in for their widened forms.
 
     .venv/bin/python benchmarks/separation_zoo.py [--draws 300] [--seed 3131] [--workers 2] [--out reports/gap]
 
@@ -74,7 +74,7 @@ def one_draw(item: int, seed) -> dict:
 
 def _diagnosed(case, proto, rng, key: str) -> dict:
     """``case``'s rig running ``proto``, its readings diagnosed blind: the verdict as ``key``, with its candidates,
-    rows and category, or why it did not run (``key`` ``rig_error`` or ``error``, the message as ``key_error``)."""
+    rows and category, or why it did not run (``key`` ``rig_error`` or ``error``, the message as ``{key}_error``)."""
     import jax
 
     import ambfit

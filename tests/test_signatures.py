@@ -316,4 +316,7 @@ def test_a_widened_pair_verdict_says_which_law_differs_and_beside_which():
     law = dg.to_json()["law"]
     assert law["with"] == "current_offset" and law["library_pair"] == "current_offset+position_gain"
     assert [s["model"] for s in dg.steps()] == ["current_offset", "current_offset+position_gain", dg.law.model]
-    assert any("with its position_gain law widened by that signature" in f for f in text.findings(dg))
+    said = next(f for f in text.findings(dg) if "with its position_gain law widened by that signature" in f)
+    assert said.startswith("position_gain's signature (position_sensor+position_spline terms) in the pair's residuals")
+    assert said.endswith("the families are current_offset+position_gain; position_gain's law differs from the "
+                         "library's, beside current_offset's library law")

@@ -216,7 +216,7 @@ class Diagnosis:
             # (a widened pair: its first law, the pair, then the pair widened)
             first = [{"model": self.law.law.families[0], "shrink": by_name[self.law.law.families[0]].shrink}] \
                 if self.law.widens is not None and self.law.law.families[0] in by_name else []
-            return first + [{"model": self.verdict, "shrink": self.law.law.shrink},
+            return first + [{"model": self.law.law.label, "shrink": self.law.law.shrink},
                             {"model": self.law.model, "shrink": self.law.shrink}]
         if self.families is not None:
             return [{"model": "magnetic_circuit", "shrink": self.shrink,

@@ -215,11 +215,15 @@ def findings(dg) -> list[str]:
         library = f"{lw.family} law" if lw.widens is None else f"pair {lw.law.effect}"
         widening = "widened by that signature" if lw.widens is None else \
             f"with its {lw.family} law widened by that signature"
-        out.append(f"{lw.family}'s signature ({signature} terms) in its residuals: log Bayes factor "
+        whose = "its" if lw.widens is None else "the pair's"
+        named = ("" if dg.verdict != "+".join(lw.families) else
+                 f": the family is {lw.family}, its law differs from the library's" if lw.widens is None else
+                 f": the families are {dg.verdict}; {lw.family}'s law differs from the library's, beside "
+                 f"{lw.second}'s library law")
+        out.append(f"{lw.family}'s signature ({signature} terms) in {whose} residuals: log Bayes factor "
                    f"{lw.log_bayes_max:.1f} ({'clear' if dg.judge.clear(lw) else 'not clear'}); the library's "
                    f"{library} shrinks the held-out excess by {lw.law.shrink:.3f}, {widening} by {lw.shrink:.3f}"
-                   + (f": the family is {lw.family}, its law differs from the library's"
-                      if dg.verdict == "+".join(lw.families) else ""))
+                   + named)
     if dg.ceiling is not None:
         dc = dg.ceiling
         text = ("discrepancy (a smooth correction in flux density, gap, other axis and approach direction, "

@@ -180,12 +180,13 @@ class Rules:
         beside it, the pairs' freedom is what reaches it, not a second effect.
     widened_pairs : bool
         Score each pair with one of its laws widened by its family's signature (a law other than the library's
-        beside a second effect) when pairs were scored and no law, pair or widened law explains the data
-        (:func:`needs_widened_pairs`).  Off by default: on the law zoo's study seed 3131 (300 draws) it names 2
-        pairs right that were ``unexplained``, and makes 5 wrong claims: 4 pairs named by one family whose widened
-        law alone, short of the floor, is not clearly worse than the widened pair (:attr:`minimal_explains` makes
-        them ``undecided``, and 3 singles named short of the floor with them), and a mechanical spring (no family)
-        named ``leakage+current_offset``: right 45.7 → 46.0 %, wrong claims 5.0 → 6.7 %.
+        beside a second effect) when pairs were scored and no law, pair or widened law that takes part in the
+        decision explains the data (:func:`needs_widened_pairs`).  Off by default: on the law zoo's study seed 3131
+        (300 draws) it names 2 pairs right that were ``unexplained``, and makes 5 wrong claims: 4 pairs named by one
+        family whose widened law alone, short of the floor, is not clearly worse than the widened pair
+        (:attr:`minimal_explains` makes them ``undecided``, and 3 singles named short of the floor with them), and a
+        mechanical spring (no family) named ``leakage+current_offset``: right 45.7 → 46.0 %, wrong claims 5.0 →
+        6.7 %.
     pairs : bool
         Try pairs of effects when no single one explains the data.
     pair_verdict : bool
@@ -435,9 +436,11 @@ def needs_pairs(rules: Rules, ideal, singles: list, structured: bool) -> bool:
 def needs_widened_pairs(rules: Rules, ideal, models: list) -> bool:
     """Whether pairs with one law widened by its signature are to be scored: the pairs were scored (no single law
     explains the data) and no law, pair or widened law that takes part in the decision explains them."""
+    if not (rules.widened_pairs and any(c.kind == "pair" for c in models)):
+        return False
     judge = Judge(len(ideal.heldout_z), ideal.score, rules)
     taking_part, _ = _judged(judge, models)               # (the widened laws decide would set aside do not count)
-    return rules.widened_pairs and any(c.kind == "pair" for c in models) and not any(
+    return not any(
         judge.explains(c) and (c.kind not in WIDENED or judge.clear(c)) for c in taking_part)
 
 
@@ -615,7 +618,8 @@ def _named_or_undecided(judge: Judge, top, usable: list) -> Verdict:
 def _occam(rules: Rules, top, other) -> bool:
     """Whether ``other``, more flexible than ``top``, rivals it only when it explains the data and is ahead of it
     (``Rules.occam``): with ``"siblings"``, when it is a widened law on a signature of ``top``'s families.  (With
-    :attr:`Rules.sibling_rivals` a flux sibling's widened law that explains rivals it, ahead or not: :func:`_sibling`.)"""
+    :attr:`Rules.sibling_rivals` a flux sibling's widened law that explains rivals it, ahead or not:
+    :func:`_sibling`.)"""
     if TIERS.index(other.kind) <= TIERS.index(top.kind) or rules.occam == "none":
         return False
     if rules.occam == "all":
