@@ -175,6 +175,11 @@ def test_memory_hysteresis_is_named_by_its_signature(design):
     assert d.verdict == "hysteresis", d.summary()
     assert d.law.groups == FAMILY_GROUPS["hysteresis"] and d.grade.by == "signature"
     assert d.law.law.shrink < 0.5 < d.law.shrink == d.shrink
+    from ambfit.diagnosis import text
+
+    said = next(f for f in text.findings(d) if f.startswith("hysteresis's signature"))
+    assert " in its residuals: " in said and "the library's hysteresis law shrinks" in said
+    assert said.endswith(": the family is hysteresis, its law differs from the library's")
 
 
 def test_on_clean_data_no_widened_law_predicts_better_than_the_ideal_law(design):

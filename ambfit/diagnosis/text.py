@@ -211,15 +211,15 @@ def findings(dg) -> list[str]:
     if dg.law is not None:
         lw = dg.law
         signature = "+".join(lw.groups)
-        # (a widened pair: the library's pair, then its family's law widened beside the other's)
-        library = f"{lw.family} law" if lw.widens is None else f"pair {lw.law.effect}"
-        widening = "widened by that signature" if lw.widens is None else \
-            f"with its {lw.family} law widened by that signature"
-        whose = "its" if lw.widens is None else "the pair's"
-        named = ("" if dg.verdict != "+".join(lw.families) else
-                 f": the family is {lw.family}, its law differs from the library's" if lw.widens is None else
-                 f": the families are {dg.verdict}; {lw.family}'s law differs from the library's, beside "
-                 f"{lw.second}'s library law")
+        if lw.widens is None:
+            whose, library, widening = "its", f"{lw.family} law", "widened by that signature"
+            named = f": the family is {lw.family}, its law differs from the library's"
+        else:               # (a widened pair: the library's pair, then its family's law widened beside the other's)
+            whose, library, widening = "the pair's", f"pair {lw.law.effect}", \
+                f"with its {lw.family} law widened by that signature"
+            named = (f": the families are {dg.verdict}; {lw.family}'s law differs from the library's, beside "
+                     f"{lw.second}'s library law")
+        named = named if dg.verdict == "+".join(lw.families) else ""
         out.append(f"{lw.family}'s signature ({signature} terms) in {whose} residuals: log Bayes factor "
                    f"{lw.log_bayes_max:.1f} ({'clear' if dg.judge.clear(lw) else 'not clear'}); the library's "
                    f"{library} shrinks the held-out excess by {lw.law.shrink:.3f}, {widening} by {lw.shrink:.3f}"
