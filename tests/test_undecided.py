@@ -262,6 +262,26 @@ def test_readings_too_close_together_for_any_reach_get_a_sweep_at_their_own_set_
     assert not limit_violations(spec, design)
 
 
+def test_readings_without_a_set_point_count_where_they_were_read():
+    """Set-point columns filled on some rows only: each reading is where it was commanded, else where it was read,
+    for the middle the protocols are centred on and for the sweep at the set-points already read alike."""
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    part = data.copy()
+    late = part.index >= len(part) // 2
+    part.loc[late, ["v_set_um", "w_set_um"]] = np.nan
+    part.loc[late, ["v_um", "w_um"]] += 25.0          # read beyond every set-point of the first half
+    where = separation._where_read(part)
+    np.testing.assert_allclose(where[~late], data.loc[~late, ["v_set_um", "w_set_um"]].to_numpy() * 1e-6)
+    np.testing.assert_allclose(where[late], part.loc[late, ["v_um", "w_um"]].to_numpy() * 1e-6)
+    lo, hi = np.nanmin(where, axis=0), np.nanmax(where, axis=0)
+    np.testing.assert_allclose(separation._middle(part), 0.5 * (lo + hi))
+    design = separation._at_the_readings(part, ambfit.PAPER_BEARING, separation.SWEEP_TOPS[0])[1]
+    points = {(round(v * 1e7), round(w * 1e7)) for v, w in zip(design.v_set, design.w_set)}
+    assert points <= {(round(v * 1e7), round(w * 1e7)) for v, w in where}
+    assert any(p in {(round(v * 1e7), round(w * 1e7)) for v, w in where[late]} for p in points)
+
+
 def test_a_protocol_is_kept_within_the_coil_limit_by_every_candidates_model():
     """The sweep's top comes down until every candidate's fitted model runs the protocol within HEADROOM of the coil
     limit (a saturating iron needs more current for the same force than the ideal law); a protocol one of them

@@ -202,14 +202,24 @@ def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float) -> 
     return far <= clearance - cell
 
 
+def _where_read(df: pd.DataFrame) -> np.ndarray:
+    """Where each reading was [m, sensor coordinates; rows x (v, w)]: its commanded set-point (``v_set_um``,
+    ``w_set_um``) where the table gives one, else its measured position (NaN where neither is known)."""
+    def axis(a):
+        pos = df[f"{a}_um"].to_numpy(float)
+        if f"{a}_set_um" not in df:
+            return pos
+        return np.where(df[f"{a}_set_um"].notna().to_numpy(), df[f"{a}_set_um"].to_numpy(float), pos)
+
+    return np.stack([axis("v"), axis("w")], axis=1) * 1e-6
+
+
 def _middle(df: pd.DataFrame) -> np.ndarray:
-    """Where the readings were [m, sensor coordinates]: their commanded set-points (``v_set_um``, ``w_set_um``),
-    else their positions; the middle of their range, 0 on an axis without any."""
+    """The middle of the range of where the readings were (:func:`_where_read`) [m], 0 on an axis without any."""
     out = []
-    for axis in ("v", "w"):
-        col = f"{axis}_set_um" if f"{axis}_set_um" in df and df[f"{axis}_set_um"].notna().any() else f"{axis}_um"
-        m = 0.5 * (df[col].min() + df[col].max()) * 1e-6
-        out.append(float(m) if np.isfinite(m) else 0.0)
+    for xs in _where_read(df).T:
+        xs = xs[np.isfinite(xs)]
+        out.append(0.5 * (xs.min() + xs.max()) if len(xs) else 0.0)
     return np.asarray(out)
 
 
@@ -331,8 +341,7 @@ def _at_the_readings(df: pd.DataFrame, bearing, top: float) -> tuple[str, object
     under the loads of :func:`designs`: where the rotor has been, safe whatever the centre."""
     from ambfit.rig import protocol
 
-    cols = [f"{a}_set_um" if f"{a}_set_um" in df and df[f"{a}_set_um"].notna().all() else f"{a}_um" for a in "vw"]
-    seen = df[cols].to_numpy(float) * 1e-6
+    seen = _where_read(df)
     seen = np.unique(np.round(seen[np.all(np.isfinite(seen), axis=1)] / 1e-7) * 1e-7, axis=0)
     points = seen[np.argsort(np.hypot(*(seen - _middle(df)).T))[:5]]
     first = next(iter(designs(df, bearing, top).values()))
