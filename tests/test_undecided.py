@@ -249,6 +249,23 @@ def test_a_set_point_is_safe_when_every_centre_the_readings_allow_is_within_the_
     assert not np.any(separation.safe_anywhere(np.array([[0.0, 0.0], [0.0, 5e-6]]), apart, 60e-6))
 
 
+def test_a_set_point_is_safe_under_the_sensor_gain_errors_of_the_position_gain_family():
+    """Set-points and readings are both read by the position sensors: a gain error scales the clearance they see.
+    The margin spans the position_gain family's range, and bites at the rim of the reach only."""
+    from ambfit.physics.effects import PositionGain
+
+    assert max(map(abs, separation.SENSOR_GAIN_ERRORS)) == pytest.approx(PositionGain.RANGES["gain_error"][1])
+    spec = rig.PAPER_RIG
+    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    read = data[["v_um", "w_um"]].to_numpy() * 1e-6
+    angle = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
+    for r, changed in ((20e-6, False), (34e-6, True)):
+        points = separation._middle(data) + r * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        nominal = separation.safe_anywhere(points, read, 60e-6)
+        margin = separation.safe_anywhere(points, read, 60e-6, separation.SENSOR_GAIN_ERRORS)
+        assert np.all(nominal >= margin) and bool(np.any(nominal != margin)) == changed, r
+
+
 def test_readings_too_close_together_for_any_reach_get_a_sweep_at_their_own_set_points():
     """Table 2's diagonal pairs leave the stator's centre anywhere in a wide region: no grid around them is safe
     wherever it is, but a bias sweep where the rotor has already been is."""

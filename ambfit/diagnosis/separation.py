@@ -156,6 +156,12 @@ SPANS = (1.0, 0.75, 0.5, 0.35)
 """The set-points' reach as a share of :data:`REACH`: the widest of these whose set-points are safe
 wherever the stator's centre is, given the positions already read (:func:`safe_anywhere`)."""
 
+SENSOR_GAIN_ERRORS = tuple(np.linspace(-0.04, 0.04, 5))
+"""The position sensors' gain errors under which a set-point must be safe (:func:`safe_anywhere`): eddy-current
+probes drift 1-4 % with the target's material and temperature (the ``position_gain`` family's range,
+:class:`~ambfit.physics.effects.PositionGain`).  A sensor reading low puts the rotor further out than its
+set-point says; one reading high widens the region the readings leave for the stator's centre."""
+
 CENTRE_CELLS = 60
 """Cells across the back-up clearance of the grid on which :func:`safe_anywhere` looks for the stator's possible
 centres (1 µm on a 60 µm clearance); a set-point keeps one cell more from the clearance, which covers the grid's
@@ -177,13 +183,21 @@ def _hull(points: np.ndarray) -> np.ndarray:
         return pts[[int(np.argmin(along)), int(np.argmax(along))]]
 
 
-def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float) -> np.ndarray:
+def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float, gain_errors=(0.0,)) -> np.ndarray:
     """Whether each of ``points [n, 2]`` is within ``clearance`` of every centre the stator may have: every point
     within ``clearance`` of all the ``visited [m, 2]`` positions (the rotor was at each of them, so the centre was
-    within the clearance of each; a sensor gain error shrinks or stretches that by its own share), all [m].  Wider
-    than the positions' convex hull (a point beyond readings near the rim can be safe), and safe whatever the fitted
-    origin says.  Where no centre is within the clearance of every position (readings farther apart than its
-    diameter: a reassembled rotor, a glitch), none is safe."""
+    within the clearance of each), all [m].  Wider than the positions' convex hull (a point beyond readings near the
+    rim can be safe), and safe whatever the fitted origin says.  Where no centre is within the clearance of every
+    position (readings farther apart than its diameter: a reassembled rotor, a glitch), none is safe.
+
+    Points and positions are read by the position sensors: a sensor reading ``1 + e`` times the displacement sees
+    the clearance as ``(1 + e) clearance``.  A point is safe when it is safe under each of ``gain_errors``
+    (:data:`SENSOR_GAIN_ERRORS` for a rig whose sensors' gain is not known better)."""
+    return np.all([_safe_at(points, visited, (1.0 + e) * clearance) for e in gain_errors], axis=0)
+
+
+def _safe_at(points: np.ndarray, visited: np.ndarray, clearance: float) -> np.ndarray:
+    """:func:`safe_anywhere` with sensors reading the displacement as it is."""
     pts = np.asarray(points, float).reshape(-1, 2)
     vis = _hull(np.round(np.asarray(visited, float).reshape(-1, 2) / 1e-7) * 1e-7)
     if not len(vis):
@@ -316,7 +330,7 @@ def _protocols(models: list, df: pd.DataFrame, bearing) -> list[tuple[str, objec
         move them)."""
         design = listed(SWEEP_TOPS[0], span)[slot][1]
         return bool(np.all(safe_anywhere(np.stack([design.v_set, design.w_set], axis=1), visited,
-                                         bearing.backup_clearance)))
+                                         bearing.backup_clearance, SENSOR_GAIN_ERRORS)))
 
     out = []
     for slot in range(len(listed(SWEEP_TOPS[0], SPANS[0]))):
