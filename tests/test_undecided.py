@@ -3,6 +3,7 @@ have, and data two families explain alike are ``undecided``, with the protocol t
 
 import dataclasses
 import gzip
+import itertools
 import json
 import types
 from pathlib import Path
@@ -249,12 +250,14 @@ def test_a_set_point_is_safe_when_every_centre_the_readings_allow_is_within_the_
     assert not np.any(separation.safe_anywhere(np.array([[0.0, 0.0], [0.0, 5e-6]]), apart, 60e-6))
 
 
-def test_a_set_point_is_safe_under_the_sensor_gain_errors_of_the_position_gain_family():
-    """Set-points and readings are both read by the position sensors: a gain error scales the clearance they see.
-    The margin spans the position_gain family's range, and bites at the rim of the reach only."""
+def test_a_set_point_is_safe_under_the_sensor_gain_errors_of_the_position_gain_family(monkeypatch):
+    """Set-points and readings are both read by the position sensors, each axis with its own gain error: the rotor
+    sits at the reading over ``1 + e``.  The margin spans the position_gain family's range, bites at the rim of the
+    reach only, and is what the recommended protocols' reach is chosen under."""
     from ambfit.physics.effects import PositionGain
 
-    assert max(map(abs, separation.SENSOR_GAIN_ERRORS)) == pytest.approx(PositionGain.RANGES["gain_error"][1])
+    gains = separation.sensor_gain_errors()
+    assert min(gains) == pytest.approx(-PositionGain.RANGES["gain_error"][1]) and 0.0 in gains
     spec = rig.PAPER_RIG
     data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
     read = data[["v_um", "w_um"]].to_numpy() * 1e-6
@@ -262,8 +265,28 @@ def test_a_set_point_is_safe_under_the_sensor_gain_errors_of_the_position_gain_f
     for r, changed in ((20e-6, False), (34e-6, True)):
         points = separation._middle(data) + r * np.stack([np.cos(angle), np.sin(angle)], axis=1)
         nominal = separation.safe_anywhere(points, read, 60e-6)
-        margin = separation.safe_anywhere(points, read, 60e-6, separation.SENSOR_GAIN_ERRORS)
+        margin = separation.safe_anywhere(points, read, 60e-6, gains)
         assert np.all(nominal >= margin) and bool(np.any(nominal != margin)) == changed, r
+    # each axis with its own gain error (the rotor at the reading over 1 + e on each axis): over a grid around the
+    # readings, a set-point safe under the margin is safe under every pair, of which unequal ones rule out more
+    span = np.arange(-50e-6, 50.1e-6, 2e-6)
+    grid = separation._middle(data) + np.stack(np.meshgrid(span, span), axis=-1).reshape(-1, 2)
+    margin = separation.safe_anywhere(grid, read, 60e-6, gains)
+    alike = separation.safe_anywhere(grid, read, 60e-6, (0.0,))
+    for e in gains:
+        alike &= separation._safe_at(grid / (1.0 + e), read / (1.0 + e), 60e-6)
+    for pair in itertools.product(gains, repeat=2):
+        scale = 1.0 + np.array(pair)
+        assert np.all(margin <= separation._safe_at(grid / scale, read / scale, 60e-6)), pair
+    assert np.any(alike & ~margin)
+    with pytest.raises(ValueError, match="gain_errors"):
+        separation.safe_anywhere(points, read, 60e-6, ())
+    reach = {what.split(" of the middle")[0] for what, *_ in separation._protocols([_fitted(spec)], data,
+                                                                                    ambfit.PAPER_BEARING)}
+    monkeypatch.setattr(separation, "sensor_gain_errors", lambda: (-0.3, 0.0, 0.3))
+    narrower = {what.split(" of the middle")[0] for what, *_ in separation._protocols([_fitted(spec)], data,
+                                                                                       ambfit.PAPER_BEARING)}
+    assert narrower and narrower != reach
 
 
 def test_readings_too_close_together_for_any_reach_get_a_sweep_at_their_own_set_points():

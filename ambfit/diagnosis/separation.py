@@ -156,11 +156,9 @@ SPANS = (1.0, 0.75, 0.5, 0.35)
 """The set-points' reach as a share of :data:`REACH`: the widest of these whose set-points are safe
 wherever the stator's centre is, given the positions already read (:func:`safe_anywhere`)."""
 
-SENSOR_GAIN_ERRORS = tuple(np.linspace(-0.04, 0.04, 5))
-"""The position sensors' gain errors under which a set-point must be safe (:func:`safe_anywhere`): eddy-current
-probes drift 1-4 % with the target's material and temperature (the ``position_gain`` family's range,
-:class:`~ambfit.physics.effects.PositionGain`).  A sensor reading low puts the rotor further out than its
-set-point says; one reading high widens the region the readings leave for the stator's centre."""
+GAIN_STEPS = 3
+"""Gain errors tried per axis across the ``position_gain`` family's range (:func:`sensor_gain_errors`): its ends
+and none, on each axis (nine pairs)."""
 
 CENTRE_CELLS = 60
 """Cells across the back-up clearance of the grid on which :func:`safe_anywhere` looks for the stator's possible
@@ -183,17 +181,38 @@ def _hull(points: np.ndarray) -> np.ndarray:
         return pts[[int(np.argmin(along)), int(np.argmax(along))]]
 
 
-def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float, gain_errors=(0.0,)) -> np.ndarray:
+def sensor_gain_errors() -> tuple[float, ...]:
+    """The position sensors' gain errors under which a recommended set-point must be safe (:func:`safe_anywhere`):
+    :data:`GAIN_STEPS` across the ``position_gain`` family's range (:class:`~ambfit.physics.effects.PositionGain`),
+    either sign.  A sensor reading low puts the rotor further out than its set-point says; one reading high widens
+    the region the readings leave for the stator's centre."""
+    from ambfit.physics.effects import PositionGain
+
+    top = PositionGain.RANGES["gain_error"][1]
+    return tuple(float(e) for e in np.linspace(-top, top, GAIN_STEPS))
+
+
+def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float,
+                  gain_errors: tuple[float, ...] = (0.0,)) -> np.ndarray:
     """Whether each of ``points [n, 2]`` is within ``clearance`` of every centre the stator may have: every point
     within ``clearance`` of all the ``visited [m, 2]`` positions (the rotor was at each of them, so the centre was
     within the clearance of each), all [m].  Wider than the positions' convex hull (a point beyond readings near the
     rim can be safe), and safe whatever the fitted origin says.  Where no centre is within the clearance of every
     position (readings farther apart than its diameter: a reassembled rotor, a glitch), none is safe.
 
-    Points and positions are read by the position sensors: a sensor reading ``1 + e`` times the displacement sees
-    the clearance as ``(1 + e) clearance``.  A point is safe when it is safe under each of ``gain_errors``
-    (:data:`SENSOR_GAIN_ERRORS` for a rig whose sensors' gain is not known better)."""
-    return np.all([_safe_at(points, visited, (1.0 + e) * clearance) for e in gain_errors], axis=0)
+    Points and positions are read by the position sensors: a sensor reading ``1 + e`` times the displacement puts
+    the rotor at ``1 / (1 + e)`` times what it reads.  A point is safe when it is safe under every pair of
+    ``gain_errors`` on the two axes (:func:`sensor_gain_errors` for a rig whose sensors' gain is not known better).
+    """
+    if not len(gain_errors):
+        raise ValueError("gain_errors: at least one gain error (0.0: the sensors read the displacement as it is)")
+    pts = np.asarray(points, float).reshape(-1, 2)
+    vis = np.asarray(visited, float).reshape(-1, 2)
+    safe = np.ones(len(pts), bool)
+    for pair in itertools.product(gain_errors, repeat=2):
+        scale = 1.0 + np.asarray(pair)
+        safe &= _safe_at(pts / scale, vis / scale, clearance)
+    return safe
 
 
 def _safe_at(points: np.ndarray, visited: np.ndarray, clearance: float) -> np.ndarray:
@@ -220,6 +239,7 @@ def _where_read(df: pd.DataFrame) -> np.ndarray:
     """Where each reading was [m, sensor coordinates; rows x (v, w)]: its commanded set-point (``v_set_um``,
     ``w_set_um``) where the table gives one, else its measured position (NaN where neither is known)."""
     def axis(a):
+        """One axis' column [µm]: the set-point where given, else the position."""
         pos = df[f"{a}_um"].to_numpy(float)
         if f"{a}_set_um" not in df:
             return pos
@@ -324,13 +344,14 @@ def _protocols(models: list, df: pd.DataFrame, bearing) -> list[tuple[str, objec
         return what, design, sim.data, needs[what]
 
     listed = functools.cache(lambda top, span: list(designs(df, bearing, top, span).items()))
+    gains = sensor_gain_errors()
 
     def safe(slot, span) -> bool:
         """Whether the slot's set-points at ``span`` are safe wherever the stator's centre is (the top does not
         move them)."""
         design = listed(SWEEP_TOPS[0], span)[slot][1]
         return bool(np.all(safe_anywhere(np.stack([design.v_set, design.w_set], axis=1), visited,
-                                         bearing.backup_clearance, SENSOR_GAIN_ERRORS)))
+                                         bearing.backup_clearance, gains)))
 
     out = []
     for slot in range(len(listed(SWEEP_TOPS[0], SPANS[0]))):
