@@ -195,19 +195,21 @@ def test_time_tied_to_the_sweep_is_measured():
 
 def test_the_recommended_protocol_separates_them_when_run():
     """separate_by, shown by simulation: the rig that made the undecided data (the library's iron reluctance at
-    random magnitudes, drawn as the golden case was), run on the recommended protocol, gives data that single out
-    the true family."""
+    random magnitudes, the rich design run around the bearing's centre, within its limits), run on the recommended
+    protocol, gives data that single out the true family."""
     from ambfit.physics import effects as E
 
     rng = np.random.default_rng(1000 + 2 * ["none", *E.EFFECTS].index("iron_reluctance") + 1)
     while True:
         spec = rig.PAPER_RIG.with_truth(g0=rng.uniform(760e-6, 764e-6, 2), x0=rng.uniform(-40e-6, 40e-6, 2))
         effect = [E.EFFECTS["iron_reluctance"].random(rng)]
+        first = protocol.rich(center=(-spec.x0[0], -spec.x0[1]))      # around the bearing's centre
         try:
-            data = rig.simulate(spec, protocol.rich(), effect, seed=rng).data
+            data = rig.simulate(spec, first, effect, seed=rng).data
             break
         except rig.RigError:
             continue
+    assert not limit_violations(spec, first, effect)
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.verdict == "undecided" and dg.separation.separates
     plan = dg.separation.design
