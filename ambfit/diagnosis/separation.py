@@ -209,9 +209,11 @@ def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float,
     pts = np.asarray(points, float).reshape(-1, 2)
     vis = np.asarray(visited, float).reshape(-1, 2)
     safe = np.ones(len(pts), bool)
-    for pair in itertools.product(gain_errors, repeat=2):
+    for pair in sorted(itertools.product(gain_errors, repeat=2), key=lambda pair: np.abs(pair).sum()):
         scale = 1.0 + np.asarray(pair)
-        safe &= _safe_at(pts / scale, vis / scale, clearance)
+        safe[safe] = _safe_at(pts[safe] / scale, vis / scale, clearance)     # (only the points still safe)
+        if not safe.any():
+            break
     return safe
 
 
