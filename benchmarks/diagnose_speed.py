@@ -310,8 +310,9 @@ def main():
         md = render(json.loads((args.out / "diagnose_speed.json").read_text()))
         (args.out / "diagnose_speed.md").write_text("\n".join(md) + "\n")
         return
-    design = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15)
-    sim = rig.simulate(rig.PAPER_RIG, design, [E.Saturation(b_sat=np.asarray(1.15))], seed=5).data
+    spec = rig.PAPER_RIG         # the set-points around the bearing's centre, within the back-up clearance
+    design = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15, center=(-spec.x0[0], -spec.x0[1]))
+    sim = rig.simulate(spec, design, [E.Saturation(b_sat=np.asarray(1.15))], seed=5).data
     out = {"rows": len(sim), "load_average_at_start": os.getloadavg()}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "big.csv"
