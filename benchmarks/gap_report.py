@@ -59,8 +59,8 @@ def main():
                OUT / "withheld_region.png")
 
     # 3. speed on ~840 readings
-    big = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15)
-    dbig = rig.simulate(rig.PAPER_RIG, big, sat, seed=5).data
+    big = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15, center=(-spec.x0[0], -spec.x0[1]))
+    dbig = rig.simulate(spec, big, sat, seed=5).data
     path = OUT / "_big.csv"
     dbig.to_csv(path, index=False)
     exe = Path(sys.executable).with_name("ambfit")

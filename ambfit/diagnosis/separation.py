@@ -143,7 +143,8 @@ law alone is not enough: on the law zoo (seed 3131, ``benchmarks/separation_zoo.
 prediction is an extrapolation, hence the margin and the largest current reported
 (:attr:`Separation.largest_current`); on that seed every recommendation runs within the limit on the rig that made
 its data (``reports/gap/separation.md``).  The margin is set by the library's iron reluctance case
-(``tests/test_undecided.py``), which separates only with its sweep at 2.4 A: 2.88 A of a 3 A limit."""
+(``tests/test_undecided.py``), which separates only with its sweep at 2.4 A: 2.83 A of a 3 A limit (a margin of
+0.9 lowers the sweep to 2.1 A, and the follow-up stays ``undecided`` between iron reluctance and saturation)."""
 
 SWEEP_TOPS = (0.8, 0.7, 0.6, 0.5)
 """The bias sweep's top as a share of the coil current limit: the highest of these whose currents keep
@@ -158,7 +159,7 @@ wherever the stator's centre is, given the positions already read (:func:`safe_a
 
 GAIN_STEPS = 3
 """Gain errors tried per axis across the ``position_gain`` family's range (:func:`sensor_gain_errors`): its ends
-and none, on each axis (nine pairs)."""
+and none, on each axis (``GAIN_STEPS**2`` pairs)."""
 
 CENTRE_CELLS = 60
 """Cells across the back-up clearance of the grid on which :func:`safe_anywhere` looks for the stator's possible
@@ -209,7 +210,7 @@ def safe_anywhere(points: np.ndarray, visited: np.ndarray, clearance: float,
     pts = np.asarray(points, float).reshape(-1, 2)
     vis = np.asarray(visited, float).reshape(-1, 2)
     safe = np.ones(len(pts), bool)
-    for pair in sorted(itertools.product(gain_errors, repeat=2), key=lambda pair: np.abs(pair).sum()):
+    for pair in sorted(itertools.product(gain_errors, repeat=2), key=lambda p: np.abs(p).sum()):
         scale = 1.0 + np.asarray(pair)
         safe[safe] = _safe_at(pts[safe] / scale, vis / scale, clearance)     # (only the points still safe)
         if not safe.any():
