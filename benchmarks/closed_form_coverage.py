@@ -27,7 +27,7 @@ from ambfit.rig import protocol
 
 def run(scale: float, datasets: int) -> dict:
     spec = rig.PAPER_RIG
-    proto = protocol.paper_table2(iterations=10, center=(-spec.x0[0], -spec.x0[1]))
+    proto = protocol.paper_table2(iterations=10, center=spec.centre)
     base = rig.Noise()
     noise = rig.Noise(base.current * scale, base.position * scale)
     truth = {("v", "g0"): spec.g0[0], ("v", "x0"): spec.x0[0], ("w", "g0"): spec.g0[1], ("w", "x0"): spec.x0[1]}

@@ -34,7 +34,7 @@ def main():
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "reports" / "benchmarks")
     args = ap.parse_args()
     spec = rig.PAPER_RIG
-    center = (-spec.x0[0], -spec.x0[1])
+    center = spec.centre
     proto = protocol.paper_table2(iterations=10, center=center)
     per = {k: [] for k in PAPER_TABLE2}
     t0 = time.perf_counter()

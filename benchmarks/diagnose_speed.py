@@ -311,7 +311,7 @@ def main():
         (args.out / "diagnose_speed.md").write_text("\n".join(md) + "\n")
         return
     spec = rig.PAPER_RIG         # the set-points around the bearing's centre, within the back-up clearance
-    design = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15, center=(-spec.x0[0], -spec.x0[1]))
+    design = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15, center=spec.centre)
     sim = rig.simulate(spec, design, [E.Saturation(b_sat=np.asarray(1.15))], seed=5).data
     out = {"rows": len(sim), "load_average_at_start": os.getloadavg()}
     with tempfile.TemporaryDirectory() as tmp:

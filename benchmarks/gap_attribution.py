@@ -68,9 +68,7 @@ def one_case(item: tuple, seed) -> dict:
     while True:
         # air gap = nominal within a machining tolerance, so a parameter-level flag comes from the effect
         spec = rig.PAPER_RIG.with_truth(g0=rng.uniform(760e-6, 764e-6, 2), x0=rng.uniform(-40e-6, 40e-6, 2))
-        # the set-points around the bearing's centre (sensor reading -x0), as an operator runs them: within the
-        # back-up clearance wherever the sensors' zero is
-        proto = protocol.rich(center=(-spec.x0[0], -spec.x0[1]))
+        proto = protocol.rich(center=spec.centre)       # around the bearing's centre, as an operator runs it
         if name in OTHER_LAWS:
             eff = [OTHER_LAWS[name][1].random(rng)]
         else:

@@ -37,7 +37,7 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     sat = [E.Saturation(b_sat=np.asarray(1.15))]
     spec = rig.PAPER_RIG         # the set-points around the bearing's centre, within the back-up clearance
-    d = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), sat, seed=3).data
+    d = rig.simulate(spec, protocol.rich(center=spec.centre), sat, seed=3).data
     dg = gap.diagnose(d)
     rec = dg.to_json()
     (OUT / "example_saturation.json").write_text(json.dumps(rec, indent=2, default=float))
@@ -59,7 +59,7 @@ def main():
                OUT / "withheld_region.png")
 
     # 3. speed on ~840 readings
-    big = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15, center=(-spec.x0[0], -spec.x0[1]))
+    big = protocol.rich(biases=(1.0, 1.2, 1.4, 1.6), n_positions=15, center=spec.centre)
     dbig = rig.simulate(spec, big, sat, seed=5).data
     path = OUT / "_big.csv"
     dbig.to_csv(path, index=False)

@@ -36,7 +36,7 @@ TARGETS = {"bias_se_max": 1.5, "sd_over_bound_max": 1.05, "sets_min": 500, "corr
 
 
 def protocols(spec):
-    centre = (-spec.x0[0], -spec.x0[1])
+    centre = spec.centre
     first = P.perturbation((1.4, 1.6), (20e-6,), iterations=1, experiment="table2")
     rest = P.perturbation((1.4, 1.6), (20e-6,), center=centre, iterations=9, first_iteration=2, experiment="table2")
     return {
@@ -98,7 +98,7 @@ def sources(spec, proto, noise):
 def correction_cost(spec, repeats=60):
     """Median warm time of one fit of 936 readings, plain and corrected (the same data set), the two alternating so
     that a machine whose speed drifts slows both alike."""
-    d = rig.simulate(spec, P.paper_table2(iterations=117, center=(-spec.x0[0], -spec.x0[1])), seed=7).data
+    d = rig.simulate(spec, P.paper_table2(iterations=117, center=spec.centre), seed=7).data
     modes = ("none", "second-order")
     times = {mode: [] for mode in modes}
     for mode in modes:

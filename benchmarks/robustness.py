@@ -54,7 +54,7 @@ def main():
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks")
     args = ap.parse_args()
     spec = rig.PAPER_RIG
-    proto = protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1]))
+    proto = protocol.paper_table2(center=spec.centre)
     truth = np.array([spec.g0[0], spec.g0[1]])
     t0 = time.perf_counter()
 

@@ -39,7 +39,7 @@ S1_DRAWS = 20_000
 
 
 def protocols(spec):
-    centre = (-spec.x0[0], -spec.x0[1])
+    centre = spec.centre
     return {"table2": protocol.paper_table2(center=centre), "rich": protocol.rich(center=centre)}
 
 

@@ -41,7 +41,7 @@ rs = ross()                     # imported quietly (ROSS announces a missing REF
 
 # %%
 spec = rig.PAPER_RIG
-data = rig.simulate(spec, P.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)], seed=2).data
+data = rig.simulate(spec, P.rich(center=spec.centre), [Saturation(b_sat=1.0)], seed=2).data
 ideal, sat = fit(data), fit(data, [Saturation()])
 print(f"ideal law: χ²/dof {ideal.reduced_chi2:.0f};  with saturation: χ²/dof {sat.reduced_chi2:.2f}")
 

@@ -28,7 +28,7 @@ NOISY = rig.Noise(1.8e-3, 0.1e-6)
 @pytest.fixture(scope="module")
 def table2():
     spec = rig.PAPER_RIG
-    return rig.simulate(spec, P.paper_table2(center=(-spec.x0[0], -spec.x0[1])), noise=NOISY, seed=5).data
+    return rig.simulate(spec, P.paper_table2(center=spec.centre), noise=NOISY, seed=5).data
 
 
 def _exact_bias(theta, prob, free, model=core.IDEAL):
@@ -73,7 +73,7 @@ def _scaled_cov(res, prob, meta, model=core.IDEAL):
 
 def _cases():
     spec = rig.PAPER_RIG
-    centre = (-spec.x0[0], -spec.x0[1])
+    centre = spec.centre
     t2 = rig.simulate(spec, P.paper_table2(center=centre), noise=NOISY, seed=5).data
     unknown = {"u": P.Load(5.0, 4.0, known=False)}
     loads = rig.simulate(spec, P.perturbation((1.2, 1.4, 1.6), (20e-6, 40e-6), center=centre, load="u", loads=unknown),

@@ -28,7 +28,7 @@ DEFAULT = ROOT / "data" / "paper_table2.csv"
 @pytest.fixture(scope="module")
 def table2():
     spec = rig.PAPER_RIG
-    return rig.simulate(spec, protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=7).data
+    return rig.simulate(spec, protocol.paper_table2(center=spec.centre), seed=7).data
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +120,7 @@ def test_current_zeros_a_model_fits_are_not_budgeted_again():
     from ambfit.physics.effects import CurrentOffset
 
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=3).data
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), seed=3).data
     res = fit(data, [CurrentOffset()])
     b = budget(data, res)
     names = [t.name for t in b.terms]
@@ -138,7 +138,7 @@ def test_identify_fits_the_current_zeros_where_the_data_determine_them(tmp_path)
     toml.write_text("current_offset_tolerance_mA = 10.0\n")
     spec = rig.PAPER_RIG
     rich = tmp_path / "rich.csv"
-    rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=3).data.to_csv(rich, index=False)
+    rig.simulate(spec, protocol.rich(center=spec.centre), seed=3).data.to_csv(rich, index=False)
     runner = CliRunner()
     out = tmp_path / "rich.json"
     r = runner.invoke(app, ["identify", str(rich), "--bearing", str(toml), "--json", str(out)])
@@ -193,12 +193,12 @@ def test_a_law_that_does_not_fit_keeps_its_zeros_unfitted():
     from ambfit.physics.effects import Saturation
 
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)],
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), [Saturation(b_sat=1.0)],
                         seed=2).data
     wide = dataclasses.replace(PAPER_BEARING, current_offset_tolerance=10e-3)
     res = fit(data, bearing=wide)
     assert res.adequate is False
     assert fit_instead(data, res, budget(data, res)) is None
-    clean = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=3).data
+    clean = rig.simulate(spec, protocol.rich(center=spec.centre), seed=3).data
     ok = fit(clean, bearing=wide)
     assert ok.adequate and fit_instead(clean, ok, budget(clean, ok)) is not None

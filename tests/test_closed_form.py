@@ -164,7 +164,7 @@ def test_biased_mean_at_three_times_the_noise_is_flagged_not_returned():
     # 3x the paper's noise, seed 40: axis w's closed-form mean is more than 4 standard errors off the truth
     # (Eq. 6-7 are nonlinear in the noisy currents); least squares on the same readings is not, and says so
     spec = rig.PAPER_RIG
-    proto = P.paper_table2(iterations=10, center=(-spec.x0[0], -spec.x0[1]))
+    proto = P.paper_table2(iterations=10, center=spec.centre)
     sim = rig.simulate(spec, proto, noise=rig.Noise(1.8e-3, 0.3e-6), seed=40)
     res = cf.identify(sim.data, reference=least_squares)
     est = res.estimates[("all", "w")]

@@ -18,9 +18,8 @@ HEAD = ("g_v0", "g_w0", "v0", "w0", "k_v", "k_w")
 
 def _design():
     # centred on the rig's effective origin, so the ±40 µm set-points stay inside the back-up clearance
-    x0 = rig.PAPER_RIG.x0
     return protocol.rich(biases=(1.0, 1.3, 1.6), n_positions=4, masses_kg=(0.0, 1.0, 2.0),
-                         center=(-x0[0], -x0[1]))
+                         center=rig.PAPER_RIG.centre)
 
 
 @pytest.fixture(scope="module")

@@ -152,7 +152,7 @@ def test_gap_against_the_drawing_does_not_fire_on_clean_data(seed):
     # the paper rig's effective gaps (775/763 µm) sit 1.7 % / 0.1 % from the drawn 762 µm: inside a sound
     # bearing's machining + iron-reluctance band, so on clean data the flag may fire at most at Φ(-3) = 0.13 %
     spec = rig.PAPER_RIG
-    d = rig.simulate(spec, P.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=seed).data
+    d = rig.simulate(spec, P.paper_table2(center=spec.centre), seed=seed).data
     entries = {e["parameter"]: e for e in gap.parameter_gap(fit.fit(d), spec.bearing)}
     g = entries["g_v0_um"]
     assert g["differs"] and not g["flagged"]             # an effective value, told as such, not a flag
@@ -164,7 +164,7 @@ def test_table2_diagnosis_says_it_cannot_see_saturation():
     # the README's example: saturation on the paper's two close biases is invisible to the held-out test
     # (verdict none) and is absorbed in the effective origin; the diagnosis must say so, not stay silent
     spec = rig.PAPER_RIG
-    d = rig.simulate(spec, P.paper_table2(center=(-spec.x0[0], -spec.x0[1])),
+    d = rig.simulate(spec, P.paper_table2(center=spec.centre),
                      [E.Saturation(b_sat=np.asarray(1.2))], seed=1).data
     dg = gap.diagnose(d)
     rec = dg.to_json()

@@ -13,7 +13,7 @@ def test_p_value_is_the_chi2_tail_with_rows_minus_free_parameters():
     # dof = fitted readings - estimated parameters (gap, origin, k per axis; no nuisance loads here), and the
     # p-value is scipy's chi2.sf(χ², dof); with dof = readings the p-value of a good fit is inflated towards 1
     spec = rig.PAPER_RIG
-    proto = protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1]))
+    proto = protocol.paper_table2(center=spec.centre)
     pvals = []
     for seed in range(12):
         res = fit.fit(rig.simulate(spec, proto, seed=seed).data, loss="linear")

@@ -466,7 +466,7 @@ def test_the_summary_box_says_every_warning_the_command_line_prints(tmp_path):
     from ambfit.rig import protocol as P
 
     spec = rig.PAPER_RIG
-    frame = rig.simulate(spec, P.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)], seed=2).data
+    frame = rig.simulate(spec, P.rich(center=spec.centre), [Saturation(b_sat=1.0)], seed=2).data
     csv = tmp_path / "sat.csv"
     frame.to_csv(csv, index=False)
     r = CliRunner().invoke(app, ["identify", str(csv), "--no-force-check"])
@@ -505,7 +505,7 @@ def test_the_summary_box_gives_the_verdicts_parameters_beside_the_ideal_laws():
     from ambfit.rig import protocol as P
 
     spec = rig.PAPER_RIG
-    frame = rig.simulate(spec, P.rich(center=(-spec.x0[0], -spec.x0[1])), [Saturation(b_sat=1.0)], seed=2).data
+    frame = rig.simulate(spec, P.rich(center=spec.centre), [Saturation(b_sat=1.0)], seed=2).data
     ideal, sat = fit(frame), fit(frame, [Saturation()])
     grade = Grade("saturation", ("saturation",), "law", 0.99, 0.3, 1.05, 1.0, True, True)
     dg = types.SimpleNamespace(verdict="saturation", verdict_fit=sat, grade=grade)

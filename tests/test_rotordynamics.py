@@ -22,7 +22,7 @@ SPEC = rig.PAPER_RIG
 @pytest.fixture(scope="module")
 def sat_data():
     """The rich design on a rig whose iron saturates: a model with saturation, and the ideal law, fitted to it."""
-    return rig.simulate(SPEC, P.rich(center=(-SPEC.x0[0], -SPEC.x0[1])), [Saturation(b_sat=1.0)], seed=2).data
+    return rig.simulate(SPEC, P.rich(center=SPEC.centre), [Saturation(b_sat=1.0)], seed=2).data
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def test_k_i_and_k_s_are_the_derivatives_of_the_identified_model(sat_fit, axis):
 def test_the_ideal_law_linearises_to_its_closed_form():
     # Eq. 4 at the centre: k_i = 4 k b / g0², k_s = 4 k b² cos α / g0³ (the position enters the pole gap through
     # cos α), a hand computation independent of the model code
-    data = rig.simulate(SPEC, P.paper_table2(center=(-SPEC.x0[0], -SPEC.x0[1])), seed=1).data
+    data = rig.simulate(SPEC, P.paper_table2(center=SPEC.centre), seed=1).data
     res = fit(data)
     lin = linearise(res, "v", 1.5, draws=0)
     k, g = res.value("k_v"), res.value("g_v0")
@@ -87,7 +87,7 @@ def test_saturation_lowers_both_and_the_errors_follow_the_parameters(sat_data, s
 
 
 def test_a_posterior_linearises_from_its_draws():
-    data = rig.simulate(SPEC, P.paper_table2(center=(-SPEC.x0[0], -SPEC.x0[1])), seed=1).data
+    data = rig.simulate(SPEC, P.paper_table2(center=SPEC.centre), seed=1).data
     ls = fit(data)
     post = bayes.sample(data, n_ensembles=2, n_steps=400, max_steps=400, seed=1, ls=ls)
     a, b = linearise(post, "w", 1.5), linearise(ls, "w", 1.5)
@@ -96,7 +96,7 @@ def test_a_posterior_linearises_from_its_draws():
 
 
 def test_without_known_loads_there_is_no_force_to_linearise():
-    frame = rig.simulate(SPEC, P.paper_table2(center=(-SPEC.x0[0], -SPEC.x0[1])), seed=1).data
+    frame = rig.simulate(SPEC, P.paper_table2(center=SPEC.centre), seed=1).data
     frame = frame.assign(load_N=np.nan)
     with pytest.raises(ValueError, match="k_v is not identified"):
         linearise(fit(frame), "v", 1.5)

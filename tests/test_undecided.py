@@ -35,7 +35,7 @@ def test_clean_data_of_2000_readings_are_none():
     """The paper's Table 2 protocol run 250 times (2000 readings at 8 operating points, each repeated): the ideal
     law's held-out residuals sit on the floor; no flexible model may claim the readings' own noise."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.paper_table2(iterations=250, center=(-spec.x0[0], -spec.x0[1])), seed=100).data
+    data = rig.simulate(spec, protocol.paper_table2(iterations=250, center=spec.centre), seed=100).data
     assert len(data) == 2000
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.verdict == "none", str(dg)
@@ -203,7 +203,7 @@ def test_the_recommended_protocol_separates_them_when_run():
     while True:
         spec = rig.PAPER_RIG.with_truth(g0=rng.uniform(760e-6, 764e-6, 2), x0=rng.uniform(-40e-6, 40e-6, 2))
         effect = [E.EFFECTS["iron_reluctance"].random(rng)]
-        first = protocol.rich(center=(-spec.x0[0], -spec.x0[1]))      # around the bearing's centre
+        first = protocol.rich(center=spec.centre)
         try:
             data = rig.simulate(spec, first, effect, seed=rng).data
             break
@@ -233,7 +233,7 @@ def test_the_protocols_scored_stay_where_the_readings_were_whatever_the_fitted_o
     the forces balance): a protocol centred there could put the rotor on its back-up bearing.  The protocols scored
     lie among the positions already read, within the clearance of the rig that made the readings."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), seed=2).data
     off = spec.with_truth(x0=(spec.x0[0] - 45e-6, spec.x0[1] + 30e-6))      # a fitted origin 54 µm away
     runs = separation._protocols([_fitted(off)], data, ambfit.PAPER_BEARING)
     assert len(runs) == 3
@@ -261,7 +261,7 @@ def test_a_set_point_is_safe_under_the_sensor_gain_errors_of_the_position_gain_f
     gains = separation.sensor_gain_errors()
     assert min(gains) == pytest.approx(-PositionGain.RANGES["gain_error"][1]) and 0.0 in gains
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), seed=2).data
     read = data[["v_um", "w_um"]].to_numpy() * 1e-6
     angle = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
     for r, changed in ((20e-6, False), (34e-6, True)):
@@ -295,7 +295,7 @@ def test_readings_too_close_together_for_any_reach_get_a_sweep_at_their_own_set_
     """Table 2's diagonal pairs leave the stator's centre anywhere in a wide region: no grid around them is safe
     wherever it is, but a bias sweep where the rotor has already been is."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    data = rig.simulate(spec, protocol.paper_table2(center=spec.centre), seed=2).data
     runs = separation._protocols([_fitted(spec)], data, ambfit.PAPER_BEARING)
     assert len(runs) == 1 and "already read" in runs[0][0]
     design = runs[0][1]
@@ -308,7 +308,7 @@ def test_readings_without_a_set_point_count_where_they_were_read():
     """Set-point columns filled on some rows only: each reading is where it was commanded, else where it was read,
     for the middle the protocols are centred on and for the sweep at the set-points already read alike."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.paper_table2(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    data = rig.simulate(spec, protocol.paper_table2(center=spec.centre), seed=2).data
     part = data.copy()
     late = part.index >= len(part) // 2
     part.loc[late, ["v_set_um", "w_set_um"]] = np.nan
@@ -331,7 +331,7 @@ def test_a_protocol_is_kept_within_the_coil_limit_by_every_candidates_model():
     from ambfit.physics import effects as E
 
     spec, bearing = rig.PAPER_RIG, ambfit.PAPER_BEARING
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=2).data
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), seed=2).data
     ideal = separation._protocols([_fitted(spec)], data, bearing)
     strong = separation._protocols([_fitted(spec, [E.Saturation(b_sat=np.asarray(0.9))])], data, bearing)
     sweep = {what.split(" A ")[0]: need for what, _, _, need in ideal}
@@ -399,7 +399,7 @@ def test_clean_data_without_std_columns_are_none_at_their_own_noise(current):
     model's error too.  The diagnosis takes the level from neighbouring readings instead: clean data are ``none``
     whatever their noise, and the level found is the readings' own."""
     spec = rig.PAPER_RIG
-    data = _noisy(protocol.rich(center=(-spec.x0[0], -spec.x0[1])), current)
+    data = _noisy(protocol.rich(center=spec.centre), current)
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.verdict == "none", str(dg)
     rms = np.sqrt(np.mean(current(data[["i_top_A", "i_bottom_A"]].to_numpy()) ** 2))
@@ -430,7 +430,7 @@ def test_the_noise_from_neighbours_is_their_pseudo_residuals_mean_square():
     from ambfit.diagnosis.noise import MIN_READINGS, UNIT_A, from_neighbours
 
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.paper_table2(iterations=20, center=(-spec.x0[0], -spec.x0[1])), seed=3).data
+    data = rig.simulate(spec, protocol.paper_table2(iterations=20, center=spec.centre), seed=3).data
     data = data.drop(columns=[c for c in data if "_std_" in c])
     rng = np.random.default_rng(0)
 
@@ -477,7 +477,7 @@ def test_the_current_noise_beside_a_known_position_noise():
     the level at which a refit's readings scatter as their noise says (a quiet 0.2 mA, to which the positions' 0.1
     µm adds about as much)."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), noise=rig.Noise(0.2e-3, 0.1e-6),
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), noise=rig.Noise(0.2e-3, 0.1e-6),
                         seed=2).data
     dg = ambfit.diagnose(data.drop(columns=["i_top_std_A", "i_bottom_std_A"]), check_force=False, discrepancy=False)
     assert dg.verdict == "none", str(dg)
@@ -491,7 +491,7 @@ def test_readings_that_scatter_unlike_their_std_columns_are_said_to():
     """Clean rig data scatter between neighbouring readings as their std columns say; with the std columns halved
     the scatter is twice theirs, which the diagnosis says beside its verdict (every model falls short of the floor)."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=4).data
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), seed=4).data
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.verdict == "none" and not dg.scatter.off and abs(dg.scatter.ratio - 1) < 0.15, dg.scatter
     assert dg.to_json()["neighbour_scatter"]["off"] is False
@@ -516,7 +516,7 @@ def test_too_few_readings_for_the_noise_from_neighbours_are_said_to_be():
     of one load and approach direction: the scores stand against the unit level, and the record and the noise floor
     say so."""
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.paper_table2(iterations=5, center=(-spec.x0[0], -spec.x0[1])), seed=5).data
+    data = rig.simulate(spec, protocol.paper_table2(iterations=5, center=spec.centre), seed=5).data
     bare = data.drop(columns=[c for c in data if "_std_" in c])
     dg = ambfit.diagnose(bare, check_force=False, discrepancy=False)
     from ambfit.diagnosis.noise import UNESTIMATED
@@ -528,7 +528,7 @@ def test_too_few_readings_for_the_noise_from_neighbours_are_said_to_be():
 
 def test_current_std_columns_with_an_empty_cell_are_estimated_and_said_to_be():
     spec = rig.PAPER_RIG
-    data = rig.simulate(spec, protocol.rich(center=(-spec.x0[0], -spec.x0[1])), seed=6).data
+    data = rig.simulate(spec, protocol.rich(center=spec.centre), seed=6).data
     data.loc[4, "i_top_std_A"] = np.nan
     dg = ambfit.diagnose(data, check_force=False, discrepancy=False)
     assert dg.noise_estimate is not None and abs(dg.noise_estimate.sigma_i / 0.6e-3 - 1) < 0.15, dg.noise_estimate

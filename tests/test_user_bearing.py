@@ -57,7 +57,7 @@ def spec(bearing):
 @pytest.fixture(scope="module")
 def data(spec):
     """The paper's Table 2 protocol about the rig's bearing centre, on the user's bearing."""
-    proto = P.paper_table2(iterations=5, center=(-spec.x0[0], -spec.x0[1]), loads=spec.loads)
+    proto = P.paper_table2(iterations=5, center=spec.centre, loads=spec.loads)
     return rig.simulate(spec, proto, seed=4).data
 
 
@@ -109,7 +109,7 @@ def test_every_step_design_recommends_is_accepted_by_simulates_limit_check(spec,
     from ambfit.estimation import design
 
     scale = bearing.max_current / rig.PAPER_RIG.bearing.max_current       # the rich preset on this bearing
-    proto = P.rich(biases=tuple(b * scale for b in (1.0, 1.2, 1.4, 1.6)), center=(-spec.x0[0], -spec.x0[1]),
+    proto = P.rich(biases=tuple(b * scale for b in (1.0, 1.2, 1.4, 1.6)), center=spec.centre,
                    rotor_kg=bearing.rotor_mass, span=bearing.backup_clearance * 2 / 3)
     data = rig.simulate(spec, proto, seed=4).data
     rec = design.recommend(data, n_steps=8, bearing=bearing)
@@ -254,7 +254,7 @@ def test_design_on_a_protocol_blind_to_saturation_stays_within_the_rigs_clearanc
     from ambfit.physics.effects import Saturation
 
     spec = rig.RigSpec.for_bearing(bearing) if user else rig.PAPER_RIG
-    proto = P.paper_table2(center=(-spec.x0[0], -spec.x0[1]), loads=spec.loads)
+    proto = P.paper_table2(center=spec.centre, loads=spec.loads)
     data = rig.simulate(spec, proto, [Saturation(b_sat=1.2)], seed=1).data
     res = fit(data, bearing=spec.bearing)
     assert res.adequate

@@ -18,7 +18,7 @@ COLUMNS = ["i_top_A", "i_bottom_A", "v_um", "w_um"]
 @pytest.fixture(scope="module")
 def small():
     """A short protocol around the paper rig's origin under two known loads, and its data without any effect."""
-    center = (-rig.PAPER_RIG.x0[0], -rig.PAPER_RIG.x0[1])
+    center = rig.PAPER_RIG.centre
     points = [(center[0] + dv, center[1] + dw) for dv, dw in ((30e-6, 20e-6), (-30e-6, 10e-6), (0.0, -25e-6))]
     loads = {"a": protocol.Load.gravity(1.0), "b": protocol.Load.gravity(2.0)}
     proto = protocol.concat(*(protocol.bias_sweep((1.0, 1.3, 1.6), points, load=k, loads=loads, iteration=j + 1)

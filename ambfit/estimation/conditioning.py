@@ -303,7 +303,7 @@ def compare_designs(spec=None, noise=None, designs: dict | None = None) -> pd.Da
     spec = spec or rig.PAPER_RIG
     noise = noise or rig.Noise()
     rows = []
-    center = (-spec.x0[0], -spec.x0[1])
+    center = spec.centre
     sets = {"": designs} if designs else {"load per position": standard_designs(center),
                                           "one shared load": standard_designs(center, same_load=True)}
     for loads, ds in sets.items():

@@ -184,7 +184,7 @@ def simulate_campaign(
     if experiments > 1 and length >= interval_s:
         raise ValueError(f"an experiment lasts {length:g} s, longer than the interval of {interval_s:g} s")
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(experiments)]
-    centre = (-spec.x0[0], -spec.x0[1])
+    centre = spec.centre
     state = RigState()
     frames, per_experiment = [], []
     sim = CampaignSimulation(pd.DataFrame(), {}, starts, spec, drift, jump_at, tuple(jump))

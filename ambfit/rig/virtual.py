@@ -82,6 +82,12 @@ class RigSpec:
         return self.bearing.nominal_gap
 
     @property
+    def centre(self) -> tuple[float, float]:
+        """Where the sensors read the bearing's centre [m]: ``-x0`` (a protocol run around it stays within the
+        back-up clearance however far the sensors' zero is from it)."""
+        return (-self.x0[0], -self.x0[1])
+
+    @property
     def force_constant(self) -> float:
         """Eq. 3's ``k`` from the winding, pole area and true lamination [N m^2/A^2]."""
         return self.bearing.force_constant(self.lamination)

@@ -107,7 +107,7 @@ def simulate(
     effects = effects_of(effect, desc)
     try:
         spec = rig.RigSpec.for_bearing(desc).with_truth(g0=pair(gap_um, 1e-6), x0=pair(origin_um, 1e-6))
-        center = ((-spec.x0[0], -spec.x0[1]) if center_um.strip().lower() == "origin" else pair(center_um, 1e-6))
+        center = spec.centre if center_um.strip().lower() == "origin" else pair(center_um, 1e-6)
         if protocol is not None:
             proto, more = protocol_of(protocol, desc)
             effects += more
