@@ -270,6 +270,32 @@ def test_row_parameters_give_the_shared_parameters_forces_and_derivatives():
         np.testing.assert_allclose(a, b, rtol=1e-10)
 
 
+def test_row_force_derivatives_in_every_input_forward_and_reverse():
+    # The fit's path (row_axis_force: each row's derivatives by one reverse pass, applied to every tangent) against
+    # the forward derivatives of mec_axis_force, in every parameter and reading a row's force depends on; a gradient
+    # (a sampler's, jax.grad) takes the reverse of that rule, so both modes are checked.
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(29, bias=2.2)
+    axis = jnp.array([0, 1] * (BATCH // 2))
+    is_v = axis == 0
+    names = ("gap", "fringe_depth", "leakage", "iron_h_scale", "pole_area_ratio")
+
+    def force(fn, theta):
+        p = REAL.replace(**dict(zip(names, theta[:5])))
+        top, bottom, x, x0, y0 = theta[5], theta[6], theta[7], theta[8], theta[9]
+        cols = (jnp.where(is_v, i_vt, i_wt) + top, jnp.where(is_v, i_vb, i_wb) + bottom, jnp.where(is_v, i_wt, i_vt),
+                jnp.where(is_v, i_wb, i_vb), jnp.where(is_v, dv, dw) + x, jnp.where(is_v, dw, dv))
+        return fn(p, FEM_BEARING, axis, *cols, x0, y0)
+
+    theta = jnp.array([REAL.gap, REAL.fringe_depth, REAL.leakage, 1.3, REAL.pole_area_ratio, 0.0, 0.0, 0.0,
+                       12e-6, -7e-6])
+    want = jax.jacfwd(lambda t: force(mec_axis_force, t))(theta)
+    scale = np.max(np.abs(want), axis=0)
+    assert np.all(scale > 0)                        # every input moves some row's force
+    for got in (jax.jacfwd(lambda t: force(row_axis_force, t))(theta),
+                jax.jacrev(lambda t: force(row_axis_force, t))(theta)):
+        np.testing.assert_allclose(np.asarray(got) / scale, np.asarray(want) / scale, rtol=0, atol=1e-10)
+
+
 def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_looks_right(monkeypatch):
     from ambfit.physics.circuit import solve
 

@@ -341,13 +341,38 @@ def mec_axis_force(params: MECParams, bearing: Bearing, axis, i_top, i_bottom, i
     return jnp.where(is_v, f[..., 0], f[..., 1])
 
 
-def _rows(params, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
-    """:func:`_solve_one`'s force and loop fluxes over rows whose parameters differ row by row (every field shaped
-    ``(n,)``), from ``start`` [n, FLUX_WIDTH] (zero flux if None)."""
-    def one(p, *row):
-        return _solve_one(p, bearing, *row[:6], full=False, start=row[6] if start is not None else None)
+def _own_force_of(bearing, p, is_v, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
+    """One reading's force along its own axis (``is_v``: v, else w) and the loop fluxes it converged to
+    (:func:`_solve_one`)."""
+    force, flux = _solve_one(p, bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, full=False, start=start)
+    return jnp.where(is_v, force[0], force[1]), flux
 
-    rows = (i_vt, i_vb, i_wt, i_wb, dv, dw) + ((start,) if start is not None else ())
+
+_own_force = jax.custom_jvp(_own_force_of, nondiff_argnums=(0,))
+""":func:`_own_force_of` with its derivatives by one reverse pass through the implicit-function step (one adjoint
+solve), applied to every tangent: a fit pushes a tangent per parameter and per reading through each solve (twenty and
+more), and in forward mode each would be a solve of its own.  The same derivatives to round-off."""
+
+
+@_own_force.defjvp
+def _own_force_jvp(bearing, primals, tangents):
+    p, is_v, *row, start = primals
+    dp, _, *drow, _ = tangents
+    force, pullback, flux = jax.vjp(lambda p, *row: _own_force_of(bearing, p, is_v, *row, start), p, *row,
+                                    has_aux=True)
+    grads = jax.tree_util.tree_leaves(pullback(jnp.ones_like(force)))
+    dforce = sum(jnp.sum(g * t) for g, t in zip(grads, jax.tree_util.tree_leaves((dp, *drow))))
+    # the fluxes are the solve's own (no derivative); a row whose solve failed (a NaN force) gets a zero derivative
+    return (force, flux), (jnp.where(jnp.isfinite(force), dforce, 0.0), jnp.zeros_like(flux))
+
+
+def _rows(params, bearing, is_v, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
+    """Each row's force along its own axis (``is_v``: v, else w) and its loop fluxes, over rows whose parameters differ
+    row by row (every field shaped ``(n,)``), from ``start`` [n, FLUX_WIDTH] (zero flux if None)."""
+    def one(p, v, *row):
+        return _own_force(bearing, p, v, *row[:6], row[6] if start is not None else None)
+
+    rows = (is_v, i_vt, i_vb, i_wt, i_wb, dv, dw) + ((start,) if start is not None else ())
     return jax.vmap(one)(params, *rows)
 
 
@@ -374,5 +399,4 @@ def row_axis_force_and_flux(params: MECParams, bearing: Bearing, axis, i_top, i_
     n = axis.shape[0]
     rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
     is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
-    f, flux = (_rows if traced(rows, inputs, start) else _solve_rows)(rows, bearing, *inputs, start)
-    return jnp.where(is_v, f[:, 0], f[:, 1]), flux
+    return (_rows if traced(rows, inputs, start) else _solve_rows)(rows, bearing, is_v, *inputs, start)
