@@ -310,6 +310,23 @@ def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_look
     assert np.isfinite(float(solved[0])) and float(solved[0]) > 0
 
 
+def test_a_row_without_a_solution_has_zero_slopes_and_spoils_no_other_rows():
+    # One row's other-axis current unknown (NaN): its force is NaN, its derivatives zero in both modes, and the
+    # other rows' derivatives in the parameters they share stay finite and as they are without it.
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(31, bias=1.8)
+    axis = jnp.array([0, 1] * (BATCH // 2))
+    broken = i_wt.at[2].set(jnp.nan)
+
+    def force(gap, other):
+        return row_axis_force(REAL.replace(gap=gap), FEM_BEARING, axis, i_vt, i_vb, other, i_wb, dv, dw, 0.0, 0.0)
+
+    assert np.isnan(force(REAL.gap, broken)[2]) and np.all(np.isfinite(np.delete(force(REAL.gap, broken), 2)))
+    want = jax.jacfwd(force)(REAL.gap, i_wt)
+    for slope in (jax.jacfwd(force)(REAL.gap, broken), jax.jacrev(force)(REAL.gap, broken)):
+        assert slope[2] == 0.0
+        np.testing.assert_allclose(np.delete(slope, 2), np.delete(want, 2), rtol=1e-12)
+
+
 def test_a_held_circuit_parameter_is_not_fitted_and_survives_the_model_file():
     from ambfit.estimation.core import Model
     from ambfit.physics.effects import MagneticCircuit, effect_by_name

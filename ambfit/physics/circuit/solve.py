@@ -360,10 +360,11 @@ def _own_force_jvp(bearing, primals, tangents):
     dp, _, *drow, _ = tangents
     force, pullback, flux = jax.vjp(lambda p, *row: _own_force_of(bearing, p, is_v, *row, start), p, *row,
                                     has_aux=True)
-    grads = jax.tree_util.tree_leaves(pullback(jnp.ones_like(force)))
+    # a row whose solve failed (a NaN force) gets zero derivatives, finite in both modes; the fluxes are the solve's
+    # own (no derivative)
+    grads = [jnp.where(jnp.isfinite(force), g, 0.0) for g in jax.tree_util.tree_leaves(pullback(jnp.ones_like(force)))]
     dforce = sum(jnp.sum(g * t) for g, t in zip(grads, jax.tree_util.tree_leaves((dp, *drow))))
-    # the fluxes are the solve's own (no derivative); a row whose solve failed (a NaN force) gets a zero derivative
-    return (force, flux), (jnp.where(jnp.isfinite(force), dforce, 0.0), jnp.zeros_like(flux))
+    return (force, flux), (dforce, jnp.zeros_like(flux))
 
 
 def _rows(params, bearing, is_v, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
