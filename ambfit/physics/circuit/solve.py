@@ -351,7 +351,8 @@ def _own_force_of(bearing, p, is_v, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
 _own_force = jax.custom_jvp(_own_force_of, nondiff_argnums=(0,))
 """:func:`_own_force_of` with its derivatives by one reverse pass through the implicit-function step (one adjoint
 solve), applied to every tangent: a fit pushes a tangent per parameter and per reading through each solve (twenty and
-more), and in forward mode each would be a solve of its own.  The same derivatives to round-off."""
+more), and in forward mode each is another pass through the loop equations and the triangular solves.  The same
+derivatives to round-off."""
 
 
 @_own_force.defjvp
@@ -362,16 +363,16 @@ def _own_force_jvp(bearing, primals, tangents):
                                     has_aux=True)
     # a row whose solve failed (a NaN force) gets zero derivatives, finite in both modes; the fluxes are the solve's
     # own (no derivative)
-    grads = [jnp.where(jnp.isfinite(force), g, 0.0) for g in jax.tree_util.tree_leaves(pullback(jnp.ones_like(force)))]
-    dforce = sum(jnp.sum(g * t) for g, t in zip(grads, jax.tree_util.tree_leaves((dp, *drow))))
-    return (force, flux), (dforce, jnp.zeros_like(flux))
+    grads = jax.tree_util.tree_map(lambda g: jnp.where(jnp.isfinite(force), g, 0.0), pullback(jnp.ones_like(force)))
+    terms = jax.tree_util.tree_map(lambda g, t: g * t, grads, (dp, *drow))
+    return (force, flux), (sum(jax.tree_util.tree_leaves(terms)), jnp.zeros_like(flux))
 
 
 def _rows(params, bearing, is_v, i_vt, i_vb, i_wt, i_wb, dv, dw, start):
     """Each row's force along its own axis (``is_v``: v, else w) and its loop fluxes, over rows whose parameters differ
     row by row (every field shaped ``(n,)``), from ``start`` [n, FLUX_WIDTH] (zero flux if None)."""
-    def one(p, v, *row):
-        return _own_force(bearing, p, v, *row[:6], row[6] if start is not None else None)
+    def one(p, own, *row):
+        return _own_force(bearing, p, own, *row[:6], row[6] if start is not None else None)
 
     rows = (is_v, i_vt, i_vb, i_wt, i_wb, dv, dw) + ((start,) if start is not None else ())
     return jax.vmap(one)(params, *rows)
@@ -399,5 +400,6 @@ def row_axis_force_and_flux(params: MECParams, bearing: Bearing, axis, i_top, i_
     axis = jnp.asarray(axis)
     n = axis.shape[0]
     rows = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(jnp.asarray(a, dtype=float), (n,)), params)
-    is_v, inputs = _bearing_frame(axis, i_top, i_bottom, i_top_other, i_bottom_other, x, y, x0, y0)
+    is_v, inputs = _bearing_frame(axis, *(jnp.asarray(a, dtype=float) for a in (i_top, i_bottom, i_top_other,
+                                                                              i_bottom_other, x, y, x0, y0)))
     return (_rows if traced(rows, inputs, start) else _solve_rows)(rows, bearing, is_v, *inputs, start)
