@@ -322,6 +322,20 @@ def test_a_slope_of_the_row_force_has_the_forward_paths_gradient():
     np.testing.assert_allclose(jax.grad(lambda t: slope(row_axis_force, t))(theta), want, rtol=1e-12)
 
 
+def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_looks_right(monkeypatch):
+    from ambfit.physics.circuit import solve
+
+    b = PAPER_BEARING
+    p = MECParams.ideal(b)
+    with jax.disable_jit():                      # the step budget is read when the loop runs
+        monkeypatch.setattr(solve, "MAX_NEWTON", 1)
+        stopped = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
+        monkeypatch.setattr(solve, "MAX_NEWTON", 40)
+        solved = mec_forces(p, b, 2.0, 1.0, 1.5, 1.5, 0.0, 0.0)
+    assert np.isnan(float(stopped[0])) and np.isnan(float(stopped[1]))
+    assert np.isfinite(float(solved[0])) and float(solved[0]) > 0
+
+
 def test_a_row_without_a_solution_has_zero_slopes_and_spoils_no_other_rows():
     # One row's other-axis current unknown (NaN): its force is NaN, its derivatives zero in both modes, and the
     # other rows' derivatives in the parameters they share stay finite and as they are without it.
