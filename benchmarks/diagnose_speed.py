@@ -17,8 +17,9 @@ Then the hard cases (issue "Fast on a real bearing from the first run"), the dat
 ``tests/test_diagnosis_golden.py``: a magnetic-circuit verdict on the finite-element development data
 (``../shared/fem``), a law widened by its signature, a pair, an undecided verdict.  Each: a new
 process without and with the compilation cache, a first call in this process, a warm call, the warm call by
-phase (the circuit families' refits on their own), and where a cold call's time goes (a new process without the
-cache: importing ambfit, then the diagnosis' compiling, tracing and the rest).
+phase (the circuit families' refits on their own), the least-squares solves of a warm call by kind of model (the
+magnetic circuit's, which solve per reading, and the others': calls, steps, seconds), and where a cold call's time
+goes (a new process without the cache: importing ambfit, then the diagnosis' compiling, tracing and the rest).
 
     .venv/bin/python benchmarks/diagnose_speed.py
 
@@ -135,6 +136,43 @@ def one_thread(data, n: int = 3) -> float:
     return float(np.median(runs))
 
 
+SOLVE_KINDS = ("the magnetic circuit (a solve per reading)", "the other models")
+
+
+def solves(data, **kw) -> dict:
+    """One warm diagnosis with one fit at a time (``threads=1``), its least-squares solves timed by kind of model:
+    those that solve per reading (the magnetic circuit) and the others.  Per kind: calls, Levenberg-Marquardt steps
+    and the solves' seconds (the compiled program and its dispatch, not the Python of the fit around it)."""
+    import jax
+
+    from ambfit.estimation import debias, lm
+
+    spent = {k: {"calls": 0, "steps": 0, "seconds": 0.0} for k in SOLVE_KINDS}
+    original = lm.solve
+
+    def timed(theta0, prob, model=lm.IDEAL, *a, **k):
+        t = time.perf_counter()
+        sol = original(theta0, prob, model, *a, **k)
+        jax.block_until_ready(sol.theta)
+        s = spent[SOLVE_KINDS[0] if model.flux_width else SOLVE_KINDS[1]]
+        s["calls"] += 1
+        s["steps"] += int(np.sum(sol.steps))
+        s["seconds"] += time.perf_counter() - t
+        return sol
+
+    modules = (lm, batches, debias)
+    for m in modules:
+        m.solve = timed
+    try:
+        t0 = time.perf_counter()
+        attribution.diagnose(data, threads=1, **kw)
+        total = time.perf_counter() - t0
+    finally:
+        for m in modules:
+            m.solve = original
+    return {"total_s": total, **spent}
+
+
 def fold_routes(data, n: int = 3) -> dict:
     """Warm median seconds of one model's fold refits by the two routes the core offers: one fit per fold (what
     the diagnosis runs, two at a time on threads) and one batched ``fit_many`` over the fold masks (padded and
@@ -237,6 +275,7 @@ def hard_cases(tmp: Path) -> dict:
         rec |= {"rows": len(data.frame), "verdict": dg.verdict}
         runs = sorted((phases(data, **kw) for _ in range(3)), key=lambda r: r["total_s"])
         rec["warm"] = runs[1]
+        rec["solves"] = solves(data, **kw)
         out[case] = rec
     return out
 
@@ -285,6 +324,19 @@ def render(out: dict) -> list[str]:
                   f"{h['cli_filled_cache_s']:.1f} | {h['in_process_first_s']:.1f} | {hw['total_s']:.2f} | "
                   f"{hw['fits of the ideal law and the candidates']:.2f} / {hw.get('circuit families', 0.0):.2f} / "
                   f"{hw.get('discrepancy', 0.0):.2f} / {hw.get('force checks', 0.0):.2f} |")
+    timed = {case: h["solves"] for case, h in out["hard_cases"].items() if "solves" in h}
+    if timed:
+        md += ["", "Where a warm diagnosis' solves go: one diagnosis with one fit at a time (`threads=1`), its "
+               "least-squares solves (the compiled program and its dispatch) timed by kind of model; the rest of "
+               "its time is the Python and NumPy around them (problems, outlier tests, held-out scores, the "
+               "discrepancy).", "",
+               "| case | one fit at a time [s] | " + " | ".join(f"{k}: calls / steps / s / ms per step"
+                                                          for k in SOLVE_KINDS) + " |",
+               "|---|---|" + "---|" * len(SOLVE_KINDS)]
+        for case, t in timed.items():
+            cells = [f"{t[k]['calls']} / {t[k]['steps']} / {t[k]['seconds']:.2f} / "
+                     f"{1e3 * t[k]['seconds'] / max(t[k]['steps'], 1):.1f}" for k in SOLVE_KINDS]
+            md.append(f"| {out['hard_cases'][case]['label']} | {t['total_s']:.2f} | " + " | ".join(cells) + " |")
     cold = {case: h["cold"] for case, h in out["hard_cases"].items() if "cold" in h}
     if cold:
         md += ["", "Where a cold diagnosis' time goes: a new process without the compilation cache, importing ambfit "
