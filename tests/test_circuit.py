@@ -336,21 +336,35 @@ def test_a_circuit_solve_that_has_not_converged_gives_nan_not_a_number_that_look
     assert np.isfinite(float(solved[0])) and float(solved[0]) > 0
 
 
-def test_a_row_without_a_solution_has_zero_slopes_and_spoils_no_other_rows():
+@pytest.mark.parametrize("fn", [row_axis_force, mec_axis_force], ids=["fit-path", "public"])
+def test_a_row_without_a_solution_has_zero_slopes_and_spoils_no_other_rows(fn):
     # One row's other-axis current unknown (NaN): its force is NaN, its derivatives zero in both modes, and the
-    # other rows' derivatives in the parameters they share stay finite and as they are without it.
+    # other rows' derivatives in the parameters they share stay finite and as they are without it; on the fits'
+    # path (the rule) and on the public one (mec_solve).
     i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(31, bias=1.8)
     axis = jnp.array([0, 1] * (BATCH // 2))
     broken = i_wt.at[2].set(jnp.nan)
 
     def force(gap, other):
-        return row_axis_force(REAL.replace(gap=gap), FEM_BEARING, axis, i_vt, i_vb, other, i_wb, dv, dw, 0.0, 0.0)
+        return fn(REAL.replace(gap=gap), FEM_BEARING, axis, i_vt, i_vb, other, i_wb, dv, dw, 0.0, 0.0)
 
     assert np.isnan(force(REAL.gap, broken)[2]) and np.all(np.isfinite(np.delete(force(REAL.gap, broken), 2)))
     want = jax.jacfwd(force)(REAL.gap, i_wt)
     for slope in (jax.jacfwd(force)(REAL.gap, broken), jax.jacrev(force)(REAL.gap, broken)):
         assert slope[2] == 0.0
         np.testing.assert_allclose(np.delete(slope, 2), np.delete(want, 2), rtol=1e-12)
+
+
+def test_a_reading_whose_solve_failed_has_no_number_that_looks_right():
+    # One reading's top current unknown: every number of its solution NaN (its residual infinite), the others solved.
+    i_vt, i_vb, i_wt, i_wb, dv, dw = random_readings(31, bias=1.8)
+    sol = mec_solve(REAL, FEM_BEARING, i_vt.at[2].set(jnp.nan), i_vb, i_wt, i_wb, dv, dw)
+    for name in ("force", "pole_force", "gap_flux", "b_gap", "b_pole", "b_tip", "b_yoke", "b_rotor", "mmf_gap"):
+        value = np.asarray(getattr(sol, name))
+        assert np.all(np.isnan(value[2])) and np.all(np.isfinite(np.delete(value, 2, axis=0))), name
+    assert np.isinf(sol.residual[2]) and np.all(np.asarray(sol.residual)[[0, 1, 3]] < 1e-12)
+    # the gaps are the reading's own, whatever the currents
+    np.testing.assert_array_equal(sol.gaps, mec_solve(REAL, FEM_BEARING, i_vt, i_vb, i_wt, i_wb, dv, dw).gaps)
 
 
 def test_a_held_circuit_parameter_is_not_fitted_and_survives_the_model_file():

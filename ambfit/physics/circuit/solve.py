@@ -75,7 +75,8 @@ class MECSolution(eqx.Module):
     ``MU_0 U / g`` [T]; ``b_pole`` the flux density in each pole's iron between the yoke and the
     leakage point (the most loaded part), ``b_tip`` between the leakage point and the tip [T]; ``b_yoke``,
     ``b_rotor`` in the segments joining pole k and k+1 [T]; ``mmf_gap`` the drop across each gap [A];
-    ``residual`` the largest scaled circuit residual after the solve, ``iterations`` the Newton steps.
+    ``residual`` the largest scaled circuit residual after the solve, ``iterations`` the Newton steps.  A reading
+    whose solve failed has NaN in every field but ``gaps`` and ``iterations``, and an infinite ``residual``.
     """
 
     force: jnp.ndarray
@@ -232,6 +233,13 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     x_star, iterations, lu, converged = _newton(jax.lax.stop_gradient(p), bearing, jax.lax.stop_gradient(currents),
                                                 jax.lax.stop_gradient(gaps), x0)
     x_star, lu = jax.lax.stop_gradient((x_star, lu))
+    # A solve that failed goes on with stand-ins (zero flux, unit factors, no current, the centred gaps) whose numbers
+    # are all replaced by NaN below: its own inputs and factors, NaN or far off, would turn every gradient of the
+    # parameters the rows share NaN in reverse mode, where a NaN is multiplied by the zero that masks it.
+    x_star = jnp.where(converged, x_star, 0.0)
+    lu = (jnp.where(converged, lu[0], jnp.eye(_NX)), jnp.where(converged, lu[1], jnp.arange(_NX, dtype=lu[1].dtype)))
+    currents = jnp.where(converged, currents, 0.0)
+    true_gaps, gaps = gaps, jnp.where(converged, gaps, p.gap)
     # One more Newton step with the Jacobian held constant (the last step's factors, taken one step of at most
     # NEWTON_STOP before x_star, NEWTON_FAILED when the solve used all its steps): the same value, and
     # implicit-function derivatives.
@@ -258,11 +266,16 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     res_mna = _residual(jax.lax.stop_gradient(z), jax.lax.stop_gradient(p), bearing,
                         jax.lax.stop_gradient(currents), jax.lax.stop_gradient(gaps))
     area = bearing.pole_area * p.lamination
+
+    def solved(a):                                       # NaN where the solve failed (the stand-ins' numbers)
+        return jnp.where(converged, a, jnp.nan)
+
     return MECSolution(
-        force=force, pole_force=pole_force, gaps=gaps, gap_flux=fg, b_gap=MU_0 * drop / gaps,
-        b_pole=f_root / (area * p.pole_area_ratio), b_tip=fg / (area * p.pole_area_ratio),
-        b_yoke=fy / (area * p.iron_area_ratio), b_rotor=fr / (area * p.iron_area_ratio),
-        mmf_gap=drop, residual=jnp.max(jnp.abs(res_mna)), iterations=iterations,
+        force=force, pole_force=solved(pole_force), gaps=true_gaps, gap_flux=solved(fg),
+        b_gap=solved(MU_0 * drop / gaps), b_pole=solved(f_root / (area * p.pole_area_ratio)),
+        b_tip=solved(fg / (area * p.pole_area_ratio)), b_yoke=solved(fy / (area * p.iron_area_ratio)),
+        b_rotor=solved(fr / (area * p.iron_area_ratio)), mmf_gap=solved(drop),
+        residual=jnp.where(converged, jnp.max(jnp.abs(res_mna)), jnp.inf), iterations=iterations,
     )
 
 
