@@ -253,7 +253,7 @@ def _solve_one(p: MECParams, bearing: Bearing, i_vt, i_vb, i_wt, i_wb, dv, dw, f
     force = jnp.stack([jnp.sum(pole_force * jnp.asarray(cos_t)), jnp.sum(pole_force * jnp.asarray(sin_t))])
     force = jnp.where(converged, force, jnp.nan)          # never a wrong number: the caller sees NaN rows
     if not full:
-        return force, jnp.where(converged, x_star, 0.0)
+        return force, x_star                             # (zero flux where the solve failed: the stand-in)
     # The nodal unknowns, for the nodal residual of the solution (MECSolution.residual).
     u_ref, _, f_ref = _scales(bearing)
     bh = bh_curve(bearing)
@@ -374,10 +374,9 @@ def _own_force_jvp(bearing, primals, tangents):
     dp, _, *drow, _ = tangents
     force, pullback, flux = jax.vjp(lambda p, *row: _own_force_of(bearing, p, is_v, *row, start), p, *row,
                                     has_aux=True)
-    # a row whose solve failed (a NaN force) gets zero derivatives, finite in both modes; the fluxes are the solve's
-    # own (no derivative)
-    grads = jax.tree_util.tree_map(lambda g: jnp.where(jnp.isfinite(force), g, 0.0), pullback(jnp.ones_like(force)))
-    terms = jax.tree_util.tree_map(lambda g, t: g * t, grads, (dp, *drow))
+    # a row whose solve failed has zero derivatives (its force is the stand-ins' masked by NaN: see _solve_one); the
+    # fluxes are the solve's own (no derivative)
+    terms = jax.tree_util.tree_map(lambda g, t: g * t, pullback(jnp.ones_like(force)), (dp, *drow))
     return (force, flux), (sum(jax.tree_util.tree_leaves(terms)), jnp.zeros_like(flux))
 
 
